@@ -1,0 +1,181 @@
+"""The contract between the agent's command queue and an autopilot backend.
+
+A backend only *commands* the vehicle and *reports* its telemetry. Waiting for an action to
+complete (arrival within an acceptance radius, takeoff altitude reached, landed and disarmed)
+is the queue's job, done by watching :meth:`Autopilot.telemetry`, so every backend (in-memory,
+pymavlink/ArduPilot, MAVSDK/PX4) behaves the same way to the rest of the agent.
+
+Every command method either returns once the autopilot accepted the command, or raises
+:class:`CommandRefused` (the autopilot said no; ``reason`` carries its words, e.g. the last
+``PreArm:`` STATUSTEXT) or :class:`CommandTimeout` (no answer after the backend's retries).
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+
+from protocol.geo import offset_latlon
+
+
+class AutopilotError(Exception):
+    """Base class of every error an autopilot backend raises."""
+
+
+class CommandRefused(AutopilotError):
+    """The autopilot answered and refused the command."""
+
+    def __init__(self, command: str, reason: str) -> None:
+        super().__init__(f"{command} refused: {reason}")
+        self.command = command
+        self.reason = reason
+
+
+class CommandTimeout(AutopilotError):
+    """The autopilot did not answer the command in time, retries included."""
+
+    def __init__(self, command: str, seconds: float) -> None:
+        super().__init__(f"{command}: no answer from the autopilot within {seconds:.1f} s")
+        self.command = command
+        self.seconds = seconds
+
+
+class LinkLost(AutopilotError):
+    """No heartbeat from the autopilot for longer than the backend's link timeout."""
+
+
+@dataclass(slots=True)
+class Telemetry:
+    """The latest known state of the vehicle, in the units the protocol's status report uses.
+
+    Angles in degrees, distances in metres, speeds in m/s, ``alt_rel`` above home,
+    ``alt_amsl`` above mean sea level; velocity is NED. ``battery_pct`` is 0..100 or ``None``
+    when unknown. ``mode`` is the autopilot's mode name in upper case (``GUIDED``, ``AUTO``,
+    ``LOITER``, ``RTL``, ``LAND``, ``BRAKE``, ...). ``landed`` is true on the ground.
+    """
+
+    lat: float = 0.0
+    lon: float = 0.0
+    alt_rel: float = 0.0
+    alt_amsl: float = 0.0
+    vn: float = 0.0
+    ve: float = 0.0
+    vd: float = 0.0
+    heading_deg: float = 0.0
+    battery_pct: float | None = None
+    voltage_v: float | None = None
+    current_a: float | None = None
+    mode: str = "UNKNOWN"
+    armed: bool = False
+    landed: bool = True
+    gps_fix: int = 0
+    satellites: int = 0
+    home_lat: float | None = None
+    home_lon: float | None = None
+    home_alt_amsl: float | None = None
+    mission_current: int = -1  # MISSION_CURRENT seq while flying an uploaded mission, else -1
+    last_heartbeat_monotonic: float = 0.0
+    status_texts: list[str] = field(default_factory=list)
+
+    @property
+    def has_position(self) -> bool:
+        """True once the vehicle reports a 3D fix and a home position."""
+        return self.gps_fix >= 3 and self.home_lat is not None
+
+
+@dataclass(slots=True, frozen=True)
+class MissionPoint:
+    """One waypoint of an uploaded autopilot mission (altitude relative to home)."""
+
+    lat: float
+    lon: float
+    alt_rel_m: float
+
+
+@dataclass(slots=True, frozen=True)
+class FenceCircle:
+    """An inclusion circle (centre lat/lon in degrees, radius in metres)."""
+
+    lat: float
+    lon: float
+    radius_m: float
+
+
+@dataclass(slots=True, frozen=True)
+class FenceSpec:
+    """The parts of a geofence an autopilot can enforce by itself."""
+
+    polygon: tuple[tuple[float, float], ...] = ()  # inclusion polygon, (lat, lon) vertices
+    circle: FenceCircle | None = None
+    max_alt_m: float | None = None  # ceiling above home
+    breach_action: str = "rtl"  # "rtl" | "land" | "hold" | "report"
+
+
+class Autopilot(abc.ABC):
+    """What the agent's queue and exception monitor need from a flight controller."""
+
+    @abc.abstractmethod
+    async def connect(self, timeout: float = 30.0) -> None:
+        """Open the link, wait for the vehicle heartbeat, request telemetry streams."""
+
+    @abc.abstractmethod
+    async def close(self) -> None:
+        """Release the link. Idempotent."""
+
+    @abc.abstractmethod
+    def telemetry(self) -> Telemetry:
+        """The latest telemetry snapshot (never blocks)."""
+
+    @abc.abstractmethod
+    async def arm(self, deadline_s: float = 60.0) -> None:
+        """Switch to GUIDED and arm, retrying pre-arm refusals until ``deadline_s``."""
+
+    @abc.abstractmethod
+    async def takeoff(self, alt_rel_m: float) -> None:
+        """Command a takeoff to ``alt_rel_m`` above home (vehicle armed, landed, GUIDED)."""
+
+    @abc.abstractmethod
+    async def goto(self, lat: float, lon: float, alt_rel_m: float, speed_mps: float | None = None) -> None:
+        """Set a global position target (GUIDED). Returns once sent/accepted, not on arrival."""
+
+    @abc.abstractmethod
+    async def land(self, lat: float | None = None, lon: float | None = None) -> None:
+        """Land here, or at lat/lon when given."""
+
+    @abc.abstractmethod
+    async def return_to_launch(self) -> None:
+        """Switch to return-to-launch."""
+
+    @abc.abstractmethod
+    async def hold(self) -> None:
+        """Stop and hold position (BRAKE or LOITER, or a position target at the current point)."""
+
+    @abc.abstractmethod
+    async def set_speed(self, speed_mps: float) -> None:
+        """Change the horizontal cruise speed."""
+
+    @abc.abstractmethod
+    async def upload_fence(self, fence: FenceSpec) -> bool:
+        """Install the fence on the autopilot; False when the autopilot cannot enforce it."""
+
+    async def go_by(self, north_m: float, east_m: float, up_m: float, speed_mps: float | None = None) -> None:
+        """Move by a local NED offset from the current position.
+
+        The default turns the offset into a global target; backends with a native local-offset
+        command (MAVLink ``MAV_FRAME_LOCAL_OFFSET_NED``) may override it.
+        """
+        now = self.telemetry()
+        lat, lon = offset_latlon(now.lat, now.lon, north_m, east_m)
+        await self.goto(lat, lon, now.alt_rel + up_m, speed_mps)
+
+    async def disarm(self) -> None:
+        """Disarm (only on the ground). Backends override when they support it."""
+        raise CommandRefused("disarm", "not supported by this backend")
+
+    async def upload_mission(self, points: list[MissionPoint]) -> None:
+        """Upload a waypoint mission (the autopilot flies it in AUTO after :meth:`start_mission`)."""
+        raise CommandRefused("mission upload", "not supported by this backend")
+
+    async def start_mission(self) -> None:
+        """Start the uploaded mission (AUTO)."""
+        raise CommandRefused("mission start", "not supported by this backend")
