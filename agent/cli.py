@@ -1,0 +1,104 @@
+"""`agent` command line: run the companion-computer agent beside one autopilot."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from agent.autopilot.base import Autopilot
+from agent.config import AgentConfig, AgentSettings
+from agent.runtime import Agent
+from protocol.packets import Capabilities
+
+
+def split_host_port(text: str, default_port: int) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        return text, default_port
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def make_autopilot(backend: str, connection: str, speedup: float) -> Autopilot:
+    """The backend named on the command line. ``memory`` takes 'LAT,LON[,ALT]' as its connection."""
+    if backend == "memory":
+        from agent.autopilot.memory import MemoryAutopilot
+
+        parts = [float(p) for p in connection.split(",")] if connection and connection != "memory" else []
+        home = (parts[0], parts[1], parts[2] if len(parts) > 2 else 0.0) if len(parts) >= 2 else None
+        return MemoryAutopilot(home, speedup=speedup) if home else MemoryAutopilot(speedup=speedup)
+    from agent.autopilot.factory import create_autopilot
+
+    return create_autopilot(backend, connection)
+
+
+def read_key(args: argparse.Namespace) -> str:
+    if args.key:
+        return str(args.key)
+    if os.environ.get("FLEETGCS_KEY"):
+        return os.environ["FLEETGCS_KEY"]
+    if args.key_file:
+        return Path(args.key_file).read_text().strip()
+    raise SystemExit("agent: give the key with --key-file, --key or FLEETGCS_KEY (see `gcs keygen`)")
+
+
+def run(args: argparse.Namespace) -> int:
+    host, port = split_host_port(args.gcs, 4396)
+    config = AgentConfig(
+        identity=args.id,
+        gcs_host=host,
+        gcs_port=port,
+        key_hex=read_key(args),
+        capabilities=Capabilities(
+            max_speed_mps=args.max_speed, endurance_s=args.endurance, autopilot=args.autopilot_backend
+        ),
+        settings=AgentSettings(
+            lost_link_timeout_s=args.lost_link_timeout, lost_link_action=args.lost_link_action
+        ),
+    )
+    autopilot = make_autopilot(args.autopilot_backend, args.autopilot, args.speedup)
+
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops like Ctrl-C
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(Agent(config, autopilot).run())
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="agent", description="fleetgcs companion-computer agent")
+    parser.add_argument("-v", "--verbose", action="store_true")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("run", help="connect an autopilot to the daemon")
+    p.add_argument("--gcs", default="127.0.0.1:4396", help="daemon HOST:PORT (default %(default)s)")
+    p.add_argument("--autopilot", default="tcp:127.0.0.1:5760", help="MAVLink connection string")
+    p.add_argument("--autopilot-backend", default="mavlink", choices=["mavlink", "mavsdk", "memory"])
+    p.add_argument("--id", required=True, help="agent identity (unique in the fleet)")
+    p.add_argument("--key-file", help="file holding the hex key (fleet key or this agent's key)")
+    p.add_argument("--key", help="hex key (prefer --key-file or FLEETGCS_KEY: argv is visible to all users)")
+    p.add_argument("--max-speed", type=float, default=10.0, help="capability: max speed m/s")
+    p.add_argument("--endurance", type=float, default=1200.0, help="capability: endurance s")
+    p.add_argument("--lost-link-timeout", type=float, default=15.0)
+    p.add_argument("--lost-link-action", default="continue", choices=["continue", "hold", "rtl", "land"])
+    p.add_argument("--speedup", type=float, default=1.0, help="memory backend only: time speed-up")
+    p.set_defaults(run=run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    return int(args.run(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

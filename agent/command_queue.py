@@ -1,0 +1,124 @@
+"""The agent's FIFO command queue: one action at a time, sync waits, replace/append semantics.
+
+After an action with ``sync`` the queue reports "finished step k" through ``on_finished`` and
+blocks until :meth:`release` is called for k (the daemon's type-5 release). A ``replace``
+cancels whatever runs or waits and starts the new list; an exception reaction uses
+:meth:`interrupt` to empty the queue so the vehicle is not sent on by stale commands.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections import deque
+from collections.abc import Awaitable, Callable
+
+from agent.executor import ActionExecutor, ActionFailed
+from protocol.actions import Action
+
+log = logging.getLogger("agent.queue")
+
+FinishedHook = Callable[[str, int], Awaitable[None]]
+FailedHook = Callable[[Action, str], Awaitable[None]]
+
+
+class CommandQueue:
+    def __init__(self, executor: ActionExecutor, on_finished: FinishedHook, on_failed: FailedHook) -> None:
+        self._executor = executor
+        self._on_finished = on_finished
+        self._on_failed = on_failed
+        self._pending: deque[Action] = deque()
+        self._wakeup = asyncio.Event()
+        self._releases: set[int] = set()
+        self._release_event = asyncio.Event()
+        self._current: asyncio.Task[None] | None = None
+        self._runner: asyncio.Task[None] | None = None
+        self.mission_id: str | None = None
+        self.current_step = -1
+        self.completed_step = -1
+        self.waiting_sync: int | None = None
+
+    @property
+    def depth(self) -> int:
+        """Actions not yet started (the running one excluded)."""
+        return len(self._pending)
+
+    @property
+    def busy(self) -> bool:
+        return self.current_step >= 0
+
+    def start(self) -> None:
+        self._runner = asyncio.create_task(self._run(), name="command-queue")
+
+    async def stop(self) -> None:
+        for task in (self._current, self._runner):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+
+    async def submit(self, mission_id: str, actions: list[Action], replace: bool) -> None:
+        """Add ``actions`` (type 4). ``replace`` empties the queue and cancels the running action."""
+        if replace or mission_id != self.mission_id:
+            await self.interrupt()
+            self.mission_id = mission_id
+            self.completed_step = -1
+            self._releases.clear()
+        self._pending.extend(actions)
+        self._wakeup.set()
+
+    async def interrupt(self) -> None:
+        """Empty the queue and cancel the running action or sync wait."""
+        self._pending.clear()
+        current = self._current
+        if current is not None and not current.done():
+            current.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await current
+        self.waiting_sync = None
+        self.current_step = -1
+
+    def release(self, mission_id: str, step: int) -> None:
+        """The daemon released ``step`` (type 5)."""
+        if mission_id != self.mission_id:
+            log.warning(
+                "release of step %d for mission %s, but running %s", step, mission_id, self.mission_id
+            )
+            return
+        self._releases.add(step)
+        self._release_event.set()
+
+    async def _run(self) -> None:
+        while True:
+            while not self._pending:
+                self._wakeup.clear()
+                await self._wakeup.wait()
+            action = self._pending.popleft()
+            self.current_step = action.step
+            self._current = asyncio.create_task(self._perform(action), name=f"action-{action.step}")
+            try:
+                await self._current
+            except asyncio.CancelledError:
+                me = asyncio.current_task()
+                if me is not None and me.cancelling():
+                    raise  # the queue itself is stopping; only an interrupted action is swallowed
+            self._current = None
+            self.current_step = -1
+
+    async def _perform(self, action: Action) -> None:
+        mission_id = self.mission_id or ""
+        try:
+            await self._executor.run(action)
+        except ActionFailed as exc:
+            self._pending.clear()
+            await self._on_failed(action, str(exc))
+            return
+        self.completed_step = max(self.completed_step, action.step)
+        if action.sync:
+            self.waiting_sync = action.step
+            await self._on_finished(mission_id, action.step)
+            while action.step not in self._releases:
+                self._release_event.clear()
+                await self._release_event.wait()
+            self.waiting_sync = None

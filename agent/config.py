@@ -1,0 +1,55 @@
+"""Agent settings: identity and links (fixed at start) and parameters the daemon may change (type 3)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from protocol.packets import AgentParameters, Capabilities
+
+Reaction = Literal["report", "rtl", "land", "hold"]
+
+
+class AgentSettings(BaseModel):
+    """Parameters the daemon can push with a type-1 or type-3 packet; defaults apply until it does."""
+
+    model_config = ConfigDict(validate_assignment=True)
+
+    status_period_s: float = Field(default=0.5, ge=0.02, le=60.0)
+    link_range_m: float | None = None
+    battery_low_pct: float = Field(default=25.0, ge=0.0, le=100.0)
+    battery_critical_pct: float = Field(default=12.0, ge=0.0, le=100.0)
+    battery_low_action: Reaction = "rtl"
+    battery_critical_action: Reaction = "land"
+    lost_link_timeout_s: float = Field(default=15.0, gt=0.0)
+    lost_link_action: Literal["continue", "hold", "rtl", "land"] = "continue"
+    acceptance_radius_m: float = Field(default=2.0, gt=0.0)
+
+    def apply(self, parameters: AgentParameters) -> list[str]:
+        """Take every field the daemon set; returns the names changed."""
+        changed = []
+        for name, value in parameters.model_dump(exclude_none=True).items():
+            if getattr(self, name) != value:
+                setattr(self, name, value)
+                changed.append(name)
+        return changed
+
+
+class AgentConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    identity: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$")
+    gcs_host: str = "127.0.0.1"
+    gcs_port: int = Field(default=4396, ge=1, le=65_535)
+    key_hex: str
+    capabilities: Capabilities = Capabilities()
+    settings: AgentSettings = AgentSettings()
+    reconnect_min_s: float = Field(default=0.2, gt=0.0)
+    reconnect_max_s: float = Field(default=5.0, gt=0.0)
+    handshake_timeout_s: float = Field(default=5.0, gt=0.0)
+    status_buffer: int = Field(default=1200, ge=1, description="status reports kept while offline")
+    arm_deadline_s: float = Field(default=60.0, gt=0.0)
+    takeoff_tolerance: float = Field(default=0.95, gt=0.5, le=1.0, description="fraction of target altitude")
+    resend_target_s: float = Field(default=3.0, gt=0.0, description="re-send unacknowledged position targets")
+    monitor_period_s: float = Field(default=0.25, gt=0.0)

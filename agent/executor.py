@@ -1,0 +1,143 @@
+"""Run one protocol action on an autopilot until it is complete, or fail with a reason.
+
+Completion is judged from telemetry, the same way for every backend: arrival within the
+acceptance radius (horizontal) and 1 m (vertical), takeoff at ``takeoff_tolerance`` of the
+target altitude, landing when the vehicle reports landed and disarmed. Position targets are
+re-sent every ``resend_target_s`` because MAVLink does not acknowledge them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+from agent.autopilot.base import Autopilot, AutopilotError
+from agent.config import AgentConfig
+from protocol.actions import (
+    Action,
+    GoBy,
+    Goto,
+    Hold,
+    Land,
+    ReturnToLaunch,
+    SetSpeed,
+    Takeoff,
+    Waypoints,
+)
+from protocol.geo import distance_m, offset_latlon
+
+POLL_S = 0.05
+VERTICAL_TOLERANCE_M = 1.0
+
+
+class ActionFailed(Exception):
+    """The action could not be completed; the message says why (shown to the operator)."""
+
+
+def default_timeout(action: Action) -> float:
+    """A generous per-action time limit when the action does not set one."""
+    if action.timeout_s is not None:
+        return action.timeout_s
+    if isinstance(action, Takeoff):
+        return 90.0 + action.alt / 0.5
+    if isinstance(action, Hold):
+        return action.seconds + 10.0
+    if isinstance(action, (Land, ReturnToLaunch)):
+        return 600.0
+    if isinstance(action, SetSpeed):
+        return 10.0
+    return 3600.0  # legs: bounded by battery long before this
+
+
+class ActionExecutor:
+    """Executes actions on one autopilot with the agent's settings."""
+
+    def __init__(self, autopilot: Autopilot, config: AgentConfig) -> None:
+        self.autopilot = autopilot
+        self.config = config
+        self.cruise_mps: float | None = None
+
+    async def run(self, action: Action) -> None:
+        """Execute ``action`` to completion within its timeout, else raise :class:`ActionFailed`."""
+        limit = default_timeout(action)
+        try:
+            await asyncio.wait_for(self._dispatch(action), limit)
+        except TimeoutError:
+            raise ActionFailed(
+                f"{action.kind} (step {action.step}) did not complete within {limit:.0f} s"
+            ) from None
+        except AutopilotError as exc:
+            raise ActionFailed(f"{action.kind} (step {action.step}): {exc}") from None
+
+    async def _dispatch(self, action: Action) -> None:
+        ap = self.autopilot
+        if isinstance(action, Takeoff):
+            await self._takeoff(action.alt)
+        elif isinstance(action, Goto):
+            await self._fly_to(action.lat, action.lon, action.alt, action.speed)
+        elif isinstance(action, GoBy):
+            now = ap.telemetry()
+            lat, lon = offset_latlon(now.lat, now.lon, action.north, action.east)
+            await ap.go_by(action.north, action.east, action.up, action.speed)
+            await self._fly_to(lat, lon, now.alt_rel + action.up, action.speed, already_sent=True)
+        elif isinstance(action, Waypoints):
+            for point in action.points:
+                await self._fly_to(point.lat, point.lon, point.alt, action.speed)
+        elif isinstance(action, Land):
+            await ap.land(action.lat, action.lon)
+            await self._until_disarmed()
+        elif isinstance(action, ReturnToLaunch):
+            await ap.return_to_launch()
+            await self._until_disarmed()
+        elif isinstance(action, Hold):
+            await ap.hold()
+            await asyncio.sleep(action.seconds)
+        elif isinstance(action, SetSpeed):
+            await ap.set_speed(action.speed)
+            self.cruise_mps = action.speed
+        else:  # pragma: no cover - the Action union is exhaustive
+            raise ActionFailed(f"unknown action {action!r}")
+
+    async def _takeoff(self, alt: float) -> None:
+        ap = self.autopilot
+        now = ap.telemetry()
+        if not now.landed and now.armed:
+            # Already airborne (e.g. a resumed plan): a takeoff means "climb to alt".
+            await self._fly_to(now.lat, now.lon, alt, None)
+            return
+        await ap.arm(self.config.arm_deadline_s)
+        await ap.takeoff(alt)
+        target = alt * self.config.takeoff_tolerance
+        while ap.telemetry().alt_rel < target:
+            if not ap.telemetry().armed:
+                raise ActionFailed("the vehicle disarmed during takeoff")
+            await asyncio.sleep(POLL_S)
+
+    async def _fly_to(
+        self, lat: float, lon: float, alt: float, speed: float | None, *, already_sent: bool = False
+    ) -> None:
+        ap = self.autopilot
+        speed = speed or self.cruise_mps
+        if not already_sent:
+            await ap.goto(lat, lon, alt, speed)
+        sent_at = time.monotonic()
+        radius = self.config.settings.acceptance_radius_m
+        while True:
+            now = ap.telemetry()
+            if not now.armed:
+                raise ActionFailed("the vehicle is no longer armed")
+            horizontal = distance_m(now.lat, now.lon, lat, lon)
+            if horizontal <= radius and abs(now.alt_rel - alt) <= max(VERTICAL_TOLERANCE_M, radius / 2):
+                return
+            if time.monotonic() - sent_at >= self.config.resend_target_s:
+                await ap.goto(lat, lon, alt, None)
+                sent_at = time.monotonic()
+            await asyncio.sleep(POLL_S)
+
+    async def _until_disarmed(self) -> None:
+        ap = self.autopilot
+        while True:
+            now = ap.telemetry()
+            if now.landed and not now.armed:
+                return
+            await asyncio.sleep(POLL_S)

@@ -1,0 +1,137 @@
+"""Exception monitor: watches the vehicle and the daemon link and acts on the autopilot itself.
+
+Each exception fires its reaction once when it starts (edge-triggered) and stays listed in
+the status report while it lasts, so a flapping condition cannot spam the autopilot and the
+daemon always sees what is active. Reactions that move the vehicle (rtl, land, hold) first
+empty the command queue, so stale commands cannot fly it back into trouble.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+
+from agent.autopilot.base import Autopilot, AutopilotError, Telemetry
+from agent.config import AgentSettings
+from protocol.geo import distance_m, point_in_polygon
+from protocol.packets import Geofence
+
+log = logging.getLogger("agent.monitor")
+
+AUTOPILOT_LINK_TIMEOUT_S = 3.0
+
+
+@dataclass(frozen=True, slots=True)
+class Condition:
+    name: str
+    reaction: str  # report | rtl | land | hold | continue
+    detail: str
+
+
+def fence_violation(t: Telemetry, fence: Geofence | None) -> str | None:
+    """Why the vehicle is outside ``fence``, or None when inside (or no fence/position)."""
+    if fence is None or t.gps_fix < 3:
+        return None
+    if fence.max_alt_m is not None and t.alt_rel > fence.max_alt_m:
+        return f"altitude {t.alt_rel:.1f} m above the ceiling {fence.max_alt_m:.1f} m"
+    if fence.circle is not None:
+        off = distance_m(t.lat, t.lon, fence.circle.lat, fence.circle.lon)
+        if off > fence.circle.radius_m:
+            return f"{off:.1f} m from the fence centre, radius {fence.circle.radius_m:.1f} m"
+    if fence.polygon is not None:
+        vertices = [(v.lat, v.lon) for v in fence.polygon]
+        if not point_in_polygon(t.lat, t.lon, vertices):
+            return "outside the fence polygon"
+    return None
+
+
+class ExceptionMonitor:
+    def __init__(
+        self,
+        autopilot: Autopilot,
+        settings: AgentSettings,
+        link_contact: Callable[[], tuple[bool, float]],
+        interrupt_queue: Callable[[], Awaitable[None]],
+        report: Callable[[str, str], Awaitable[None]],
+    ) -> None:
+        self._autopilot = autopilot
+        self._settings = settings
+        self._link_contact = link_contact
+        self._interrupt_queue = interrupt_queue
+        self._report = report
+        self.geofence: Geofence | None = None
+        self.active: dict[str, Condition] = {}
+
+    def conditions(self, t: Telemetry, now: float) -> list[Condition]:
+        """Every exception that holds right now (pure function of state)."""
+        s = self._settings
+        found: list[Condition] = []
+        if t.battery_pct is not None and t.armed:
+            if t.battery_pct <= s.battery_critical_pct:
+                found.append(
+                    Condition("battery_critical", s.battery_critical_action, f"{t.battery_pct:.0f}%")
+                )
+            elif t.battery_pct <= s.battery_low_pct:
+                found.append(Condition("battery_low", s.battery_low_action, f"{t.battery_pct:.0f}%"))
+        if t.armed and not t.landed:
+            why = fence_violation(t, self.geofence)
+            if why is not None:
+                assert self.geofence is not None
+                found.append(Condition("fence_breach", self.geofence.breach_action, why))
+        connected, last_contact = self._link_contact()
+        if not connected and now - last_contact > s.lost_link_timeout_s:
+            found.append(
+                Condition(
+                    "link_lost", s.lost_link_action, f"no daemon contact for {now - last_contact:.0f} s"
+                )
+            )
+        if t.last_heartbeat_monotonic and now - t.last_heartbeat_monotonic > AUTOPILOT_LINK_TIMEOUT_S:
+            found.append(Condition("autopilot_link_lost", "report", "no autopilot heartbeat"))
+        if t.armed and t.gps_fix < 3:
+            found.append(Condition("gps_lost", "report", f"fix type {t.gps_fix}"))
+        return found
+
+    async def check(self) -> None:
+        now = time.monotonic()
+        current = {c.name: c for c in self.conditions(self._autopilot.telemetry(), now)}
+        for name, condition in current.items():
+            if name not in self.active:
+                await self._react(condition)
+        for name in set(self.active) - set(current):
+            await self._report(f"{name}_cleared", "")
+        self.active = current
+
+    async def _react(self, condition: Condition) -> None:
+        log.warning("exception %s (%s): reaction %s", condition.name, condition.detail, condition.reaction)
+        await self._report(condition.name, f"{condition.detail}; reaction {condition.reaction}")
+        if condition.reaction in ("report", "continue"):
+            return
+        t = self._autopilot.telemetry()
+        if t.landed or not t.armed:
+            return
+        await self._interrupt_queue()
+        try:
+            if condition.reaction == "rtl":
+                await self._autopilot.return_to_launch()
+            elif condition.reaction == "land":
+                await self._autopilot.land()
+            elif condition.reaction == "hold":
+                await self._autopilot.hold()
+        except AutopilotError as exc:
+            await self._report(f"{condition.name}_reaction_failed", str(exc))
+
+    async def run(self, period_s: float) -> None:
+        while True:
+            try:
+                await self.check()
+            except AutopilotError as exc:  # keep monitoring whatever the autopilot does
+                log.error("monitor: %s", exc)
+            await asyncio.sleep(period_s)
+
+
+def finite_or_zero(value: float) -> float:
+    return value if math.isfinite(value) else 0.0

@@ -1,0 +1,209 @@
+"""Composition root of the agent: autopilot + command queue + monitor + daemon link + status loop."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+
+from agent.autopilot.base import Autopilot, FenceCircle, FenceSpec, Telemetry
+from agent.command_queue import CommandQueue
+from agent.config import AgentConfig
+from agent.executor import ActionExecutor
+from agent.link import DaemonLink
+from agent.monitor import ExceptionMonitor, finite_or_zero
+from protocol.actions import Action
+from protocol.auth import parse_key
+from protocol.packets import (
+    Battery,
+    Geofence,
+    GeoPoint,
+    Gps,
+    PerformActions,
+    Position,
+    Resume,
+    SetParameters,
+    StatusReport,
+    SyncSignal,
+    VelocityNed,
+)
+
+log = logging.getLogger("agent")
+
+EVENT_HISTORY = 50
+RECENT_EXCEPTION_S = 10.0
+
+
+def fence_spec(fence: Geofence) -> FenceSpec:
+    """The autopilot-side form of a protocol geofence."""
+    return FenceSpec(
+        polygon=tuple((v.lat, v.lon) for v in fence.polygon or ()),
+        circle=FenceCircle(fence.circle.lat, fence.circle.lon, fence.circle.radius_m)
+        if fence.circle
+        else None,
+        max_alt_m=fence.max_alt_m,
+        breach_action=fence.breach_action,
+    )
+
+
+def _clamp_pct(value: float | None) -> float | None:
+    return None if value is None else min(100.0, max(0.0, value))
+
+
+def build_status(
+    t: Telemetry, queue: CommandQueue, exceptions: list[str], autopilot_link: bool
+) -> StatusReport:
+    """A type-2 report from telemetry and queue state."""
+    return StatusReport(
+        time=time.time(),
+        position=Position(
+            lat=finite_or_zero(t.lat),
+            lon=finite_or_zero(t.lon),
+            alt_rel=finite_or_zero(t.alt_rel),
+            alt_amsl=finite_or_zero(t.alt_amsl),
+        ),
+        velocity=VelocityNed(vn=finite_or_zero(t.vn), ve=finite_or_zero(t.ve), vd=finite_or_zero(t.vd)),
+        heading_deg=finite_or_zero(t.heading_deg) % 360.0,
+        battery=Battery(pct=_clamp_pct(t.battery_pct), voltage_v=t.voltage_v, current_a=t.current_a),
+        mode=t.mode[:32],
+        armed=t.armed,
+        landed=t.landed,
+        gps=Gps(fix=max(0, min(8, t.gps_fix)), satellites=max(0, min(255, t.satellites))),
+        mission_id=queue.mission_id,
+        step=queue.current_step,
+        completed_step=queue.completed_step,
+        queue_depth=queue.depth,
+        waiting_sync=queue.waiting_sync,
+        exceptions=exceptions[:32],
+        autopilot_link=autopilot_link,
+    )
+
+
+class Agent:
+    """One companion-computer agent: ``await run()`` until cancelled."""
+
+    def __init__(self, config: AgentConfig, autopilot: Autopilot) -> None:
+        self.config = config
+        self.settings = config.settings
+        self.autopilot = autopilot
+        self.executor = ActionExecutor(autopilot, config)
+        self.queue = CommandQueue(self.executor, self._on_step_finished, self._on_action_failed)
+        self.link = DaemonLink(
+            config,
+            parse_key(config.key_hex),
+            on_actions=self._on_actions,
+            on_release=self._on_release,
+            on_parameters=self._on_parameters,
+            home=self._home,
+            resume=self._resume,
+        )
+        self.monitor = ExceptionMonitor(
+            autopilot,
+            self.settings,
+            link_contact=lambda: (self.link.connected, self.link.last_contact),
+            interrupt_queue=self.queue.interrupt,
+            report=self._on_exception,
+        )
+        self.reported: list[tuple[float, str, str]] = []  # (monotonic time, name, detail)
+        self._tasks: list[asyncio.Task[None]] = []
+        self._status_wakeup = asyncio.Event()
+
+    async def run(self) -> None:
+        await self.autopilot.connect()
+        self.queue.start()
+        self._tasks = [
+            asyncio.create_task(self.link.run(), name="daemon-link"),
+            asyncio.create_task(self.monitor.run(self.config.monitor_period_s), name="monitor"),
+            asyncio.create_task(self._status_loop(), name="status"),
+        ]
+        try:
+            await asyncio.gather(*self._tasks)
+        finally:
+            await self.shutdown()
+
+    async def shutdown(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        self._tasks = []
+        await self.link.stop()
+        await self.queue.stop()
+        await self.autopilot.close()
+
+    # --- status ---------------------------------------------------------------------------------
+
+    async def _status_loop(self) -> None:
+        while True:
+            t = self.autopilot.telemetry()
+            link_ok = time.monotonic() - t.last_heartbeat_monotonic < 3.0
+            await self.link.send_status(build_status(t, self.queue, self.exception_list(), link_ok))
+            self._status_wakeup.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._status_wakeup.wait(), self.settings.status_period_s)
+
+    def exception_list(self) -> list[str]:
+        """Active conditions plus one-shot exceptions of the last ``RECENT_EXCEPTION_S`` seconds."""
+        now = time.monotonic()
+        active = {name: f"{name}: {c.detail}" for name, c in self.monitor.active.items()}
+        for when, name, detail in self.reported:
+            if now - when <= RECENT_EXCEPTION_S and name not in active and not name.endswith("_cleared"):
+                active[name] = f"{name}: {detail}" if detail else name
+        return [text[:200] for _, text in sorted(active.items())]
+
+    def _home(self) -> GeoPoint | None:
+        t = self.autopilot.telemetry()
+        if t.home_lat is None or t.home_lon is None:
+            return None
+        return GeoPoint(lat=t.home_lat, lon=t.home_lon, alt_amsl=t.home_alt_amsl or 0.0)
+
+    def _resume(self) -> Resume | None:
+        if self.queue.mission_id is None:
+            return None
+        return Resume(
+            mission_id=self.queue.mission_id,
+            completed_step=self.queue.completed_step,
+            waiting_step=self.queue.waiting_sync,
+            queue_depth=self.queue.depth,
+        )
+
+    # --- handlers -------------------------------------------------------------------------------
+
+    async def _on_actions(self, packet: PerformActions) -> None:
+        actions: list[Action] = list(packet.actions)
+        log.info("%s %d actions for mission %s", packet.mode, len(actions), packet.mission_id)
+        await self.queue.submit(packet.mission_id, actions, replace=packet.mode == "replace")
+        self._status_wakeup.set()
+
+    async def _on_release(self, signal: SyncSignal) -> None:
+        self.queue.release(signal.mission_id, signal.step)
+
+    async def _on_parameters(self, packet: SetParameters) -> None:
+        if packet.parameters is not None:
+            changed = self.settings.apply(packet.parameters)
+            if changed:
+                log.info("parameters changed: %s", ", ".join(changed))
+        if packet.clear_geofence:
+            self.monitor.geofence = None
+        if packet.geofence is not None:
+            self.monitor.geofence = packet.geofence
+            enforced = await self.autopilot.upload_fence(fence_spec(packet.geofence))
+            log.info("geofence installed (autopilot enforces it too: %s)", enforced)
+
+    async def _on_step_finished(self, mission_id: str, step: int) -> None:
+        self._status_wakeup.set()
+        await self.link.send_control(SyncSignal(mission_id=mission_id, step=step, kind="finished"))
+
+    async def _on_action_failed(self, action: Action, reason: str) -> None:
+        await self._on_exception("action_failed", reason)
+        t = self.autopilot.telemetry()
+        if t.armed and not t.landed:
+            with contextlib.suppress(Exception):
+                await self.autopilot.hold()
+
+    async def _on_exception(self, name: str, detail: str) -> None:
+        self.reported.append((time.monotonic(), name, detail))
+        del self.reported[:-EVENT_HISTORY]
+        self._status_wakeup.set()

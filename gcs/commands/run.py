@@ -1,0 +1,107 @@
+"""`gcs run TASKFILE`: submit a mission to a running daemon and follow it to the end."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from gcs.config import default_data_dir
+from protocol.taskfile import TaskFileError, load_task_text
+
+TERMINAL = {"completed", "aborted"}
+
+
+def api_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--api", default="http://127.0.0.1:8080", help="daemon HTTP API (default %(default)s)"
+    )
+    parser.add_argument("--token", help="API token (default: read DATA_DIR/api.token)")
+    parser.add_argument("--data-dir", type=Path, default=default_data_dir())
+
+
+def api_token(args: argparse.Namespace) -> str:
+    if args.token:
+        return str(args.token)
+    path = Path(args.data_dir) / "api.token"
+    try:
+        return path.read_text().strip()
+    except OSError as exc:
+        raise SystemExit(f"gcs: no API token: {exc} (pass --token)") from None
+
+
+def problem_text(response: httpx.Response) -> str:
+    try:
+        body: dict[str, Any] = response.json()
+        return f"{body.get('title', response.reason_phrase)}: {body.get('detail', '')}"
+    except ValueError:
+        return f"HTTP {response.status_code}: {response.text[:300]}"
+
+
+def render_progress(progress: dict[str, Any]) -> str:
+    cells = []
+    for agent in progress["agents"]:
+        state = "done" if agent["done"] else ("lost" if not agent["connected"] else f"step {agent['step']}")
+        if agent.get("waiting_sync") is not None:
+            state = f"sync {agent['waiting_sync']}"
+        if agent["excluded"]:
+            state = "excluded"
+        cells.append(f"{agent['agent']}[{agent['completed_step'] + 1}/{agent['last_step'] + 1} {state}]")
+    released = len(progress["released_steps"])
+    return f"{progress['state']:9} sync {released}/{len(progress['sync_steps'])}  " + "  ".join(cells)
+
+
+def follow(client: httpx.Client, mission_id: str, timeout_s: float, quiet: bool = False) -> dict[str, Any]:
+    """Poll the mission until it ends (or ``timeout_s``); prints one line per change."""
+    deadline = time.monotonic() + timeout_s
+    last_line = ""
+    progress: dict[str, Any] = {}
+    while time.monotonic() < deadline:
+        response = client.get(f"/api/v1/missions/{mission_id}")
+        response.raise_for_status()
+        progress = response.json()
+        line = render_progress(progress)
+        if line != last_line and not quiet:
+            print(line, flush=True)
+            last_line = line
+        if progress["state"] in TERMINAL:
+            return progress
+        time.sleep(0.5)
+    return progress
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        task = load_task_text(Path(args.taskfile).read_text())
+    except (OSError, TaskFileError) as exc:
+        print(f"gcs run: {exc}", file=sys.stderr)
+        return 2
+    headers = {"Authorization": f"Bearer {api_token(args)}"}
+    with httpx.Client(base_url=args.api, headers=headers, timeout=10.0) as client:
+        try:
+            response = client.post("/api/v1/missions", content=json.dumps(task.model_dump(mode="json")))
+        except httpx.HTTPError as exc:
+            print(f"gcs run: cannot reach the daemon at {args.api}: {exc}", file=sys.stderr)
+            return 3
+        if response.status_code != 201:
+            print(f"gcs run: {problem_text(response)}", file=sys.stderr)
+            return 2
+        mission_id = response.json()["mission_id"]
+        print(f"mission {mission_id} started", flush=True)
+        progress = follow(client, mission_id, args.timeout)
+    state = progress.get("state", "unknown")
+    print(f"mission {mission_id}: {state} - {progress.get('result')}")
+    return 0 if state == "completed" else 1
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("run", help="submit a task file to a running daemon and follow it")
+    parser.add_argument("taskfile", help="fleetgcs task file or CoUAS task file (JSON)")
+    parser.add_argument("--timeout", type=float, default=3600.0, help="give up following after this many s")
+    api_arguments(parser)
+    parser.set_defaults(run=run)

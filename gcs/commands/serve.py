@@ -1,0 +1,78 @@
+"""`gcs serve`: run the daemon (agent TCP listener + HTTP API) until SIGINT/SIGTERM."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import signal
+from collections.abc import Coroutine
+from pathlib import Path
+from typing import Any
+
+from gcs.config import DaemonConfig, default_data_dir
+from gcs.daemon import serve_forever
+
+
+def split_host_port(text: str, default_port: int) -> tuple[str, int]:
+    """'HOST:PORT', 'HOST' or ':PORT' -> (host, port); IPv6 as [::1]:PORT."""
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        return text, default_port
+    host = host.strip("[]") or "127.0.0.1"
+    try:
+        return host, int(port)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bad port in {text!r}") from None
+
+
+def add_daemon_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--listen", default="127.0.0.1:4396", help="agent listener HOST:PORT (default %(default)s)"
+    )
+    parser.add_argument(
+        "--http", default="127.0.0.1:8080", help="HTTP API HOST:PORT, or 'none' (default %(default)s)"
+    )
+    parser.add_argument("--data-dir", type=Path, default=default_data_dir(), help="database, keys, API token")
+    parser.add_argument("--agent-keys", type=Path, help="JSON file {identity: hex key} of per-agent keys")
+    parser.add_argument("--status-period", type=float, default=0.5, help="agent status period, s")
+    parser.add_argument("--lost-after", type=float, default=6.0, help="status periods of silence = lost")
+
+
+def config_from_args(args: argparse.Namespace) -> DaemonConfig:
+    host, port = split_host_port(args.listen, 4396)
+    http_host: str | None
+    if args.http.lower() == "none":
+        http_host, http_port = None, 0
+    else:
+        http_host, http_port = split_host_port(args.http, 8080)
+    return DaemonConfig(
+        listen_host=host,
+        listen_port=port,
+        http_host=http_host,
+        http_port=http_port,
+        data_dir=args.data_dir,
+        agent_keys_file=args.agent_keys,
+        status_period_s=args.status_period,
+        lost_after_periods=args.lost_after,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    config = config_from_args(args)
+    return run_until_signalled(serve_forever(config, args.ready_file))
+
+
+def run_until_signalled(coroutine: Coroutine[Any, Any, None]) -> int:
+    """Run ``coroutine``; SIGTERM stops it like Ctrl-C (asyncio cancels it and its cleanup runs)."""
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(coroutine)
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("serve", help="run the ground station daemon")
+    add_daemon_arguments(parser)
+    parser.add_argument("--ready-file", type=Path, help="write 'AGENT_PORT HTTP_PORT' here once listening")
+    parser.set_defaults(run=run)

@@ -1,0 +1,50 @@
+"""Daemon settings (validated); the CLI and tests build one, later a TOML file will too."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from protocol.packets import AgentParameters
+from protocol.wire import DEFAULT_MAX_BODY
+
+
+def default_data_dir() -> Path:
+    """Where the daemon keeps its database, fleet key and API token unless told otherwise."""
+    return Path.home() / ".local" / "state" / "fleetgcs"
+
+
+class DaemonConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    listen_host: str = "127.0.0.1"
+    listen_port: int = Field(default=4396, ge=0, le=65_535)
+    http_host: str | None = "127.0.0.1"
+    http_port: int = Field(default=8080, ge=0, le=65_535)
+    data_dir: Path = Field(default_factory=default_data_dir)
+    database: Path | None = Field(default=None, description="default: DATA_DIR/fleetgcs.sqlite")
+    fleet_key_hex: str | None = Field(default=None, description="shared key; default: DATA_DIR/fleet.key")
+    agent_keys_file: Path | None = Field(default=None, description="JSON {identity: hex key}")
+    allow_unlisted_agents: bool = Field(
+        default=True, description="with per-agent keys, also accept other identities that hold the fleet key"
+    )
+    api_token: str | None = Field(default=None, description="default: DATA_DIR/api.token")
+    handshake_timeout_s: float = Field(default=5.0, gt=0.0)
+    max_body_bytes: int = Field(default=DEFAULT_MAX_BODY, ge=1024, le=64 << 20)
+    max_agents: int = Field(default=1000, ge=1)
+    status_period_s: float = Field(default=0.5, ge=0.02, le=60.0)
+    lost_after_periods: float = Field(default=6.0, ge=1.0)
+    send_timeout_s: float = Field(default=5.0, gt=0.0)
+    default_sync_timeout_s: float = Field(default=120.0, gt=0.0)
+    lost_agent_policy: Literal["abort", "continue"] = "abort"
+    agent_parameters: AgentParameters = AgentParameters()
+
+    @property
+    def database_path(self) -> Path:
+        return self.database or self.data_dir / "fleetgcs.sqlite"
+
+    @property
+    def lost_after_s(self) -> float:
+        return self.status_period_s * self.lost_after_periods

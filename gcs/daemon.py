@@ -1,0 +1,162 @@
+"""Composition root of the daemon: wires store, events, agent manager, missions, servers."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+
+from gcs.agents import AgentManager
+from gcs.config import DaemonConfig
+from gcs.events import EventBus
+from gcs.keys import KeyRing, load_or_create_key_file
+from gcs.missions import MissionRunner
+from gcs.store import Store
+from protocol.auth import parse_key
+from protocol.packets import AgentParameters, CloseReason, Geofence, SetParameters
+
+log = logging.getLogger("gcs.daemon")
+
+
+def load_api_token(config: DaemonConfig) -> str:
+    """The token mutating API calls need: configured, or kept in DATA_DIR/api.token (0600)."""
+    if config.api_token:
+        return config.api_token
+    path = config.data_dir / "api.token"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.touch(mode=0o600)
+        path.write_text(secrets.token_urlsafe(24) + "\n")
+    return path.read_text().strip()
+
+
+def _quiet_server_class() -> type:
+    import uvicorn
+
+    class QuietServer(uvicorn.Server):
+        """uvicorn without its own signal handlers: the daemon's CLI owns SIGINT/SIGTERM."""
+
+        @contextlib.contextmanager
+        def capture_signals(self) -> Iterator[None]:
+            yield
+
+    return QuietServer
+
+
+class Daemon:
+    """The running ground station: ``await start()``, then ``await stop()``."""
+
+    def __init__(self, config: DaemonConfig) -> None:
+        self.config = config
+        self.store = Store(config.database_path)
+        self.events = EventBus(self.store)
+        fleet_key = (
+            parse_key(config.fleet_key_hex)
+            if config.fleet_key_hex
+            else load_or_create_key_file(config.data_dir / "fleet.key")
+        )
+        self.keys = KeyRing.from_files(fleet_key, config.agent_keys_file, config.allow_unlisted_agents)
+        self.agents = AgentManager(config, self.store, self.events, self.keys)
+        self.missions = MissionRunner(self.agents, self.store, self.events)
+        self.api_token = load_api_token(config)
+        self._server: asyncio.base_events.Server | None = None
+        self._http_task: asyncio.Task[None] | None = None
+        self._http_server: object | None = None
+        self._liveness: asyncio.Task[None] | None = None
+        self.listen_port = config.listen_port
+        self.http_port: int | None = None
+
+    async def start(self) -> None:
+        self.missions.restore()
+        self._server = await asyncio.start_server(
+            self.agents.handle_connection, self.config.listen_host, self.config.listen_port, limit=1 << 16
+        )
+        self.listen_port = self._server.sockets[0].getsockname()[1]
+        self._liveness = asyncio.create_task(self.agents.watch_liveness(), name="liveness")
+        if self.config.http_host:
+            await self._start_http()
+        self.events.publish(
+            "daemon_started",
+            f"agents on {self.config.listen_host}:{self.listen_port}"
+            + (f", API on http://{self.config.http_host}:{self.http_port}" if self.http_port else ""),
+        )
+
+    async def _start_http(self) -> None:
+        import uvicorn
+
+        from gcs.api import create_app
+
+        _QuietServer = _quiet_server_class()
+
+        assert self.config.http_host is not None
+        server_config = uvicorn.Config(
+            create_app(self),
+            host=self.config.http_host,
+            port=self.config.http_port,
+            log_level="warning",
+            lifespan="off",
+        )
+        server = _QuietServer(server_config)
+        self._http_server = server
+        self._http_task = asyncio.create_task(server.serve(), name="http")
+        for _ in range(200):
+            if server.started or self._http_task.done():
+                break
+            await asyncio.sleep(0.02)
+        if self._http_task.done():
+            self._http_task.result()
+        if not server.started:
+            raise RuntimeError("HTTP API did not start")
+        sockets = [s for srv in server.servers for s in srv.sockets]
+        self.http_port = sockets[0].getsockname()[1] if sockets else self.config.http_port
+
+    async def stop(self) -> None:
+        self.events.publish("daemon_stopping", "shutting down")
+        if self._server is not None:
+            self._server.close()
+        await self.agents.close_all(CloseReason.SHUTDOWN, "daemon shutting down")
+        if self._liveness is not None:
+            self._liveness.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._liveness
+        if self._http_server is not None and self._http_task is not None:
+            self._http_server.should_exit = True  # type: ignore[attr-defined]
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._http_task, 5)
+        if self._server is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._server.wait_closed(), 2)
+        self.store.close()
+
+    async def set_geofence(self, geofence: Geofence | None, agents: list[str] | None = None) -> list[str]:
+        """Send a type-3 geofence to the given (default: all connected) agents; returns who got it."""
+        body = SetParameters(geofence=geofence, clear_geofence=geofence is None)
+        return await self._distribute(body, agents)
+
+    async def set_parameters(self, parameters: AgentParameters, agents: list[str] | None = None) -> list[str]:
+        return await self._distribute(SetParameters(parameters=parameters), agents)
+
+    async def _distribute(self, body: SetParameters, agents: list[str] | None) -> list[str]:
+        targets = agents if agents is not None else [s.identity for s in self.agents.connected()]
+        delivered = []
+        for identity in targets:
+            if await self.agents.send(identity, body):
+                delivered.append(identity)
+        if body.geofence is not None or body.clear_geofence:
+            self.events.publish("geofence_sent", f"geofence sent to {delivered}", data={"agents": delivered})
+        return delivered
+
+
+async def serve_forever(config: DaemonConfig, ready_file: Path | None = None) -> None:
+    """Run until cancelled (SIGINT/SIGTERM are turned into cancellation by the CLI)."""
+    daemon = Daemon(config)
+    await daemon.start()
+    if ready_file is not None:
+        ready_file.write_text(f"{daemon.listen_port} {daemon.http_port or 0}\n")
+    try:
+        await asyncio.Event().wait()
+    finally:
+        await daemon.stop()

@@ -1,0 +1,361 @@
+"""Mission runner: validates a task, sends each agent its actions, runs the sync barriers.
+
+Each agent gets its whole action list in one type-4 ``replace`` packet at start, so it keeps
+flying its plan through a daemon restart or a short link loss; the daemon's part is the
+barriers (release step k to everyone once everyone finished k), progress, and the lost-agent
+policy. Accepted missions, completed steps and released barriers are in the store, so a
+restarted daemon picks the mission up where it was.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import secrets
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+from pydantic import BaseModel
+
+from gcs.agents import AgentManager, AgentSession
+from gcs.events import EventBus
+from gcs.store import Store
+from gcs.sync import BarrierSet
+from protocol.actions import Action, ReturnToLaunch
+from protocol.packets import PerformActions, Resume, StatusReport, SyncSignal
+from protocol.taskfile import TaskFile
+
+log = logging.getLogger("gcs.missions")
+
+MissionState = Literal["running", "completed", "aborted"]
+
+
+class MissionRejected(ValueError):
+    """A mission that cannot start; the message says why."""
+
+
+class AgentProgress(BaseModel):
+    agent: str
+    cid: int | None
+    connected: bool
+    excluded: bool
+    step: int
+    completed_step: int
+    last_step: int
+    waiting_sync: int | None
+    done: bool
+
+
+class MissionProgress(BaseModel):
+    id: str
+    name: str
+    state: str
+    result: str | None
+    sync_steps: list[int]
+    released_steps: list[int]
+    agents: list[AgentProgress]
+
+
+@dataclass(eq=False)
+class ActiveMission:
+    id: str
+    task: TaskFile
+    plans: dict[str, list[Action]]  # identity -> actions
+    barriers: BarrierSet
+    completed: dict[str, int]
+    excluded: set[str] = field(default_factory=set)
+    state: MissionState = "running"
+    timers: dict[int, asyncio.TimerHandle] = field(default_factory=dict)
+
+    def last_step(self, agent: str) -> int:
+        return self.plans[agent][-1].step
+
+
+class MissionRunner:
+    """Runs missions over the agent manager; one mission per agent at a time."""
+
+    def __init__(self, agents: AgentManager, store: Store, events: EventBus) -> None:
+        self._agents = agents
+        self._store = store
+        self._events = events
+        self.active: dict[str, ActiveMission] = {}
+        agents.on_join.append(self._on_join)
+        agents.on_status.append(self._on_status)
+        agents.on_sync.append(self._on_sync)
+        agents.on_lost.append(self._on_lost)
+
+    # --- lifecycle ------------------------------------------------------------------------------
+
+    def restore(self) -> None:
+        """Reload the missions that were running when the daemon stopped."""
+        for stored in self._store.missions("running"):
+            task = TaskFile.model_validate_json(stored.task_json)
+            progress = self._store.mission_agents(stored.id)
+            mission = self._build(stored.id, task, self._resolve(task))
+            mission.barriers.released |= self._store.released_steps(stored.id)
+            for agent, (completed, excluded) in progress.items():
+                mission.completed[agent] = completed
+                if excluded:
+                    mission.excluded.add(agent)
+                    mission.barriers.members.discard(agent)
+            self.active[stored.id] = mission
+            self._events.publish(
+                "mission_restored", f"mission {task.name} resumed after restart", mission_id=stored.id
+            )
+
+    async def submit(self, task: TaskFile) -> str:
+        """Validate against the live fleet, persist, and send every agent its actions."""
+        plans = self._resolve(task)
+        busy = {a for m in self.active.values() for a in m.plans if a not in m.excluded}
+        for identity in plans:
+            if self._agents.session(identity) is None:
+                raise MissionRejected(f"agent {identity} is not connected")
+            if identity in busy:
+                raise MissionRejected(f"agent {identity} is already flying another mission")
+        mission_id = f"m-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
+        mission = self._build(mission_id, task, plans)
+        self._store.add_mission(mission_id, task.name, task.model_dump_json(), list(plans))
+        self.active[mission_id] = mission
+        self._events.publish(
+            "mission_started",
+            f"{task.name}: {len(plans)} agents, sync steps {mission.barriers.sync_steps}",
+            mission_id=mission_id,
+        )
+        for identity, actions in plans.items():
+            await self._agents.send(
+                identity, PerformActions(mission_id=mission_id, mode="replace", actions=actions)
+            )
+        return mission_id
+
+    def _resolve(self, task: TaskFile) -> dict[str, list[Action]]:
+        """Map each plan to an agent identity (CoUAS files address agents by CID)."""
+        plans: dict[str, list[Action]] = {}
+        for plan in task.plans:
+            identity = plan.agent
+            if identity is None:
+                assert plan.cid is not None
+                identity = self._store.identity_for_cid(plan.cid)
+                if identity is None:
+                    raise MissionRejected(f"no agent has connection ID {plan.cid}")
+            if identity in plans:
+                raise MissionRejected(f"agent {identity} appears twice (by name and by CID)")
+            plans[identity] = list(plan.actions)
+        return plans
+
+    def _build(self, mission_id: str, task: TaskFile, plans: dict[str, list[Action]]) -> ActiveMission:
+        sync_steps = task.plans[0].sync_steps()
+        return ActiveMission(
+            id=mission_id,
+            task=task,
+            plans=plans,
+            barriers=BarrierSet(members=set(plans), sync_steps=sync_steps),
+            completed=dict.fromkeys(plans, -1),
+        )
+
+    async def abort(self, mission_id: str, reason: str) -> None:
+        """Stop a mission: every agent still in it returns to launch."""
+        mission = self.active.get(mission_id)
+        if mission is None:
+            raise MissionRejected(f"mission {mission_id} is not running")
+        rtl_step = max(m[-1].step for m in mission.plans.values()) + 1
+        for identity in mission.plans:
+            if identity not in mission.excluded:
+                await self._agents.send(
+                    identity,
+                    PerformActions(
+                        mission_id=mission_id, mode="replace", actions=[ReturnToLaunch(step=rtl_step)]
+                    ),
+                )
+        self._finish(mission, "aborted", reason)
+
+    def _finish(self, mission: ActiveMission, state: MissionState, result: str) -> None:
+        mission.state = state
+        for timer in mission.timers.values():
+            timer.cancel()
+        self._store.finish_mission(mission.id, state, result)
+        self.active.pop(mission.id, None)
+        self._events.publish(
+            f"mission_{state}",
+            f"{mission.task.name}: {result}",
+            severity="info" if state == "completed" else "warning",
+            mission_id=mission.id,
+        )
+
+    # --- agent hooks ----------------------------------------------------------------------------
+
+    def _mission_of(self, identity: str, mission_id: str | None = None) -> ActiveMission | None:
+        for mission in self.active.values():
+            if identity in mission.plans and (mission_id is None or mission.id == mission_id):
+                return mission
+        return None
+
+    async def _on_join(self, session: AgentSession, resume: Resume | None) -> None:
+        mission = self._mission_of(session.identity)
+        if mission is None or session.identity in mission.excluded:
+            return
+        if resume is not None and resume.mission_id == mission.id:
+            return  # it still holds its queue; a pending sync arrives again as a 'finished' signal
+        completed = max(mission.completed.get(session.identity, -1), resume.completed_step if resume else -1)
+        remaining = [a for a in mission.plans[session.identity] if a.step > completed]
+        self._events.publish(
+            "mission_resent",
+            f"agent lost its queue; re-sending {len(remaining)} actions after step {completed}",
+            agent=session.identity,
+            mission_id=mission.id,
+        )
+        if remaining:
+            await session.send(
+                PerformActions(mission_id=mission.id, mode="replace", actions=remaining),
+                self._agents.config.send_timeout_s,
+            )
+
+    async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
+        if status.mission_id is None:
+            return
+        mission = self._mission_of(session.identity, status.mission_id)
+        if mission is None:
+            return
+        previous = mission.completed.get(session.identity, -1)
+        if status.completed_step > previous:
+            mission.completed[session.identity] = status.completed_step
+            self._store.set_completed_step(mission.id, session.identity, status.completed_step)
+        self._check_complete(mission)
+
+    def _check_complete(self, mission: ActiveMission) -> None:
+        flying = [a for a in mission.plans if a not in mission.excluded]
+        if not flying:
+            self._finish(mission, "aborted", "every agent was lost")
+            return
+        if all(mission.completed[a] >= mission.last_step(a) for a in flying):
+            note = f" ({len(mission.excluded)} agents excluded)" if mission.excluded else ""
+            self._finish(mission, "completed", f"all {len(flying)} agents finished{note}")
+
+    async def _on_sync(self, session: AgentSession, signal: SyncSignal) -> None:
+        mission = self._mission_of(session.identity, signal.mission_id)
+        if mission is None:
+            self._events.publish(
+                "sync_ignored",
+                f"finished step {signal.step} for unknown mission {signal.mission_id}",
+                severity="warning",
+                agent=session.identity,
+            )
+            return
+        try:
+            complete = mission.barriers.arrive(session.identity, signal.step)
+        except ValueError as exc:
+            self._events.publish("sync_ignored", str(exc), severity="warning", agent=session.identity)
+            return
+        if signal.step in mission.barriers.released:
+            await session.send(
+                SyncSignal(mission_id=mission.id, step=signal.step, kind="release"),
+                self._agents.config.send_timeout_s,
+            )
+            return
+        if complete:
+            await self._release(mission, signal.step)
+        elif signal.step not in mission.timers:
+            timeout = mission.task.sync_timeout_s
+            mission.timers[signal.step] = asyncio.get_running_loop().call_later(
+                timeout, lambda: asyncio.ensure_future(self._barrier_timeout(mission, signal.step))
+            )
+
+    async def _release(self, mission: ActiveMission, step: int) -> None:
+        mission.barriers.mark_released(step)
+        self._store.record_release(mission.id, step)
+        timer = mission.timers.pop(step, None)
+        if timer is not None:
+            timer.cancel()
+        members = sorted(mission.barriers.members)
+        self._events.publish(
+            "sync_released",
+            f"step {step} released to {len(members)} agents",
+            mission_id=mission.id,
+            data={"step": step, "agents": members},
+        )
+        signal = SyncSignal(mission_id=mission.id, step=step, kind="release")
+        await asyncio.gather(*(self._agents.send(identity, signal) for identity in members))
+
+    async def _barrier_timeout(self, mission: ActiveMission, step: int) -> None:
+        if mission.state != "running" or step in mission.barriers.released:
+            return
+        missing = sorted(mission.barriers.missing(step))
+        policy = mission.task.lost_agent_policy
+        self._events.publish(
+            "sync_timeout",
+            f"step {step}: still waiting for {missing} after {mission.task.sync_timeout_s:.0f} s; "
+            f"policy {policy}",
+            severity="error",
+            mission_id=mission.id,
+            data={"step": step, "missing": missing},
+        )
+        if policy == "abort":
+            await self.abort(mission.id, f"sync step {step} timed out waiting for {missing}")
+            return
+        for identity in missing:
+            await self._exclude(mission, identity, f"did not reach sync step {step} in time")
+
+    async def _exclude(self, mission: ActiveMission, identity: str, why: str) -> None:
+        mission.excluded.add(identity)
+        self._store.exclude_agent(mission.id, identity)
+        self._events.publish("agent_excluded", why, severity="warning", agent=identity, mission_id=mission.id)
+        for step in mission.barriers.exclude(identity):
+            await self._release(mission, step)
+        if mission.state == "running":
+            self._check_complete(mission)
+
+    async def _on_lost(self, identity: str) -> None:
+        mission = self._mission_of(identity)
+        if mission is None or identity in mission.excluded:
+            return
+        if mission.completed.get(identity, -1) >= mission.last_step(identity):
+            return  # it had finished its part
+        if mission.task.lost_agent_policy == "continue":
+            await self._exclude(mission, identity, "lost during the mission; continuing without it")
+
+    # --- progress -------------------------------------------------------------------------------
+
+    def progress(self, mission_id: str) -> MissionProgress | None:
+        stored = self._store.mission(mission_id)
+        if stored is None:
+            return None
+        mission = self.active.get(mission_id)
+        task = mission.task if mission else TaskFile.model_validate_json(stored.task_json)
+        plans = mission.plans if mission else self._resolve_stored(task)
+        agents_state = self._store.mission_agents(mission_id)
+        released = self._store.released_steps(mission_id)
+        rows = []
+        for identity, actions in plans.items():
+            session = self._agents.sessions.get(identity)
+            status = session.status if session else None
+            completed = max(
+                agents_state.get(identity, (-1, False))[0], mission.completed[identity] if mission else -1
+            )
+            rows.append(
+                AgentProgress(
+                    agent=identity,
+                    cid=session.cid if session else None,
+                    connected=bool(session and session.open),
+                    excluded=agents_state.get(identity, (-1, False))[1],
+                    step=status.step if status and status.mission_id == mission_id else -1,
+                    completed_step=completed,
+                    last_step=actions[-1].step,
+                    waiting_sync=status.waiting_sync if status and status.mission_id == mission_id else None,
+                    done=completed >= actions[-1].step,
+                )
+            )
+        return MissionProgress(
+            id=stored.id,
+            name=stored.name,
+            state=stored.state,
+            result=stored.result,
+            sync_steps=task.plans[0].sync_steps(),
+            released_steps=sorted(released),
+            agents=rows,
+        )
+
+    def _resolve_stored(self, task: TaskFile) -> dict[str, list[Action]]:
+        try:
+            return self._resolve(task)
+        except MissionRejected:
+            return {p.label: list(p.actions) for p in task.plans}

@@ -1,0 +1,252 @@
+"""The daemon's durable state in one SQLite file (WAL): agent registry, missions, progress, events.
+
+Why SQLite: a daemon killed mid-mission must come back with the same connection IDs, the
+accepted missions, the released sync steps and the event log; one file, no server, crash-safe.
+Writes are small and synchronous (WAL, synchronous=NORMAL: well under a millisecond each), so
+they run on the event loop; telemetry bulk storage is a later, separate table.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+SCHEMA_VERSION = 1
+
+_MIGRATIONS: dict[int, str] = {
+    1: """
+    CREATE TABLE agents (
+        identity TEXT PRIMARY KEY,
+        cid INTEGER UNIQUE NOT NULL,
+        first_seen REAL NOT NULL,
+        last_seen REAL NOT NULL,
+        capabilities TEXT NOT NULL DEFAULT '{}'
+    );
+    CREATE TABLE missions (
+        id TEXT PRIMARY KEY,
+        name TEXT NOT NULL,
+        task TEXT NOT NULL,
+        state TEXT NOT NULL,
+        created REAL NOT NULL,
+        finished REAL,
+        result TEXT
+    );
+    CREATE TABLE mission_agents (
+        mission_id TEXT NOT NULL REFERENCES missions(id),
+        agent TEXT NOT NULL,
+        completed_step INTEGER NOT NULL DEFAULT -1,
+        excluded INTEGER NOT NULL DEFAULT 0,
+        PRIMARY KEY (mission_id, agent)
+    );
+    CREATE TABLE releases (
+        mission_id TEXT NOT NULL REFERENCES missions(id),
+        step INTEGER NOT NULL,
+        released_at REAL NOT NULL,
+        PRIMARY KEY (mission_id, step)
+    );
+    CREATE TABLE events (
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
+        time REAL NOT NULL,
+        kind TEXT NOT NULL,
+        severity TEXT NOT NULL,
+        agent TEXT,
+        mission_id TEXT,
+        message TEXT NOT NULL,
+        data TEXT NOT NULL DEFAULT '{}'
+    );
+    CREATE INDEX events_kind ON events(kind);
+    """,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class StoredMission:
+    id: str
+    name: str
+    task_json: str
+    state: str
+    created: float
+    finished: float | None
+    result: str | None
+
+
+@dataclass(frozen=True, slots=True)
+class StoredEvent:
+    id: int
+    time: float
+    kind: str
+    severity: str
+    agent: str | None
+    mission_id: str | None
+    message: str
+    data: dict[str, Any]
+
+
+class Store:
+    """Thin, explicit SQL over one connection; every public method is one transaction."""
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = str(path)
+        if self.path != ":memory:":
+            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+        self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")
+        self._db.execute("PRAGMA foreign_keys=ON")
+        self._migrate()
+
+    def _migrate(self) -> None:
+        version = self._db.execute("PRAGMA user_version").fetchone()[0]
+        if version > SCHEMA_VERSION:
+            raise RuntimeError(f"{self.path} has schema {version}, newer than this daemon's {SCHEMA_VERSION}")
+        for target in range(version + 1, SCHEMA_VERSION + 1):
+            self._db.executescript(f"BEGIN; {_MIGRATIONS[target]} PRAGMA user_version={target}; COMMIT;")
+
+    def close(self) -> None:
+        self._db.close()
+
+    # --- agents ---------------------------------------------------------------------------------
+
+    def cid_for(self, identity: str, capabilities: dict[str, Any]) -> int:
+        """The stable connection ID of ``identity``, allocating the next free one on first contact."""
+        now = time.time()
+        row = self._db.execute("SELECT cid FROM agents WHERE identity=?", (identity,)).fetchone()
+        if row is not None:
+            self._db.execute(
+                "UPDATE agents SET last_seen=?, capabilities=? WHERE identity=?",
+                (now, json.dumps(capabilities), identity),
+            )
+            return int(row[0])
+        next_cid = self._db.execute("SELECT COALESCE(MAX(cid), 0) + 1 FROM agents").fetchone()[0]
+        self._db.execute(
+            "INSERT INTO agents(identity, cid, first_seen, last_seen, capabilities) VALUES (?,?,?,?,?)",
+            (identity, next_cid, now, now, json.dumps(capabilities)),
+        )
+        return int(next_cid)
+
+    def identity_for_cid(self, cid: int) -> str | None:
+        row = self._db.execute("SELECT identity FROM agents WHERE cid=?", (cid,)).fetchone()
+        return None if row is None else str(row[0])
+
+    def known_agents(self) -> dict[str, int]:
+        return {str(i): int(c) for i, c in self._db.execute("SELECT identity, cid FROM agents")}
+
+    # --- missions -------------------------------------------------------------------------------
+
+    def add_mission(self, mission_id: str, name: str, task_json: str, agents: list[str]) -> None:
+        with self._tx():
+            self._db.execute(
+                "INSERT INTO missions(id, name, task, state, created) VALUES (?,?,?,?,?)",
+                (mission_id, name, task_json, "running", time.time()),
+            )
+            self._db.executemany(
+                "INSERT INTO mission_agents(mission_id, agent) VALUES (?,?)",
+                [(mission_id, a) for a in agents],
+            )
+
+    def finish_mission(self, mission_id: str, state: str, result: str) -> None:
+        self._db.execute(
+            "UPDATE missions SET state=?, finished=?, result=? WHERE id=?",
+            (state, time.time(), result, mission_id),
+        )
+
+    def mission(self, mission_id: str) -> StoredMission | None:
+        row = self._db.execute(
+            "SELECT id, name, task, state, created, finished, result FROM missions WHERE id=?", (mission_id,)
+        ).fetchone()
+        return None if row is None else StoredMission(*row)
+
+    def missions(self, state: str | None = None) -> list[StoredMission]:
+        sql = "SELECT id, name, task, state, created, finished, result FROM missions"
+        rows = (
+            self._db.execute(sql + " WHERE state=? ORDER BY created", (state,))
+            if state
+            else self._db.execute(sql + " ORDER BY created")
+        )
+        return [StoredMission(*r) for r in rows]
+
+    def set_completed_step(self, mission_id: str, agent: str, step: int) -> None:
+        self._db.execute(
+            "UPDATE mission_agents SET completed_step=MAX(completed_step, ?) WHERE mission_id=? AND agent=?",
+            (step, mission_id, agent),
+        )
+
+    def exclude_agent(self, mission_id: str, agent: str) -> None:
+        self._db.execute(
+            "UPDATE mission_agents SET excluded=1 WHERE mission_id=? AND agent=?", (mission_id, agent)
+        )
+
+    def mission_agents(self, mission_id: str) -> dict[str, tuple[int, bool]]:
+        """agent -> (completed_step, excluded)."""
+        rows = self._db.execute(
+            "SELECT agent, completed_step, excluded FROM mission_agents WHERE mission_id=?", (mission_id,)
+        )
+        return {str(a): (int(s), bool(e)) for a, s, e in rows}
+
+    def record_release(self, mission_id: str, step: int) -> None:
+        self._db.execute(
+            "INSERT OR IGNORE INTO releases(mission_id, step, released_at) VALUES (?,?,?)",
+            (mission_id, step, time.time()),
+        )
+
+    def released_steps(self, mission_id: str) -> set[int]:
+        return {
+            int(r[0]) for r in self._db.execute("SELECT step FROM releases WHERE mission_id=?", (mission_id,))
+        }
+
+    # --- events ---------------------------------------------------------------------------------
+
+    def add_event(
+        self,
+        kind: str,
+        severity: str,
+        message: str,
+        agent: str | None = None,
+        mission_id: str | None = None,
+        data: dict[str, Any] | None = None,
+        at: float | None = None,
+    ) -> StoredEvent:
+        when = time.time() if at is None else at
+        payload = data or {}
+        cur = self._db.execute(
+            "INSERT INTO events(time, kind, severity, agent, mission_id, message, data) "
+            "VALUES (?,?,?,?,?,?,?)",
+            (when, kind, severity, agent, mission_id, message, json.dumps(payload)),
+        )
+        return StoredEvent(int(cur.lastrowid or 0), when, kind, severity, agent, mission_id, message, payload)
+
+    def events(
+        self, since_id: int = 0, kind: str | None = None, agent: str | None = None, limit: int = 500
+    ) -> list[StoredEvent]:
+        sql = "SELECT id, time, kind, severity, agent, mission_id, message, data FROM events WHERE id > ?"
+        args: list[Any] = [since_id]
+        if kind:
+            sql += " AND kind = ?"
+            args.append(kind)
+        if agent:
+            sql += " AND agent = ?"
+            args.append(agent)
+        sql += " ORDER BY id LIMIT ?"
+        args.append(max(1, min(limit, 10_000)))
+        return [
+            StoredEvent(int(r[0]), r[1], r[2], r[3], r[4], r[5], r[6], json.loads(r[7]))
+            for r in self._db.execute(sql, args)
+        ]
+
+    def _tx(self) -> _Transaction:
+        return _Transaction(self._db)
+
+
+class _Transaction:
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+
+    def __enter__(self) -> None:
+        self._db.execute("BEGIN")
+
+    def __exit__(self, exc_type: object, *_: object) -> None:
+        self._db.execute("ROLLBACK" if exc_type else "COMMIT")

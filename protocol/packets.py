@@ -1,0 +1,299 @@
+"""Bodies of the seven packet types (CoUAS Table 2), as pydantic models.
+
+Each body travels as a UTF-8 JSON object inside one frame (see :mod:`protocol.wire`). Models
+forbid unknown fields so that a typo on one side is an error, not a silently ignored setting.
+Units: degrees (lat/lon/heading), metres, m/s, seconds, volts, amperes, percent.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from protocol.actions import Action, AltitudeRel, Latitude, Longitude
+
+PROTOCOL_VERSION = 1
+
+Identity = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$")]
+HexNonce = Annotated[str, Field(min_length=32, max_length=128, pattern=r"^[0-9a-f]+$")]
+HexMac = Annotated[str, Field(min_length=64, max_length=64, pattern=r"^[0-9a-f]+$")]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+MissionId = Annotated[str, Field(min_length=1, max_length=64)]
+
+
+class PacketType(enum.IntEnum):
+    """The packet type byte of the frame header."""
+
+    REQUEST_CID = 0
+    RESPONSE_CID = 1
+    STATUS = 2
+    SET_PARAMETERS = 3
+    PERFORM_ACTIONS = 4
+    SYNC = 5
+    CLOSE = 6
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# --- type 0: request connection ID -------------------------------------------------------------
+
+
+class Camera(_Body):
+    """What the planner needs to know about the payload camera."""
+
+    hfov_deg: Annotated[float, Field(gt=0.0, lt=180.0)]
+    vfov_deg: Annotated[float, Field(gt=0.0, lt=180.0)]
+    resolution_px: tuple[Annotated[int, Field(gt=0)], Annotated[int, Field(gt=0)]]
+
+
+class Capabilities(_Body):
+    """The vehicle's abilities, used by planners to divide work by capability."""
+
+    vehicle_kind: Literal["multicopter", "fixed_wing", "vtol", "rover", "other"] = "multicopter"
+    max_speed_mps: Annotated[float, Field(gt=0.0, le=100.0)] = 10.0
+    endurance_s: Annotated[float, Field(gt=0.0, le=172_800.0)] = 1200.0
+    battery_wh: Annotated[float, Field(gt=0.0, le=100_000.0)] | None = None
+    camera: Camera | None = None
+    autopilot: str = Field(default="unknown", max_length=64)
+
+
+class GeoPoint(_Body):
+    """A lat/lon position with altitude above mean sea level."""
+
+    lat: Latitude
+    lon: Longitude
+    alt_amsl: Finite = 0.0
+
+
+class Resume(_Body):
+    """What the agent still holds from an earlier session, so the daemon can resume it."""
+
+    mission_id: MissionId
+    completed_step: int = Field(ge=-1)
+    waiting_step: int | None = Field(default=None, ge=0, description="sync step awaiting release")
+    queue_depth: int = Field(ge=0)
+
+
+class RequestCid(_Body):
+    """Type 0. Sent twice in a handshake: first without ``proof`` (hello), then with it.
+
+    ``proof`` = hex HMAC-SHA256(key, "fleetgcs-agent-v1|" identity "|" server_nonce "|"
+    client_nonce), where server_nonce is the challenge of the type-1 reply to the hello.
+    """
+
+    identity: Identity
+    protocol_version: int = Field(ge=1, le=255)
+    client_nonce: HexNonce
+    capabilities: Capabilities = Capabilities()
+    home: GeoPoint | None = None
+    proof: HexMac | None = None
+    resume: Resume | None = None
+
+
+# --- type 1: response with connection ID -------------------------------------------------------
+
+
+class AgentParameters(_Body):
+    """Parameter settings the daemon pushes to an agent (absent field = unchanged)."""
+
+    status_period_s: Annotated[float, Field(ge=0.02, le=60.0)] | None = None
+    link_range_m: Annotated[float, Field(gt=0.0, le=100_000.0)] | None = None
+    battery_low_pct: Annotated[float, Field(ge=0.0, le=100.0)] | None = None
+    battery_critical_pct: Annotated[float, Field(ge=0.0, le=100.0)] | None = None
+    battery_low_action: Literal["report", "rtl", "land", "hold"] | None = None
+    battery_critical_action: Literal["report", "rtl", "land", "hold"] | None = None
+    lost_link_timeout_s: Annotated[float, Field(gt=0.0, le=3600.0)] | None = None
+    lost_link_action: Literal["continue", "hold", "rtl", "land"] | None = None
+    acceptance_radius_m: Annotated[float, Field(gt=0.0, le=1000.0)] | None = None
+
+
+class ResponseCid(_Body):
+    """Type 1. ``challenge`` answers a hello; ``accepted`` or ``refused`` answers a proof.
+
+    On ``accepted``, ``server_proof`` = hex HMAC-SHA256(key, "fleetgcs-daemon-v1|" identity "|"
+    client_nonce "|" server_nonce) lets the agent check it talks to a daemon holding its key.
+    """
+
+    outcome: Literal["challenge", "accepted", "refused"]
+    server_nonce: HexNonce | None = None
+    cid: int | None = Field(default=None, ge=1, le=65_535)
+    server_proof: HexMac | None = None
+    reason: str | None = Field(default=None, max_length=512)
+    parameters: AgentParameters | None = None
+    server_time: Finite | None = None
+
+
+# --- type 2: status report ---------------------------------------------------------------------
+
+
+class Position(_Body):
+    lat: Latitude
+    lon: Longitude
+    alt_rel: Finite
+    alt_amsl: Finite
+
+
+class VelocityNed(_Body):
+    vn: Finite = 0.0
+    ve: Finite = 0.0
+    vd: Finite = 0.0
+
+
+class Battery(_Body):
+    pct: Annotated[float, Field(ge=0.0, le=100.0)] | None = None
+    voltage_v: Annotated[float, Field(ge=0.0, le=1000.0)] | None = None
+    current_a: Annotated[float, Field(ge=-1000.0, le=1000.0)] | None = None
+
+
+class Gps(_Body):
+    fix: int = Field(default=0, ge=0, le=8)
+    satellites: int = Field(default=0, ge=0, le=255)
+
+
+class StatusReport(_Body):
+    """Type 2. Sent every status period; ``seq`` of the frame orders them."""
+
+    time: Finite = Field(description="agent wall clock, UNIX seconds")
+    position: Position
+    velocity: VelocityNed = VelocityNed()
+    heading_deg: Annotated[float, Field(ge=0.0, le=360.0)] = 0.0
+    battery: Battery = Battery()
+    mode: str = Field(default="UNKNOWN", max_length=32)
+    armed: bool = False
+    landed: bool = True
+    gps: Gps = Gps()
+    mission_id: MissionId | None = None
+    step: int = Field(default=-1, ge=-1, description="step being executed, -1 idle")
+    completed_step: int = Field(default=-1, ge=-1, description="last completed step of mission_id")
+    queue_depth: int = Field(default=0, ge=0)
+    waiting_sync: int | None = Field(default=None, ge=0)
+    exceptions: list[Annotated[str, Field(max_length=200)]] = Field(default_factory=list, max_length=32)
+    autopilot_link: bool = True
+    buffered: bool = Field(default=False, description="recorded while the daemon link was down")
+
+
+# --- type 3: set geofence (and the other parameter settings) -----------------------------------
+
+
+class FenceCircle(_Body):
+    lat: Latitude
+    lon: Longitude
+    radius_m: Annotated[float, Field(gt=0.0, le=100_000.0)]
+
+
+class FenceVertex(_Body):
+    lat: Latitude
+    lon: Longitude
+
+
+class Geofence(_Body):
+    """An inclusion fence: a circle and/or a polygon, with an altitude ceiling above home."""
+
+    circle: FenceCircle | None = None
+    polygon: list[FenceVertex] | None = Field(default=None, min_length=3, max_length=500)
+    max_alt_m: Annotated[float, Field(gt=0.0, le=10_000.0)] | None = None
+    breach_action: Literal["report", "rtl", "land", "hold"] = "rtl"
+
+
+class SetParameters(_Body):
+    """Type 3. Installs a geofence (``clear_geofence`` removes it) and/or other settings."""
+
+    geofence: Geofence | None = None
+    clear_geofence: bool = False
+    parameters: AgentParameters | None = None
+
+
+# --- type 4: perform action(s) -----------------------------------------------------------------
+
+
+class PerformActions(_Body):
+    """Type 4. ``append`` adds to the agent's FIFO queue; ``replace`` empties it first."""
+
+    mission_id: MissionId
+    mode: Literal["append", "replace"] = "append"
+    actions: list[Action] = Field(min_length=0, max_length=10_000)
+
+
+# --- type 5: synchronization signal ------------------------------------------------------------
+
+
+class SyncSignal(_Body):
+    """Type 5. Agent -> daemon: ``finished`` step k; daemon -> agent: ``release`` step k."""
+
+    mission_id: MissionId
+    step: int = Field(ge=0)
+    kind: Literal["finished", "release"]
+
+
+# --- type 6: close connection ------------------------------------------------------------------
+
+
+class CloseReason(enum.StrEnum):
+    NORMAL = "normal"
+    REFUSED = "refused"
+    PROTOCOL_ERROR = "protocol_error"
+    REPLACED = "replaced"
+    SHUTDOWN = "shutdown"
+
+
+class Close(_Body):
+    """Type 6. The sender closes the TCP connection after sending it."""
+
+    reason: CloseReason
+    message: str = Field(default="", max_length=512)
+
+
+BODY_MODELS: dict[PacketType, type[_Body]] = {
+    PacketType.REQUEST_CID: RequestCid,
+    PacketType.RESPONSE_CID: ResponseCid,
+    PacketType.STATUS: StatusReport,
+    PacketType.SET_PARAMETERS: SetParameters,
+    PacketType.PERFORM_ACTIONS: PerformActions,
+    PacketType.SYNC: SyncSignal,
+    PacketType.CLOSE: Close,
+}
+
+Body = RequestCid | ResponseCid | StatusReport | SetParameters | PerformActions | SyncSignal | Close
+
+
+def packet_type_of(body: Body) -> PacketType:
+    """The packet type that carries ``body``."""
+    for ptype, model in BODY_MODELS.items():
+        if type(body) is model:
+            return ptype
+    raise TypeError(f"{type(body).__name__} is not a packet body")
+
+
+__all__ = [
+    "BODY_MODELS",
+    "PROTOCOL_VERSION",
+    "Action",
+    "AgentParameters",
+    "AltitudeRel",
+    "Battery",
+    "Body",
+    "Camera",
+    "Capabilities",
+    "Close",
+    "CloseReason",
+    "FenceCircle",
+    "FenceVertex",
+    "GeoPoint",
+    "Geofence",
+    "Gps",
+    "PacketType",
+    "PerformActions",
+    "Position",
+    "RequestCid",
+    "ResponseCid",
+    "Resume",
+    "SetParameters",
+    "StatusReport",
+    "SyncSignal",
+    "VelocityNed",
+    "packet_type_of",
+]

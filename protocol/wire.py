@@ -1,0 +1,155 @@
+"""Frame codec: a fixed 16-byte header followed by a JSON body. Sans-I/O: no sockets here.
+
+Header, all integers big-endian::
+
+    offset size field
+    0      2    magic        b"FG" (0x46 0x47)
+    2      1    version      PROTOCOL_VERSION (1)
+    3      1    packet type  0..6
+    4      4    sequence     u32, per sender, +1 per frame, wraps at 2**32
+    8      4    body length  u32, bytes of body that follow
+    12     4    body CRC-32  u32, zlib.crc32 of the body bytes
+
+The length is checked against the receiver's maximum *before* any body byte is buffered, so an
+oversized frame costs the receiver 16 bytes. :class:`FrameDecoder` raises only
+:class:`ProtocolError`; after one, the stream is out of step and the connection must be closed.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+from pydantic import ValidationError
+
+from protocol.packets import BODY_MODELS, PROTOCOL_VERSION, Body, PacketType, packet_type_of
+
+MAGIC = b"FG"
+HEADER = struct.Struct(">2sBBIII")
+HEADER_SIZE = HEADER.size  # 16
+DEFAULT_MAX_BODY = 1 << 20  # 1 MiB: a 2000-waypoint survey leg is ~150 KiB
+SEQ_MODULO = 1 << 32
+
+
+class ProtocolError(Exception):
+    """Any violation of the wire format: bad magic/version/type, size, CRC, JSON or body schema."""
+
+    def __init__(self, message: str, *, packet_type: int | None = None) -> None:
+        super().__init__(message)
+        self.packet_type = packet_type
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One decoded packet."""
+
+    packet_type: PacketType
+    seq: int
+    body: Body
+
+
+def encode(body: Body, seq: int) -> bytes:
+    """Serialise ``body`` into one frame with sequence number ``seq`` (taken modulo 2**32)."""
+    payload = body.model_dump_json(exclude_none=True).encode("utf-8")
+    ptype = packet_type_of(body)
+    return (
+        HEADER.pack(MAGIC, PROTOCOL_VERSION, ptype, seq % SEQ_MODULO, len(payload), zlib.crc32(payload))
+        + payload
+    )
+
+
+def decode_body(packet_type: int, payload: bytes) -> Body:
+    """Validate a body for ``packet_type``; raise :class:`ProtocolError` on any problem."""
+    try:
+        ptype = PacketType(packet_type)
+    except ValueError:
+        raise ProtocolError(f"unknown packet type {packet_type} (expected 0..6)") from None
+    try:
+        document = json.loads(payload.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ProtocolError(f"type {ptype.value} body is not UTF-8 JSON: {exc}", packet_type=ptype) from None
+    if not isinstance(document, dict):
+        raise ProtocolError(f"type {ptype.value} body must be a JSON object", packet_type=ptype)
+    try:
+        return BODY_MODELS[ptype].model_validate(document)  # type: ignore[return-value]
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first.get("loc", ())) or "body"
+        raise ProtocolError(
+            f"invalid type {ptype.value} ({ptype.name}) body at {where}: {first.get('msg')}",
+            packet_type=ptype,
+        ) from None
+    except RecursionError:
+        raise ProtocolError(f"type {ptype.value} body nests too deeply", packet_type=ptype) from None
+
+
+class FrameDecoder:
+    """Incremental decoder: feed it received bytes, iterate the complete frames."""
+
+    def __init__(self, max_body: int = DEFAULT_MAX_BODY) -> None:
+        self.max_body = max_body
+        self._buffer = bytearray()
+        self._failed: ProtocolError | None = None
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes received but not yet part of a complete frame."""
+        return len(self._buffer)
+
+    def feed(self, data: bytes) -> Iterator[Frame]:
+        """Add ``data`` and yield every frame it completes."""
+        if self._failed is not None:
+            raise self._failed
+        self._buffer += data
+        while True:
+            frame = self._next()
+            if frame is None:
+                return
+            yield frame
+
+    def _fail(self, message: str, packet_type: int | None = None) -> ProtocolError:
+        self._failed = ProtocolError(message, packet_type=packet_type)
+        self._buffer.clear()
+        return self._failed
+
+    def _next(self) -> Frame | None:
+        buf = self._buffer
+        # Check what we can of the header as soon as bytes arrive, so garbage fails fast.
+        if len(buf) >= 1 and buf[:2] != MAGIC[: min(2, len(buf))]:
+            raise self._fail(f"bad magic {bytes(buf[:2])!r} (expected {MAGIC!r}): not a fleetgcs stream")
+        if len(buf) >= 3 and buf[2] != PROTOCOL_VERSION:
+            raise self._fail(f"unsupported protocol version {buf[2]} (this side speaks {PROTOCOL_VERSION})")
+        if len(buf) >= 4 and buf[3] > max(PacketType):
+            raise self._fail(f"unknown packet type {buf[3]} (expected 0..6)", buf[3])
+        if len(buf) < HEADER_SIZE:
+            return None
+        _, _, ptype, seq, length, crc = HEADER.unpack_from(buf)
+        if length > self.max_body:
+            raise self._fail(f"frame body of {length} bytes exceeds the limit of {self.max_body}", ptype)
+        if len(buf) < HEADER_SIZE + length:
+            return None
+        payload = bytes(buf[HEADER_SIZE : HEADER_SIZE + length])
+        del buf[: HEADER_SIZE + length]
+        if zlib.crc32(payload) != crc:
+            raise self._fail(f"type {ptype} frame seq {seq}: body CRC mismatch", ptype)
+        try:
+            body = decode_body(ptype, payload)
+        except ProtocolError as exc:
+            self._failed = exc
+            self._buffer.clear()
+            raise
+        return Frame(PacketType(ptype), seq, body)
+
+
+def decode_one(data: bytes, max_body: int = DEFAULT_MAX_BODY) -> Frame:
+    """Decode exactly one complete frame from ``data`` (tests, tools)."""
+    decoder = FrameDecoder(max_body)
+    frames = list(decoder.feed(data))
+    if len(frames) != 1 or decoder.pending_bytes:
+        raise ProtocolError(
+            f"expected exactly one complete frame, got {len(frames)} and {decoder.pending_bytes} spare bytes"
+        )
+    return frames[0]
