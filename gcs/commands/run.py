@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -84,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     headers = {"Authorization": f"Bearer {api_token(args)}"}
     with httpx.Client(base_url=args.api, headers=headers, timeout=10.0) as client:
         try:
-            response = client.post("/api/v1/missions", content=json.dumps(task.model_dump(mode="json")))
+            response = client.post("/api/v1/missions", json=task.model_dump(mode="json"))
         except httpx.HTTPError as exc:
             print(f"gcs run: cannot reach the daemon at {args.api}: {exc}", file=sys.stderr)
             return 3

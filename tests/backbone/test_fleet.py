@@ -25,7 +25,9 @@ async def test_status_flows_from_every_agent(tmp_path: Path) -> None:
         agents = [start_agent(f"drone-{i}", daemon.listen_port, key, i) for i in range(4)]
         try:
             await wait_for(
-                lambda: all((s := daemon.agents.session(f"drone-{i}")) and s.status_count >= 3 for i in range(4)),
+                lambda: all(
+                    (s := daemon.agents.session(f"drone-{i}")) and s.status_count >= 3 for i in range(4)
+                ),
                 10,
                 "three status reports from each of four agents",
             )
@@ -49,12 +51,16 @@ async def test_geofence_delivery_installs_fence_on_agent_and_autopilot(tmp_path:
         try:
             await wait_for(lambda: len(daemon.agents.connected()) == 2, 10, "two agents")
             fence = Geofence(
-                circle=FenceCircle(lat=HOME[0], lon=HOME[1], radius_m=150.0), max_alt_m=60.0, breach_action="land"
+                circle=FenceCircle(lat=HOME[0], lon=HOME[1], radius_m=150.0),
+                max_alt_m=60.0,
+                breach_action="land",
             )
             delivered = await daemon.set_geofence(fence)
             assert sorted(delivered) == ["drone-0", "drone-1"]
             await wait_for(
-                lambda: all(a.agent.monitor.geofence == fence and a.autopilot.fence for a in agents), 5, "fence"
+                lambda: all(a.agent.monitor.geofence == fence and a.autopilot.fence for a in agents),
+                5,
+                "fence",
             )
             spec = agents[0].autopilot.fence
             assert spec is not None and spec.circle is not None
@@ -120,7 +126,9 @@ async def test_barrier_timeout_aborts_with_abort_policy(tmp_path: Path) -> None:
             assert timeout_events and timeout_events[0].data["missing"] == ["b"]
             failures = daemon.events.history(kind="agent_exception", agent="b")
             assert any("PreArm" in e.message for e in failures), [e.message for e in failures]
-            await wait_for(lambda: agents[0].autopilot.telemetry().landed, 30, "agent a back on the ground (RTL)")
+            await wait_for(
+                lambda: agents[0].autopilot.telemetry().landed, 30, "agent a back on the ground (RTL)"
+            )
             assert agents[0].autopilot.telemetry().mode == "RTL"
         finally:
             await stop_agents(agents)
@@ -135,7 +143,9 @@ async def test_agent_killed_mid_mission_others_finish(tmp_path: Path) -> None:
             await wait_for(lambda: len(daemon.agents.connected()) == 3, 10, "three agents")
             task = survey_mission(names, sync_legs=3, lost_agent_policy="continue", sync_timeout_s=30)
             mission_id = await daemon.missions.submit(task)
-            await wait_for(lambda: 1 in daemon.missions.active[mission_id].barriers.released, 30, "step 1 released")
+            await wait_for(
+                lambda: 1 in daemon.missions.active[mission_id].barriers.released, 30, "step 1 released"
+            )
             await agents[2].kill()
             await wait_for(lambda: mission_id not in daemon.missions.active, 60, "mission end")
             progress = daemon.missions.progress(mission_id)
@@ -160,17 +170,23 @@ async def test_daemon_restart_mid_mission_agents_resume_with_same_cids(tmp_path:
         await wait_for(lambda: len(daemon.agents.connected()) == 2, 10, "two agents")
         cids = {n: daemon.agents.session(n).cid for n in names}  # type: ignore[union-attr]
         mission_id = await daemon.missions.submit(survey_mission(names, sync_legs=3))
-        await wait_for(lambda: 0 in daemon.missions.active[mission_id].barriers.released, 30, "takeoff released")
+        await wait_for(
+            lambda: 0 in daemon.missions.active[mission_id].barriers.released, 30, "takeoff released"
+        )
         await daemon_cm.__aexit__(None, None, None)
 
-        await wait_for(lambda: all(not a.agent.link.connected for a in agents), 5, "agents notice the restart")
+        await wait_for(
+            lambda: all(not a.agent.link.connected for a in agents), 5, "agents notice the restart"
+        )
         assert all(a.autopilot.telemetry().armed for a in agents)  # still flying their plans
         daemon_cm = running_daemon(tmp_path, key, listen_port=port)
         daemon = await daemon_cm.__aenter__()
         assert mission_id in daemon.missions.active  # restored from the database
         await wait_for(lambda: len(daemon.agents.connected()) == 2, 15, "agents reconnect")
         assert {n: daemon.agents.session(n).cid for n in names} == cids  # type: ignore[union-attr]
-        await wait_for(lambda: mission_id not in daemon.missions.active, 60, "mission completes after restart")
+        await wait_for(
+            lambda: mission_id not in daemon.missions.active, 60, "mission completes after restart"
+        )
         progress = daemon.missions.progress(mission_id)
         assert progress is not None and progress.state == "completed"
         assert progress.released_steps == [0, 1, 2, 3]
@@ -206,7 +222,9 @@ async def test_agent_buffers_status_while_daemon_is_down(tmp_path: Path) -> None
         daemon_cm = running_daemon(tmp_path, key, listen_port=port)
         daemon = await daemon_cm.__aenter__()
         await wait_for(
-            lambda: (s := daemon.agents.session("buffered")) is not None and s.status_count >= 6, 10, "backlog"
+            lambda: (s := daemon.agents.session("buffered")) is not None and s.status_count >= 6,
+            10,
+            "backlog",
         )
         assert running.agent.link.buffered == (0, 0)
     finally:

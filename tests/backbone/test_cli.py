@@ -1,0 +1,126 @@
+"""The command-line tools as separate processes: `gcs serve`, `agent run`, `gcs run`, `gcs agents`."""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tests.backbone.helpers import survey_mission
+
+BIN = Path(sys.executable).parent
+
+
+def _wait_ready(path: Path, proc: subprocess.Popen[bytes], timeout: float = 20.0) -> list[int]:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if path.exists() and path.read_text().strip():
+            return [int(p) for p in path.read_text().split()]
+        if proc.poll() is not None:
+            raise AssertionError(
+                f"gcs serve exited with {proc.returncode}: {proc.stderr.read() if proc.stderr else ''}"
+            )
+        time.sleep(0.05)
+    raise AssertionError("gcs serve did not become ready")
+
+
+@pytest.mark.slow
+def test_serve_agents_and_run_a_mission_from_the_command_line(tmp_path: Path) -> None:
+    data_dir = tmp_path / "gcs"
+    ready = tmp_path / "ready"
+    serve = subprocess.Popen(
+        [
+            BIN / "gcs",
+            "serve",
+            "--listen",
+            "127.0.0.1:0",
+            "--http",
+            "127.0.0.1:0",
+            "--data-dir",
+            data_dir,
+            "--status-period",
+            "0.1",
+            "--ready-file",
+            ready,
+        ],
+        stderr=subprocess.PIPE,
+    )
+    agents: list[subprocess.Popen[bytes]] = []
+    try:
+        agent_port, http_port = _wait_ready(ready, serve)
+        key_file = data_dir / "fleet.key"
+        assert oct(key_file.stat().st_mode & 0o777) == "0o600"
+        for index, name in enumerate(["cli-1", "cli-2"]):
+            lat, lon = 47.397742, 8.545594 + index * 0.0001
+            agents.append(
+                subprocess.Popen(
+                    [
+                        BIN / "agent",
+                        "run",
+                        "--gcs",
+                        f"127.0.0.1:{agent_port}",
+                        "--id",
+                        name,
+                        "--key-file",
+                        key_file,
+                        "--autopilot-backend",
+                        "memory",
+                        "--autopilot",
+                        f"{lat},{lon},488",
+                        "--speedup",
+                        "8",
+                    ],
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        api = ["--api", f"http://127.0.0.1:{http_port}", "--data-dir", str(data_dir)]
+        deadline = time.monotonic() + 20
+        listing = ""
+        while time.monotonic() < deadline:
+            listing = subprocess.run([BIN / "gcs", "agents", *api], capture_output=True, text=True).stdout
+            if listing.count(" up ") == 2:
+                break
+            time.sleep(0.2)
+        assert "cli-1" in listing and "cli-2" in listing, listing
+
+        task_file = tmp_path / "mission.json"
+        task_file.write_text(survey_mission(["cli-1", "cli-2"], sync_legs=2).model_dump_json())
+        result = subprocess.run(
+            [BIN / "gcs", "run", task_file, "--timeout", "90", *api],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert "completed" in result.stdout and "sync 3/3" in result.stdout
+
+        bad = tmp_path / "bad.json"
+        bad.write_text(
+            json.dumps([{"Action_type": 1, "CID": 1, "Step": 0, "Sync": 0, "Lat": 1, "Lon": 1, "Alt": 5}])
+        )
+        rejected = subprocess.run([BIN / "gcs", "run", bad, *api], capture_output=True, text=True, timeout=30)
+        assert rejected.returncode == 2 and "first action must be a takeoff" in rejected.stderr
+
+        wrong_token = subprocess.run(
+            [BIN / "gcs", "run", task_file, "--token", secrets.token_hex(8), *api],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        assert wrong_token.returncode == 2 and "unauthorized" in wrong_token.stderr
+    finally:
+        for proc in [*agents, serve]:
+            proc.terminate()
+        for proc in [*agents, serve]:
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    assert serve.returncode == 0, serve.stderr.read() if serve.stderr else b""
+    assert os.path.exists(data_dir / "fleetgcs.sqlite")

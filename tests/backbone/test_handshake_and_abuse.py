@@ -1,0 +1,279 @@
+"""Handshake, refusal paths and malformed input over real TCP: the daemon keeps serving others."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import secrets
+from pathlib import Path
+
+import pytest
+
+from agent.config import AgentConfig
+from agent.link import DaemonLink
+from protocol import auth
+from protocol.packets import (
+    PROTOCOL_VERSION,
+    Body,
+    Close,
+    CloseReason,
+    PerformActions,
+    RequestCid,
+    ResponseCid,
+)
+from protocol.wire import HEADER, MAGIC, Frame, FrameDecoder, encode
+from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
+
+
+class RawClient:
+    """A hand-driven protocol peer, to send exactly the bytes a test needs."""
+
+    def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.reader, self.writer = reader, writer
+        self.decoder = FrameDecoder()
+        self.frames: list[Frame] = []
+        self.seq = 0
+
+    @classmethod
+    async def connect(cls, port: int) -> RawClient:
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        return cls(reader, writer)
+
+    async def send(self, body: Body) -> None:
+        self.seq += 1
+        self.writer.write(encode(body, self.seq))
+        await self.writer.drain()
+
+    async def send_raw(self, data: bytes) -> None:
+        self.writer.write(data)
+        await self.writer.drain()
+
+    async def receive(self, timeout: float = 5.0) -> Frame | None:
+        """Next frame, or None when the daemon closed the connection."""
+        async with asyncio.timeout(timeout):
+            while not self.frames:
+                data = await self.reader.read(65_536)
+                if not data:
+                    return None
+                self.frames.extend(self.decoder.feed(data))
+        return self.frames.pop(0)
+
+    async def receive_all_until_closed(self, timeout: float = 5.0) -> list[Body]:
+        bodies = []
+        for _ in range(20):
+            frame = await self.receive(timeout)
+            if frame is None:
+                return bodies
+            bodies.append(frame.body)
+        raise AssertionError("daemon kept talking instead of closing")
+
+    async def handshake(
+        self, identity: str, key_hex: str, version: int = PROTOCOL_VERSION
+    ) -> tuple[Body, str, str]:
+        client_nonce = auth.new_nonce()
+        await self.send(RequestCid(identity=identity, protocol_version=version, client_nonce=client_nonce))
+        challenge = await self.receive()
+        assert challenge is not None
+        if not isinstance(challenge.body, ResponseCid) or challenge.body.outcome != "challenge":
+            return challenge.body, "", client_nonce
+        server_nonce = challenge.body.server_nonce or ""
+        proof = auth.agent_proof(bytes.fromhex(key_hex), identity, server_nonce, client_nonce)
+        await self.send(
+            RequestCid(identity=identity, protocol_version=version, client_nonce=client_nonce, proof=proof)
+        )
+        answer = await self.receive()
+        assert answer is not None
+        return answer.body, server_nonce, client_nonce
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+async def test_handshake_gives_stable_cid_and_server_proof(tmp_path: Path) -> None:
+    key = new_key()
+    async with running_daemon(tmp_path, key) as daemon:
+        first = await RawClient.connect(daemon.listen_port)
+        answer, server_nonce, client_nonce = await first.handshake("drone-7", key)
+        assert isinstance(answer, ResponseCid) and answer.outcome == "accepted" and answer.cid == 1
+        expected = auth.daemon_proof(bytes.fromhex(key), "drone-7", client_nonce, server_nonce)
+        assert answer.server_proof == expected
+        assert answer.parameters is not None and answer.parameters.status_period_s == pytest.approx(0.1)
+        other = await RawClient.connect(daemon.listen_port)
+        answer_other, _, _ = await other.handshake("drone-8", key)
+        assert isinstance(answer_other, ResponseCid) and answer_other.cid == 2
+        first.close()
+        again = await RawClient.connect(daemon.listen_port)
+        answer_again, _, _ = await again.handshake("drone-7", key)
+        assert isinstance(answer_again, ResponseCid) and answer_again.cid == 1
+        other.close()
+        again.close()
+
+
+async def test_wrong_key_is_refused_and_logged(tmp_path: Path) -> None:
+    key = new_key()
+    async with running_daemon(tmp_path, key) as daemon:
+        client = await RawClient.connect(daemon.listen_port)
+        answer, _, _ = await client.handshake("intruder", new_key())
+        assert isinstance(answer, ResponseCid) and answer.outcome == "refused"
+        assert "wrong key" in (answer.reason or "")
+        rest = await client.receive_all_until_closed()
+        assert rest == [Close(reason=CloseReason.REFUSED, message=answer.reason or "")]
+        assert daemon.events.history(kind="agent_refused")
+        assert daemon.agents.session("intruder") is None
+
+
+async def test_recorded_handshake_cannot_be_replayed(tmp_path: Path) -> None:
+    key = new_key()
+    async with running_daemon(tmp_path, key) as daemon:
+        honest = await RawClient.connect(daemon.listen_port)
+        _, server_nonce, client_nonce = await honest.handshake("drone-1", key)
+        recorded_proof = auth.agent_proof(bytes.fromhex(key), "drone-1", server_nonce, client_nonce)
+        attacker = await RawClient.connect(daemon.listen_port)
+        hello = RequestCid(identity="drone-1", protocol_version=PROTOCOL_VERSION, client_nonce=client_nonce)
+        await attacker.send(hello)
+        challenge = await attacker.receive()
+        assert challenge is not None and isinstance(challenge.body, ResponseCid)
+        assert challenge.body.server_nonce != server_nonce
+        await attacker.send(hello.model_copy(update={"proof": recorded_proof}))
+        answer = await attacker.receive()
+        assert (
+            answer is not None and isinstance(answer.body, ResponseCid) and answer.body.outcome == "refused"
+        )
+        honest.close()
+
+
+async def test_per_agent_keys_refuse_unknown_identities(tmp_path: Path) -> None:
+    fleet_key, own_key = new_key(), new_key()
+    keys_file = tmp_path / "agent-keys.json"
+    keys_file.write_text(json.dumps({"listed": own_key}))
+    async with running_daemon(
+        tmp_path, fleet_key, agent_keys_file=keys_file, allow_unlisted_agents=False
+    ) as daemon:
+        listed = await RawClient.connect(daemon.listen_port)
+        answer, _, _ = await listed.handshake("listed", own_key)
+        assert isinstance(answer, ResponseCid) and answer.outcome == "accepted"
+        stranger = await RawClient.connect(daemon.listen_port)
+        await stranger.send(
+            RequestCid(identity="stranger", protocol_version=PROTOCOL_VERSION, client_nonce=auth.new_nonce())
+        )
+        refusal = await stranger.receive()
+        assert refusal is not None and isinstance(refusal.body, ResponseCid)
+        assert refusal.body.outcome == "refused" and "unknown agent 'stranger'" in (refusal.body.reason or "")
+        wrong_key = await RawClient.connect(daemon.listen_port)
+        answer, _, _ = await wrong_key.handshake("listed", fleet_key)  # the fleet key is not listed's key
+        assert isinstance(answer, ResponseCid) and answer.outcome == "refused"
+        listed.close()
+
+
+async def test_wrong_protocol_version_is_refused(tmp_path: Path) -> None:
+    key = new_key()
+    async with running_daemon(tmp_path, key) as daemon:
+        client = await RawClient.connect(daemon.listen_port)
+        answer, _, _ = await client.handshake("future", key, version=2)
+        assert isinstance(answer, ResponseCid) and answer.outcome == "refused"
+        assert "protocol version 2 not supported" in (answer.reason or "")
+
+
+async def test_silent_connection_is_cut_after_handshake_timeout(tmp_path: Path) -> None:
+    key = new_key()
+    async with running_daemon(tmp_path, key, handshake_timeout_s=0.5) as daemon:
+        client = await RawClient.connect(daemon.listen_port)
+        await client.send_raw(MAGIC)  # a slow-loris: two bytes, then nothing
+        bodies = await client.receive_all_until_closed(timeout=3.0)
+        assert bodies == [Close(reason=CloseReason.PROTOCOL_ERROR, message="handshake timeout")]
+        assert daemon.events.history(kind="handshake_timeout")
+
+
+async def test_second_session_replaces_the_first(tmp_path: Path) -> None:
+    key = new_key()
+    async with running_daemon(tmp_path, key) as daemon:
+        first = await RawClient.connect(daemon.listen_port)
+        await first.handshake("twin", key)
+        second = await RawClient.connect(daemon.listen_port)
+        answer, _, _ = await second.handshake("twin", key)
+        assert isinstance(answer, ResponseCid) and answer.outcome == "accepted" and answer.cid == 1
+        bodies = await first.receive_all_until_closed()
+        assert isinstance(bodies[-1], Close) and bodies[-1].reason == CloseReason.REPLACED
+        assert daemon.agents.session("twin") is not None
+        assert daemon.events.history(kind="agent_replaced")
+
+
+async def test_agent_refuses_a_daemon_that_cannot_prove_the_key(tmp_path: Path) -> None:
+    """Mutual authentication: an impostor daemon that accepts anyone is not trusted."""
+
+    async def impostor(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        decoder, seq = FrameDecoder(), 0
+        for outcome in ("challenge", "accepted"):
+            data = await reader.read(65_536)
+            if not data:
+                return
+            list(decoder.feed(data))
+            seq += 1
+            reply = ResponseCid(
+                outcome=outcome, server_nonce=auth.new_nonce(), cid=1, server_proof=secrets.token_hex(32)
+            )
+            writer.write(encode(reply, seq))
+            await writer.drain()
+        await asyncio.sleep(1)
+        writer.close()
+
+    server = await asyncio.start_server(impostor, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    config = AgentConfig(identity="careful", gcs_port=port, key_hex=new_key(), reconnect_min_s=0.05)
+
+    async def noop(_: object) -> None:
+        return None
+
+    link = DaemonLink(config, bytes.fromhex(config.key_hex), noop, noop, noop, lambda: None, lambda: None)
+    task = asyncio.create_task(link.run())
+    try:
+        await wait_for(lambda: link.last_error is not None, 5, "the agent to reject the impostor")
+        assert "could not prove it holds our key" in (link.last_error or "")
+        assert not link.connected
+    finally:
+        task.cancel()
+        server.close()
+
+
+async def test_malformed_input_never_disturbs_a_running_mission(tmp_path: Path) -> None:
+    key = new_key()
+    names = ["steady-1", "steady-2"]
+    async with running_daemon(tmp_path, key) as daemon:
+        agents = [start_agent(name, daemon.listen_port, key, i) for i, name in enumerate(names)]
+        try:
+            await wait_for(lambda: len(daemon.agents.connected()) == 2, 10, "two agents")
+            mission_id = await daemon.missions.submit(survey_mission(names, sync_legs=3))
+
+            abusers: list[tuple[str, bytes]] = [
+                ("garbage", secrets.token_bytes(4096)),
+                ("http", b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"),
+                ("oversized", HEADER.pack(MAGIC, PROTOCOL_VERSION, 2, 1, 512 << 20, 0)),
+                ("wrong version", HEADER.pack(MAGIC, 99, 0, 1, 2, 0) + b"{}"),
+                ("invalid body", encode(Close(reason=CloseReason.NORMAL), 1)[:16] + b"{nope}"),
+                ("truncated", encode(Close(reason=CloseReason.NORMAL), 1)[:10]),
+            ]
+            for label, data in abusers:
+                client = await RawClient.connect(daemon.listen_port)
+                await client.send_raw(data)
+                if label == "truncated":
+                    client.close()
+                    continue
+                bodies = await client.receive_all_until_closed()
+                assert bodies and isinstance(bodies[-1], Close), label
+                assert bodies[-1].reason == CloseReason.PROTOCOL_ERROR, (label, bodies)
+
+            # An authenticated peer that sends a packet only the daemon may send is cut off too.
+            rogue = await RawClient.connect(daemon.listen_port)
+            await rogue.handshake("rogue", key)
+            await rogue.send(PerformActions(mission_id="x", actions=[]))
+            bodies = await rogue.receive_all_until_closed()
+            assert isinstance(bodies[-1], Close) and "not valid from an agent" in bodies[-1].message
+
+            await wait_for(lambda: mission_id not in daemon.missions.active, 60, "mission completion")
+            progress = daemon.missions.progress(mission_id)
+            assert progress is not None and progress.state == "completed"
+            assert all(daemon.agents.session(n) is not None for n in names)
+            assert not daemon.events.history(kind="agent_lost")
+            assert len(daemon.events.history(kind="protocol_error")) >= 5
+        finally:
+            await stop_agents(agents)
