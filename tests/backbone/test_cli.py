@@ -23,9 +23,8 @@ def _wait_ready(path: Path, proc: subprocess.Popen[bytes], timeout: float = 20.0
         if path.exists() and path.read_text().strip():
             return [int(p) for p in path.read_text().split()]
         if proc.poll() is not None:
-            raise AssertionError(
-                f"gcs serve exited with {proc.returncode}: {proc.stderr.read() if proc.stderr else ''}"
-            )
+            detail = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+            raise AssertionError(f"gcs serve exited with {proc.returncode}: {detail}")
         time.sleep(0.05)
     raise AssertionError("gcs serve did not become ready")
 

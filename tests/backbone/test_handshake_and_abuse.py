@@ -59,7 +59,7 @@ class RawClient:
         return self.frames.pop(0)
 
     async def receive_all_until_closed(self, timeout: float = 5.0) -> list[Body]:
-        bodies = []
+        bodies: list[Body] = []
         for _ in range(20):
             frame = await self.receive(timeout)
             if frame is None:
@@ -202,15 +202,17 @@ async def test_agent_refuses_a_daemon_that_cannot_prove_the_key(tmp_path: Path) 
     """Mutual authentication: an impostor daemon that accepts anyone is not trusted."""
 
     async def impostor(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        decoder, seq = FrameDecoder(), 0
-        for outcome in ("challenge", "accepted"):
+        decoder = FrameDecoder()
+        for seq, outcome in enumerate(("challenge", "accepted"), start=1):
             data = await reader.read(65_536)
             if not data:
                 return
             list(decoder.feed(data))
-            seq += 1
             reply = ResponseCid(
-                outcome=outcome, server_nonce=auth.new_nonce(), cid=1, server_proof=secrets.token_hex(32)
+                outcome=outcome,  # type: ignore[arg-type]
+                server_nonce=auth.new_nonce(),
+                cid=1,
+                server_proof=secrets.token_hex(32),
             )
             writer.write(encode(reply, seq))
             await writer.drain()
