@@ -28,6 +28,7 @@ from protocol.geo import distance_m, offset_latlon
 
 POLL_S = 0.05
 VERTICAL_TOLERANCE_M = 1.0
+ARM_REPORT_GRACE_S = 5.0
 
 
 class ActionFailed(Exception):
@@ -106,6 +107,14 @@ class ActionExecutor:
             await self._fly_to(now.lat, now.lon, alt, None)
             return
         await ap.arm(self.config.arm_deadline_s)
+        # The autopilot has accepted arming; its heartbeat may take a moment to say so.
+        seen_armed = time.monotonic() + ARM_REPORT_GRACE_S
+        while not ap.telemetry().armed:
+            if time.monotonic() > seen_armed:
+                raise ActionFailed(
+                    f"the vehicle accepted arming but did not report armed in {ARM_REPORT_GRACE_S:.0f} s"
+                )
+            await asyncio.sleep(POLL_S)
         await ap.takeoff(alt)
         target = alt * self.config.takeoff_tolerance
         while ap.telemetry().alt_rel < target:

@@ -1,0 +1,686 @@
+"""The MAVSDK backend, meant for PX4 (``--autopilot-backend mavsdk``).
+
+Built on the ``mavsdk`` package **4.x**, the native ctypes binding of the MAVSDK C++ library (no
+``mavsdk_server`` process, no gRPC: ``System(mavsdk_server_address=...)`` of mavsdk<4 is gone). The
+library runs its own threads: telemetry arrives as plugin callbacks on those threads and is copied
+into a :class:`Telemetry` under a lock; blocking plugin calls (arm, takeoff, uploads) run in the
+default executor and are bounded with :func:`asyncio.wait_for`, so nothing blocks the event loop.
+
+Connection URLs are MAVSDK's (``udpin://0.0.0.0:14540``, ``udpout://host:port``,
+``tcpout://host:port``, ``tcpin://0.0.0.0:port``, ``serial:///dev/ttyAMA0:921600``); the
+pymavlink-style strings the other backend takes (``tcp:host:port``, ``udpin:0.0.0.0:14540``,
+``/dev/ttyAMA0:921600``) and the deprecated ``udp://:14540`` / ``tcp://host:port`` are translated.
+
+Mapping: arm → ``Action.arm`` (retried on refusal until the deadline), takeoff →
+``set_takeoff_altitude`` + ``Action.takeoff``, goto → ``Action.goto_location`` with the AMSL altitude
+computed from home, land → ``Action.land`` (after a goto when lat/lon are given), RTL →
+``Action.return_to_launch``, hold → ``Action.hold``, speed → ``Action.set_current_speed``, fence →
+``Geofence.upload_geofence`` + PX4 ``GF_ACTION``/``GF_MAX_VER_DIST``, mission → ``MissionRaw``.
+ArduPilot-specific modes (GUIDED before arming, BRAKE) go as raw COMMAND_LONGs through the
+``MavlinkDirect`` plugin, which also feeds the heartbeat clock and the mode name.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import dataclasses
+import json
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from agent.autopilot.base import (
+    Autopilot,
+    AutopilotError,
+    CommandRefused,
+    CommandTimeout,
+    FenceSpec,
+    LinkLost,
+    MissionPoint,
+    Telemetry,
+)
+from agent.autopilot.mavlink_backend import ARDUPILOT_FENCE_ACTION, PX4_FENCE_ACTION, decode_mode
+from agent.autopilot.mavlink_link import mavlink
+from protocol.geo import distance_m
+
+log = logging.getLogger(__name__)
+
+__all__ = ["MavsdkAutopilot", "to_mavsdk_url"]
+
+ARM_RETRY_INTERVAL_S = 0.5
+LAND_ARRIVAL_RADIUS_M = 2.0
+_REFUSED = {
+    "COMMAND_DENIED",
+    "COMMAND_DENIED_LANDED_STATE_UNKNOWN",
+    "COMMAND_DENIED_NOT_LANDED",
+    "FAILED",
+    "UNSUPPORTED",
+    "BUSY",
+    "DENIED",
+    "ERROR",
+    "INVALID_ARGUMENT",
+    "PARAMETER_ERROR",
+    "NO_VTOL_TRANSITION_SUPPORT",
+    "TOO_MANY_GEOFENCE_ITEMS",
+    "TOO_MANY_MISSION_ITEMS",
+    "WRONG_TYPE",
+    "PARAM_NAME_TOO_LONG",
+    "PARAM_VALUE_TOO_LONG",
+}
+_LINK = {"NO_SYSTEM", "CONNECTION_ERROR"}
+
+
+def to_mavsdk_url(connection: str) -> str:
+    """Translate pymavlink-style and deprecated MAVSDK connection strings to MAVSDK 2+ URLs."""
+    conn = connection.strip()
+    if "://" in conn:
+        scheme, rest = conn.split("://", 1)
+        if scheme == "udp":  # deprecated "udp://:14540" = listen
+            host, _, port = rest.rpartition(":")
+            return f"udpin://{host or '0.0.0.0'}:{port}"
+        if scheme == "tcp":  # deprecated "tcp://host:port" = connect
+            return f"tcpout://{rest}"
+        return conn
+    for prefix, scheme in (
+        ("tcp:", "tcpout"),
+        ("tcpin:", "tcpin"),
+        ("udpin:", "udpin"),
+        ("udpout:", "udpout"),
+        ("udp:", "udpin"),
+    ):
+        if conn.startswith(prefix):
+            return f"{scheme}://{conn[len(prefix) :]}"
+    if conn.startswith("serial:"):
+        conn = conn[len("serial:") :]
+    if conn.startswith("/dev/") or conn.upper().startswith("COM"):
+        for sep in (",", ":"):
+            if sep in conn:
+                device, baud = conn.rsplit(sep, 1)
+                if baud.isdigit():
+                    return f"serial://{device}:{baud}"
+        return f"serial://{conn}:57600"
+    return conn
+
+
+_mavsdk_log = logging.getLogger("mavsdk")
+_logs_routed = False
+
+
+def _route_mavsdk_logs() -> None:
+    """Send MAVSDK's own log lines (printed to stdout by default) to the ``mavsdk`` Python logger."""
+    global _logs_routed
+    if _logs_routed:
+        return
+    from mavsdk import log_subscribe
+
+    levels = (logging.DEBUG, logging.INFO, logging.WARNING, logging.ERROR)
+
+    def handler(level: Any, message: str, file: str | None, line: int) -> bool:
+        _mavsdk_log.log(levels[min(int(level), 3)], "%s", message)
+        return True
+
+    log_subscribe(handler)
+    _logs_routed = True
+
+
+_MAVSDK_MODE = {  # telemetry.FlightMode name -> our vocabulary (ArduPilot names where they match)
+    "HOLD": "LOITER",
+    "MISSION": "AUTO",
+    "RETURN_TO_LAUNCH": "RTL",
+}
+
+
+class MavsdkAutopilot(Autopilot):
+    """An :class:`Autopilot` over MAVSDK (PX4 first; ArduPilot basics work too).
+
+    Args:
+        connection: a MAVSDK URL or a pymavlink-style string (see :func:`to_mavsdk_url`).
+        heartbeat_timeout_s: heartbeat silence after which commands raise :class:`LinkLost`.
+        command_timeout_s: bound on one MAVSDK call (MAVSDK retries internally).
+        telemetry_hz: rate asked for position, velocity, attitude and landed state.
+        companion: identify as a companion computer (component 191) rather than a ground station.
+    """
+
+    def __init__(
+        self,
+        connection: str,
+        *,
+        heartbeat_timeout_s: float = 3.0,
+        command_timeout_s: float = 10.0,
+        telemetry_hz: float = 10.0,
+        companion: bool = True,
+    ) -> None:
+        self.connection = connection
+        self.url = to_mavsdk_url(connection)
+        self.heartbeat_timeout_s = heartbeat_timeout_s
+        self.command_timeout_s = command_timeout_s
+        self.telemetry_hz = telemetry_hz
+        self.companion = companion
+        self._lock = threading.Lock()
+        self._tel = Telemetry()
+        self._texts: collections.deque[tuple[float, int, str]] = collections.deque(maxlen=20)
+        self._last_hb = 0.0
+        self._sysid = 0
+        self._compid = 1
+        self._autopilot_type = mavlink.MAV_AUTOPILOT_GENERIC
+        self._mode_from_heartbeat = False
+        self._mission_seq = -1
+        self._mission_offset = 0
+        self._landed_state = 0
+        self._heading_seen = False
+        self._mavsdk: Any = None
+        self._system: Any = None
+        self._telemetry: Any = None
+        self._action: Any = None
+        self._geofence: Any = None
+        self._mission_raw: Any = None
+        self._param: Any = None
+        self._direct: Any = None
+        self._ack_waiters: list[tuple[int, asyncio.AbstractEventLoop, asyncio.Queue[int]]] = []
+        self._closed = False
+
+    # ================================================================== lifecycle
+
+    async def connect(self, timeout: float = 30.0) -> None:
+        from mavsdk import ComponentType, Configuration, ConnectionResult, Mavsdk
+        from mavsdk.plugins.action import Action
+        from mavsdk.plugins.geofence import Geofence
+        from mavsdk.plugins.mavlink_direct import MavlinkDirect
+        from mavsdk.plugins.mission_raw import MissionRaw
+        from mavsdk.plugins.param import Param
+        from mavsdk.plugins.telemetry import Telemetry as MavsdkTelemetry
+
+        _route_mavsdk_logs()
+        loop = asyncio.get_running_loop()
+        kind = ComponentType.COMPANION_COMPUTER if self.companion else ComponentType.GROUND_STATION
+        self._mavsdk = Mavsdk(Configuration.create_with_component_type(kind))
+        result = await loop.run_in_executor(None, self._mavsdk.add_any_connection, self.url)
+        if result != ConnectionResult.SUCCESS:
+            raise LinkLost(f"MAVSDK cannot open {self.url}: {getattr(result, 'name', result)}")
+        system = await loop.run_in_executor(None, self._mavsdk.first_autopilot, timeout)
+        if system is None:
+            raise LinkLost(f"no autopilot on {self.url} within {timeout:.0f} s")
+        self._system = system
+        self._sysid = system.get_system_id()
+        kind_name = getattr(system.autopilot_type(), "name", "")
+        self._autopilot_type = {
+            "ARDUPILOT": mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+            "PX4": mavlink.MAV_AUTOPILOT_PX4,
+        }.get(kind_name, mavlink.MAV_AUTOPILOT_GENERIC)
+        self._telemetry = MavsdkTelemetry(system)
+        self._action = Action(system)
+        self._geofence = Geofence(system)
+        self._mission_raw = MissionRaw(system)
+        self._param = Param(system)
+        self._direct = MavlinkDirect(system)
+        self._last_hb = time.monotonic()
+        self._subscribe()
+        for setter in ("position", "velocity_ned", "attitude_euler", "landed_state", "in_air"):
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(
+                    loop.run_in_executor(
+                        None, getattr(self._telemetry, f"set_rate_{setter}"), self.telemetry_hz
+                    ),
+                    self.command_timeout_s,
+                )
+        for setter in ("home", "battery", "gps_info"):
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(
+                    loop.run_in_executor(None, getattr(self._telemetry, f"set_rate_{setter}"), 1.0),
+                    self.command_timeout_s,
+                )
+
+    async def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        mavsdk, self._mavsdk = self._mavsdk, None
+        if mavsdk is not None:
+            await asyncio.get_running_loop().run_in_executor(None, mavsdk.destroy)
+
+    # ================================================================== telemetry
+
+    def _subscribe(self) -> None:
+        t = self._telemetry
+
+        def on(name: str, handler: Callable[[Any], None]) -> None:
+            def callback(data: Any, _user: Any) -> None:
+                with self._lock:
+                    handler(data)
+
+            getattr(t, f"subscribe_{name}")(callback)
+
+        on("position", self._on_position)
+        on("home", self._on_home)
+        on("velocity_ned", self._on_velocity)
+        on("heading", self._on_heading)
+        on("attitude_euler", self._on_attitude)
+        on("battery", self._on_battery)
+        on("gps_info", self._on_gps)
+        on("armed", self._on_armed)
+        on("flight_mode", self._on_flight_mode)
+        on("landed_state", self._on_landed_state)
+        on("status_text", self._on_status_text)
+
+        def on_progress(progress: Any, _user: Any) -> None:
+            with self._lock:
+                self._mission_seq = int(progress.current)
+                self._update_mission_current()
+
+        self._mission_raw.subscribe_mission_progress(on_progress)
+        self._direct.subscribe_message("HEARTBEAT", self._on_heartbeat)
+        self._direct.subscribe_message("COMMAND_ACK", self._on_command_ack)
+
+    def _on_heartbeat(self, msg: Any, _user: Any) -> None:
+        if msg.system_id != self._sysid or msg.component_id != self._compid:
+            return
+        try:
+            fields = json.loads(msg.fields_json)
+        except (TypeError, ValueError):
+            return
+        if fields.get("autopilot") == mavlink.MAV_AUTOPILOT_INVALID:
+            return
+        with self._lock:
+            self._last_hb = time.monotonic()
+            self._autopilot_type = int(fields.get("autopilot", self._autopilot_type))
+            try:
+                mode = decode_mode(
+                    int(fields["autopilot"]),
+                    int(fields["type"]),
+                    int(fields["base_mode"]),
+                    int(fields["custom_mode"]),
+                )
+            except (KeyError, TypeError, ValueError):
+                return
+            self._mode_from_heartbeat = True
+            self._tel.mode = mode
+            self._tel.armed = bool(int(fields["base_mode"]) & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            self._update_landed()
+            self._update_mission_current()
+
+    def _on_position(self, p: Any) -> None:
+        tel = self._tel
+        if not all(math.isfinite(v) for v in (p.latitude_deg, p.longitude_deg)):
+            return
+        tel.lat, tel.lon = float(p.latitude_deg), float(p.longitude_deg)
+        tel.alt_amsl, tel.alt_rel = float(p.absolute_altitude_m), float(p.relative_altitude_m)
+        self._update_landed()
+
+    def _on_heading(self, h: Any) -> None:
+        if math.isfinite(h.heading_deg):
+            self._tel.heading_deg = float(h.heading_deg) % 360.0
+            self._heading_seen = True
+
+    def _on_attitude(self, a: Any) -> None:
+        if not self._heading_seen and math.isfinite(a.yaw_deg):
+            self._tel.heading_deg = float(a.yaw_deg) % 360.0
+
+    def _on_home(self, h: Any) -> None:
+        if math.isfinite(h.latitude_deg) and math.isfinite(h.longitude_deg):
+            self._tel.home_lat, self._tel.home_lon = float(h.latitude_deg), float(h.longitude_deg)
+            self._tel.home_alt_amsl = float(h.absolute_altitude_m)
+
+    def _on_velocity(self, v: Any) -> None:
+        self._tel.vn, self._tel.ve, self._tel.vd = float(v.north_m_s), float(v.east_m_s), float(v.down_m_s)
+
+    def _on_battery(self, b: Any) -> None:
+        if getattr(b, "id", 0) not in (0, None):
+            return
+        tel = self._tel
+        tel.battery_pct = float(b.remaining_percent) if math.isfinite(b.remaining_percent) else None
+        tel.voltage_v = float(b.voltage_v) if math.isfinite(b.voltage_v) else None
+        tel.current_a = float(b.current_battery_a) if math.isfinite(b.current_battery_a) else None
+
+    def _on_gps(self, g: Any) -> None:
+        self._tel.gps_fix = int(g.fix_type)
+        self._tel.satellites = int(g.num_satellites)
+
+    def _on_armed(self, armed: Any) -> None:
+        self._tel.armed = bool(armed)
+        self._update_landed()
+
+    def _on_flight_mode(self, mode: Any) -> None:
+        if self._mode_from_heartbeat:
+            return
+        name = getattr(mode, "name", str(mode))
+        self._tel.mode = _MAVSDK_MODE.get(name, name)
+        self._update_mission_current()
+
+    def _on_landed_state(self, state: Any) -> None:
+        self._landed_state = int(state)
+        self._update_landed()
+
+    def _on_status_text(self, st: Any) -> None:
+        # MAVSDK StatusTextType: DEBUG=0 ... EMERGENCY=7 (reverse of MAV_SEVERITY).
+        self._texts.append((time.monotonic(), 7 - int(st.type), str(st.text)))
+
+    def _update_landed(self) -> None:
+        tel = self._tel
+        if self._landed_state == 1:
+            tel.landed = True
+        elif self._landed_state in (2, 3, 4):
+            tel.landed = False
+        else:
+            tel.landed = not tel.armed or tel.alt_rel < 0.3
+
+    def _update_mission_current(self) -> None:
+        tel = self._tel
+        if tel.mode in ("AUTO", "MISSION") and self._mission_seq >= 0:
+            tel.mission_current = max(0, self._mission_seq - self._mission_offset)
+        else:
+            tel.mission_current = -1
+
+    def telemetry(self) -> Telemetry:
+        with self._lock:
+            snap = dataclasses.replace(self._tel, status_texts=[t for _, _, t in self._texts])
+            snap.last_heartbeat_monotonic = self._last_hb
+        return snap
+
+    # ================================================================== plumbing
+
+    @property
+    def is_ardupilot(self) -> bool:
+        return self._autopilot_type == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+
+    def _ensure_link(self, what: str) -> None:
+        if self._system is None or self._closed:
+            raise LinkLost(f"{what}: not connected")
+        age = time.monotonic() - self._last_hb
+        if age > self.heartbeat_timeout_s:
+            raise LinkLost(f"{what}: no heartbeat from the vehicle for {age:.1f} s")
+
+    def _refusal_text(self, since: float) -> str | None:
+        with self._lock:
+            recent = [(sev, text) for t, sev, text in self._texts if t >= since]
+        serious = [text for sev, text in recent if sev <= mavlink.MAV_SEVERITY_WARNING]
+        pick = serious or [text for _, text in recent]
+        return pick[-1] if pick else None
+
+    async def _call(self, what: str, fn: Callable[..., Any], *args: Any, timeout: float | None = None) -> Any:
+        """Run a blocking MAVSDK call in the executor, mapping its errors onto ours."""
+        from mavsdk import MavsdkError
+
+        self._ensure_link(what)
+        limit = timeout or self.command_timeout_s
+        started = time.monotonic()
+        loop = asyncio.get_running_loop()
+        task = loop.run_in_executor(None, fn, *args)
+        try:
+            deadline = started + limit
+            while True:
+                done, _ = await asyncio.wait({task}, timeout=min(0.1, max(0.0, deadline - time.monotonic())))
+                if done:
+                    return task.result()
+                self._ensure_link(what)
+                if time.monotonic() >= deadline:
+                    raise CommandTimeout(what, limit)
+        except MavsdkError as exc:
+            result = getattr(exc, "result", None)
+            name = getattr(result, "name", str(result))
+            if name == "TIMEOUT":
+                raise CommandTimeout(what, limit) from exc
+            if name in _LINK:
+                raise LinkLost(f"{what}: {name}") from exc
+            text = self._refusal_text(started - 0.5)
+            if text is None:
+                await asyncio.sleep(0.25)
+                text = self._refusal_text(started - 0.5)
+            raise CommandRefused(what, f"{text} [{name}]" if text else name) from exc
+
+    def _on_command_ack(self, msg: Any, _user: Any) -> None:
+        if msg.system_id != self._sysid:
+            return
+        try:
+            fields = json.loads(msg.fields_json)
+            command, result = int(fields["command"]), int(fields["result"])
+        except (TypeError, ValueError, KeyError):
+            return
+        for cmd, loop, queue in list(self._ack_waiters):
+            if cmd == command:
+                with contextlib.suppress(RuntimeError):
+                    loop.call_soon_threadsafe(queue.put_nowait, result)
+
+    async def _direct_command(self, what: str, command: int, params: tuple[float, ...]) -> None:
+        """A raw COMMAND_LONG through MavlinkDirect, waiting for its COMMAND_ACK (ArduPilot modes)."""
+        from mavsdk.plugins.mavlink_direct import MavlinkMessage
+
+        self._ensure_link(what)
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        fields = {
+            "target_system": self._sysid,
+            "target_component": self._compid,
+            "command": command,
+            "confirmation": 0,
+            **{f"param{i + 1}": p[i] for i in range(7)},
+        }
+        message = MavlinkMessage(
+            message_name="COMMAND_LONG",
+            system_id=0,
+            component_id=0,
+            target_system_id=self._sysid,
+            target_component_id=self._compid,
+            fields_json=json.dumps(fields),
+        )
+        loop = asyncio.get_running_loop()
+        queue: asyncio.Queue[int] = asyncio.Queue()
+        waiter = (command, loop, queue)
+        self._ack_waiters.append(waiter)
+        started = time.monotonic()
+        try:
+            for _ in range(3):
+                await loop.run_in_executor(None, self._direct.send_message, message)
+                deadline = time.monotonic() + 1.5
+                while (remaining := deadline - time.monotonic()) > 0:
+                    try:
+                        result = await asyncio.wait_for(queue.get(), min(remaining, 0.1))
+                    except TimeoutError:
+                        self._ensure_link(what)
+                        continue
+                    if result == mavlink.MAV_RESULT_ACCEPTED:
+                        return
+                    if result == mavlink.MAV_RESULT_IN_PROGRESS:
+                        continue
+                    entry = mavlink.enums["MAV_RESULT"].get(result)
+                    name = entry.name if entry else str(result)
+                    text = self._refusal_text(started - 0.5)
+                    raise CommandRefused(what, f"{text} [{name}]" if text else name)
+            raise CommandTimeout(what, 4.5)
+        finally:
+            self._ack_waiters.remove(waiter)
+
+    async def _ardupilot_mode(self, name: str) -> None:
+        from pymavlink import mavutil
+
+        if self.telemetry().mode == name:
+            return
+        number = {v: k for k, v in mavutil.mode_mapping_acm.items()}[name]
+        await self._direct_command(
+            f"mode {name}", mavlink.MAV_CMD_DO_SET_MODE, (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number)
+        )
+
+    # ================================================================== commands
+
+    async def arm(self, deadline_s: float = 60.0) -> None:
+        deadline = time.monotonic() + deadline_s
+        last: AutopilotError | None = None
+        while True:
+            self._ensure_link("arm")
+            try:
+                if self.is_ardupilot:
+                    await self._ardupilot_mode("GUIDED")
+                await self._call("arm", self._action.arm)
+                return
+            except (CommandRefused, CommandTimeout) as exc:
+                last = exc
+                log.info("arm attempt failed: %s", exc)
+            if time.monotonic() + ARM_RETRY_INTERVAL_S >= deadline:
+                break
+            await asyncio.sleep(ARM_RETRY_INTERVAL_S)
+        if isinstance(last, CommandRefused):
+            raise CommandRefused("arm", last.reason)
+        raise CommandTimeout("arm", deadline_s)
+
+    async def disarm(self) -> None:
+        await self._call("disarm", self._action.disarm)
+
+    async def takeoff(self, alt_rel_m: float) -> None:
+        if not math.isfinite(alt_rel_m) or alt_rel_m <= 0:
+            raise ValueError(f"takeoff altitude must be a positive number, not {alt_rel_m!r}")
+        if self.is_ardupilot:
+            # MAVSDK's ArduPilot takeoff sends NAV_TAKEOFF without switching mode; ArduCopter needs GUIDED.
+            await self._ardupilot_mode("GUIDED")
+            await self._direct_command("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, alt_rel_m))
+            return
+        await self._call("takeoff altitude", self._action.set_takeoff_altitude, alt_rel_m)
+        await self._call("takeoff", self._action.takeoff)
+
+    async def set_speed(self, speed_mps: float) -> None:
+        if not math.isfinite(speed_mps) or speed_mps <= 0:
+            raise ValueError(f"speed must be a positive number, not {speed_mps!r}")
+        await self._call("set speed", self._action.set_current_speed, speed_mps)
+
+    def _amsl(self, alt_rel_m: float) -> float:
+        tel = self.telemetry()
+        base = tel.home_alt_amsl if tel.home_alt_amsl is not None else tel.alt_amsl - tel.alt_rel
+        return base + alt_rel_m
+
+    async def goto(self, lat: float, lon: float, alt_rel_m: float, speed_mps: float | None = None) -> None:
+        if not all(math.isfinite(v) for v in (lat, lon, alt_rel_m)):
+            raise ValueError("goto: non-finite target")
+        if not self.telemetry().armed:
+            raise CommandRefused("goto", "vehicle is disarmed")
+        if speed_mps is not None:
+            await self.set_speed(speed_mps)
+        if self.is_ardupilot:
+            await self._ardupilot_mode("GUIDED")
+        await self._call("goto", self._action.goto_location, lat, lon, self._amsl(alt_rel_m), math.nan)
+
+    async def land(self, lat: float | None = None, lon: float | None = None) -> None:
+        if (lat is None) != (lon is None):
+            raise ValueError("land: give both lat and lon, or neither")
+        if lat is not None and lon is not None:
+            tel = self.telemetry()
+            dist = distance_m(tel.lat, tel.lon, lat, lon)
+            if dist > LAND_ARRIVAL_RADIUS_M and not tel.landed:
+                await self.goto(lat, lon, max(tel.alt_rel, 2.0))
+                limit = 30.0 + 3.0 * dist / 2.0
+                deadline = time.monotonic() + limit
+                while (
+                    distance_m(self.telemetry().lat, self.telemetry().lon, lat, lon) > LAND_ARRIVAL_RADIUS_M
+                ):
+                    self._ensure_link("land")
+                    if time.monotonic() > deadline:
+                        raise CommandTimeout("land (reposition)", limit)
+                    await asyncio.sleep(0.1)
+        await self._call("land", self._action.land)
+
+    async def return_to_launch(self) -> None:
+        await self._call("rtl", self._action.return_to_launch)
+
+    async def hold(self) -> None:
+        if self.is_ardupilot:
+            try:
+                await self._ardupilot_mode("BRAKE")
+            except CommandRefused:
+                await self._ardupilot_mode("LOITER")
+            return
+        await self._call("hold", self._action.hold)
+
+    # ================================================================== fence, mission, params
+
+    async def set_param(self, name: str, value: float) -> None:
+        """Write a parameter (float, falling back to int for integer parameters)."""
+        try:
+            await self._call(f"set {name}", self._param.set_param_float, name, float(value))
+        except CommandRefused:
+            await self._call(f"set {name}", self._param.set_param_int, name, round(value))
+
+    async def upload_fence(self, fence: FenceSpec) -> bool:
+        from mavsdk.plugins.geofence import Circle, FenceType, GeofenceData, Point, Polygon
+
+        action_map = ARDUPILOT_FENCE_ACTION if self.is_ardupilot else PX4_FENCE_ACTION
+        if fence.breach_action not in action_map:
+            raise ValueError(f"unknown breach action {fence.breach_action!r}")
+        polygons = []
+        if fence.polygon:
+            if len(fence.polygon) < 3:
+                raise ValueError("fence polygon needs at least 3 vertices")
+            polygons.append(Polygon([Point(a, b) for a, b in fence.polygon], FenceType.INCLUSION))
+        circles = []
+        if fence.circle is not None:
+            c = fence.circle
+            circles.append(Circle(Point(c.lat, c.lon), c.radius_m, FenceType.INCLUSION))
+        try:
+            await self._call("fence upload", self._geofence.upload_geofence, GeofenceData(polygons, circles))
+            if self.is_ardupilot:
+                fence_type = (4 if polygons or circles else 0) | (1 if fence.max_alt_m is not None else 0)
+                if fence.max_alt_m is not None:
+                    await self.set_param("FENCE_ALT_MAX", fence.max_alt_m)
+                await self.set_param("FENCE_ACTION", action_map[fence.breach_action])
+                await self.set_param("FENCE_TYPE", fence_type)
+                await self.set_param("FENCE_ENABLE", 1 if fence_type else 0)
+            else:
+                await self.set_param("GF_ACTION", action_map[fence.breach_action])
+                if fence.max_alt_m is not None:
+                    await self.set_param("GF_MAX_VER_DIST", fence.max_alt_m)
+        except (CommandRefused, CommandTimeout) as exc:
+            log.warning("fence not installed: %s", exc)
+            return False
+        return True
+
+    async def upload_mission(self, points: list[MissionPoint]) -> None:
+        from mavsdk.plugins.mission_raw import MissionItem
+
+        items = []
+        offset = 0
+        if self.is_ardupilot:  # seq 0 is home on ArduPilot
+            tel = self.telemetry()
+            items.append(
+                MissionItem(
+                    0,
+                    mavlink.MAV_FRAME_GLOBAL,
+                    mavlink.MAV_CMD_NAV_WAYPOINT,
+                    0,
+                    1,
+                    0,
+                    0,
+                    0,
+                    0,
+                    round((tel.home_lat or 0.0) * 1e7),
+                    round((tel.home_lon or 0.0) * 1e7),
+                    tel.home_alt_amsl or 0.0,
+                    mavlink.MAV_MISSION_TYPE_MISSION,
+                )
+            )
+            offset = 1
+        for p in points:
+            seq = len(items)
+            items.append(
+                MissionItem(
+                    seq,
+                    mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+                    mavlink.MAV_CMD_NAV_WAYPOINT,
+                    1 if seq == offset else 0,
+                    1,
+                    0,
+                    0,
+                    0,
+                    math.nan,
+                    round(p.lat * 1e7),
+                    round(p.lon * 1e7),
+                    p.alt_rel_m,
+                    mavlink.MAV_MISSION_TYPE_MISSION,
+                )
+            )
+        await self._call("mission upload", self._mission_raw.upload_mission, items, timeout=30.0)
+        with self._lock:
+            self._mission_offset = offset
+            self._update_mission_current()
+
+    async def start_mission(self) -> None:
+        await self._call("mission start", self._mission_raw.start_mission)

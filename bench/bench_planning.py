@@ -1,0 +1,159 @@
+"""Search-planning benchmark: planning time vs size, pattern length/turns, coverage under eq. 9 error.
+
+Run: python bench/bench_planning.py  (writes bench/results/planning.json; < 1 min on 2 cores)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from shapely.geometry import Polygon
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from gcs.planning.camera import Camera, spacing_from_camera
+from gcs.planning.coverage import evaluate_coverage, path_error_m, simulate_track
+from gcs.planning.decompose import cover_area
+from gcs.planning.patterns import segmented, spiral, zigzag
+from gcs.planning.polygon import regularity
+
+# seed 001 Tables 2-3 (Unity simulation, 5 m/s, 0 % desired overlap)
+PAPER_TABLE2 = {"zigzag": (80, 181), "segmented": (91, 240), "spiral": (83, 205)}
+PAPER_TABLE3 = {"zigzag": (71, 140), "spiral": (83, 205)}
+
+
+def timed(fn, repeat: int = 3) -> float:
+    best = math.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def blob(n: int, radius: float, concave: bool, seed: int = 0) -> np.ndarray:
+    """n-vertex polygon of about ``radius``: a circle, or a star with radial noise when concave."""
+    rng = np.random.default_rng(seed)
+    ang = (np.arange(n) + (rng.uniform(0, 0.8, n) if concave else 0.0)) * 2 * math.pi / n
+    r = radius * (rng.uniform(0.6, 1.0, n) if concave else np.ones(n))
+    return np.column_stack([r * np.cos(ang), r * np.sin(ang)])
+
+
+def bench_vertices() -> list[dict]:
+    rows = []
+    for n in (10, 30, 100, 300, 1000):
+        for concave in (False, True):
+            poly = blob(n, 560.0, concave)  # ~1 km2
+            t = timed(lambda p=poly, c=concave: cover_area(p, 30.0) if c else zigzag(p, 30.0))
+            rows.append({"vertices": n, "concave": concave, "seconds": round(t, 4)})
+    return rows
+
+
+def bench_area() -> list[dict]:
+    rows = []
+    for label, side in (("1 ha", 100.0), ("10 ha", 316.2), ("1 km2", 1000.0), ("10 km2", 3162.3)):
+        sq = np.array([(0, 0), (side, 0), (side, side * 0.8), (0, side)])
+        for name, fn in (("zigzag", zigzag), ("spiral", spiral)):
+            t = timed(lambda f=fn, s=sq: f(s, 30.0), repeat=1 if side > 2000 else 3)
+            rows.append({"area": label, "pattern": name, "seconds": round(t, 4)})
+    return rows
+
+
+def shapes() -> dict[str, np.ndarray]:
+    hexagon = np.array([(40 * math.cos(a), 40 * math.sin(a)) for a in np.arange(6) * math.pi / 3])
+    irregular = np.array([(0, 0), (95, 5), (110, 60), (40, 85), (-5, 45)], float)
+    return {"regular": hexagon, "irregular": irregular}
+
+
+def bench_patterns(step: float) -> list[dict]:
+    rows = []
+    for shape, poly in shapes().items():
+        zz = zigzag(poly, step)
+        for name, sw in (("zigzag", zz), ("spiral", spiral(poly, step)), ("segmented", segmented(zz, 4))):
+            rows.append(
+                {
+                    "shape": shape,
+                    "regularity": round(regularity(poly), 3),
+                    "pattern": name,
+                    "length_m": round(sw.length, 1),
+                    "turns": sw.turns,
+                    "waypoints": len(sw.points),
+                }
+            )
+    return rows
+
+
+def bench_coverage(step: float, swath: float, seeds: int = 10) -> list[dict]:
+    rows = []
+    for shape, poly in shapes().items():
+        zz = zigzag(poly, step)
+        for speed in (3.0, 5.0):
+            for name, sw in (("zigzag", zz), ("segmented", segmented(zz, 4)), ("spiral", spiral(poly, step))):
+                cov, ovl, secs = [], [], []
+                for seed in range(seeds):
+                    track, t = simulate_track(sw.points, speed, accel=1.0, seed=seed)
+                    rep = evaluate_coverage(Polygon(poly), [track], swath)
+                    cov.append(rep.covered_pct)
+                    ovl.append(rep.overlap_pct)
+                    secs.append(t)
+                paper = PAPER_TABLE2.get(name) if speed == 5.0 else None
+                rows.append(
+                    {
+                        "shape": shape,
+                        "speed": speed,
+                        "eq9_error_m": round(path_error_m(speed), 3),
+                        "pattern": name,
+                        "covered_pct": round(float(np.mean(cov)), 2),
+                        "covered_min_pct": round(float(np.min(cov)), 2),
+                        "overlap_pct": round(float(np.mean(ovl)), 2),
+                        "time_s": round(float(np.mean(secs)), 1),
+                        "paper_table2_covered_pct": paper[0] if paper else None,
+                        "paper_table2_time_s": paper[1] if paper else None,
+                    }
+                )
+    return rows
+
+
+def table(rows: list[dict], title: str) -> None:
+    print(f"\n## {title}")
+    keys = list(rows[0])
+    print(" | ".join(keys))
+    for r in rows:
+        print(" | ".join(str(r[k]) for k in keys))
+
+
+def main() -> int:
+    t0 = time.perf_counter()
+    cam = Camera(resolution_px=640, fov_deg=60.0, min_pixels=20)  # seed 001 §6.1 camera, 0.5 m tag
+    sp = spacing_from_camera(cam, 0.5, side_overlap=0.0)
+    results = {
+        "spacing": sp.model_dump(),
+        "vertices": bench_vertices(),
+        "area": bench_area(),
+        "patterns": bench_patterns(sp.step),
+        "coverage": bench_coverage(sp.step, sp.swath),
+        "paper_table3": PAPER_TABLE3,
+    }
+    results["wall_s"] = round(time.perf_counter() - t0, 1)
+    print(f"camera: h_max {sp.h_max:.2f} m, swath {sp.swath:.2f} m, step {sp.step:.2f} m (0 % overlap)")
+    table(results["vertices"], "planning time vs vertex count (~1 km2, step 30 m)")
+    table(results["area"], "planning time vs area (step 30 m)")
+    table(results["patterns"], "pattern length and turns")
+    table(
+        results["coverage"], "covered % under eq. 9 path error (mean of 10 seeds), seed 001 Table 2 alongside"
+    )
+    print(f"\nseed 001 Table 3 (zigzag vs spiral, 5 m/s): {PAPER_TABLE3}")
+    out = Path(__file__).resolve().parent / "results" / "planning.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=2))
+    print(f"\nwrote {out} in {results['wall_s']} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

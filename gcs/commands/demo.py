@@ -1,0 +1,63 @@
+"""`gcs demo`: fly a synchronized multi-drone survey on the embedded simulator, then summarise."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from pathlib import Path
+
+from gcs.demo import DemoError, DemoOptions, run_demo, summary_table
+
+
+def _home(text: str) -> tuple[float, float, float]:
+    parts = [float(p) for p in text.split(",")]
+    if len(parts) not in (2, 3):
+        raise argparse.ArgumentTypeError("--home is LAT,LON[,ALT_AMSL]")
+    return (parts[0], parts[1], parts[2] if len(parts) == 3 else 488.0)
+
+
+def run(args: argparse.Namespace) -> int:
+    options = DemoOptions(
+        drones=args.drones,
+        home=args.home,
+        speedup=args.speedup,
+        seed=args.seed,
+        pattern=args.pattern,
+        division=args.division,
+        altitude_m=args.alt,
+        swath_m=args.swath,
+        speed_mps=args.speed,
+        timeout_s=args.timeout,
+        data_dir=args.data_dir,
+        http=args.http,
+    )
+    try:
+        result = asyncio.run(run_demo(options))
+    except DemoError as exc:
+        print(f"gcs demo: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:  # planning rejected the options (area, capability...)
+        print(f"gcs demo: cannot plan the mission: {exc}", file=sys.stderr)
+        return 2
+    print(summary_table(result))
+    return 0 if result.ok else 1
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("demo", help="fly a multi-drone mission on the embedded simulator")
+    parser.add_argument("--drones", type=int, default=3, choices=range(1, 51), metavar="1..50")
+    parser.add_argument("--home", type=_home, default=(47.397742, 8.545594, 488.0), help="LAT,LON[,ALT]")
+    parser.add_argument(
+        "--speedup", type=float, default=4.0, help="simulation speed-up (default %(default)s)"
+    )
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--pattern", default="zigzag", choices=["zigzag", "spiral", "segmented", "curved"])
+    parser.add_argument("--division", default="region", choices=["path", "region"])
+    parser.add_argument("--alt", type=float, default=12.0, help="survey altitude, m")
+    parser.add_argument("--swath", type=float, default=14.0, help="sensor swath, m")
+    parser.add_argument("--speed", type=float, default=6.0, help="survey speed, m/s")
+    parser.add_argument("--timeout", type=float, default=600.0, help="abort the mission after this many s")
+    parser.add_argument("--data-dir", type=Path, help="keep the daemon database here (default: temporary)")
+    parser.add_argument("--http", help="also serve the HTTP API on HOST:PORT")
+    parser.set_defaults(run=run)

@@ -1,0 +1,286 @@
+"""The main job, end to end on one machine: daemon + simulated vehicles + agents + a planned mission.
+
+The daemon runs in this process. The simulator (`python -m sitl run`) and the agents
+(`python -m agent run`), one per vehicle, are separate processes. They talk real TCP (our
+protocol) and real MAVLink (simulator <-> agents), like a field deployment on one laptop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import secrets
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from gcs.config import DaemonConfig
+from gcs.daemon import Daemon
+from gcs.flight_recorder import FlightRecorder
+from gcs.missions import MissionProgress
+from gcs.planning.areas import area_from_latlon
+from gcs.planning.camera import spacing_from_swath
+from gcs.planning.division import DroneSpec
+from gcs.planning.planner import PlanConfig, plan_search
+from protocol.actions import Waypoints
+from protocol.geo import offset_latlon
+from protocol.packets import StatusReport
+from protocol.taskfile import TaskFile
+
+
+@dataclass
+class DemoOptions:
+    drones: int = 3
+    home: tuple[float, float, float] = (47.397742, 8.545594, 488.0)
+    speedup: float = 4.0
+    seed: int = 1
+    pattern: str = "zigzag"
+    division: str = "region"
+    area_m: tuple[float, float] = (90.0, 60.0)  # east x north extent of the survey rectangle
+    altitude_m: float = 12.0
+    swath_m: float = 14.0
+    speed_mps: float = 6.0
+    timeout_s: float = 600.0
+    data_dir: Path | None = None
+    http: str | None = None
+    quiet: bool = False
+
+
+@dataclass
+class DemoResult:
+    ok: bool
+    mission: MissionProgress | None
+    recorder: FlightRecorder
+    landed: dict[str, bool]
+    message: str
+
+
+class DemoError(RuntimeError):
+    """The demo could not run (a process failed to start, agents did not join...)."""
+
+
+def _say(options: DemoOptions, text: str) -> None:
+    if not options.quiet:
+        print(text, flush=True)
+
+
+def survey_area(options: DemoOptions) -> list[tuple[float, float]]:
+    """A rectangle starting 15 m north of home."""
+    lat, lon, _ = options.home
+    east, north = options.area_m
+    corners = [(15.0, -10.0), (15.0, east - 10.0), (15.0 + north, east - 10.0), (15.0 + north, -10.0)]
+    return [offset_latlon(lat, lon, n, e) for n, e in corners]
+
+
+def plan_demo_mission(
+    options: DemoOptions, names: list[str]
+) -> tuple[TaskFile, list[list[tuple[float, float]]]]:
+    area = area_from_latlon(survey_area(options), name="demo-area")
+    drones = [DroneSpec(name=n, speed_mps=options.speed_mps, endurance_s=900.0) for n in names]
+    plan = plan_search(
+        area,
+        drones,
+        spacing_from_swath(options.swath_m, options.altitude_m),
+        PlanConfig(pattern=options.pattern, division=options.division, name="demo", transit_alt_step=3.0),  # type: ignore[arg-type]
+        home_latlon=(options.home[0], options.home[1]),
+        speed=options.speed_mps,
+        agent_names=names,
+    )
+    return plan.taskfile, plan.paths_latlon
+
+
+async def _start_simulator(options: DemoOptions) -> tuple[asyncio.subprocess.Process, list[str]]:
+    home = ",".join(str(v) for v in options.home)
+    process = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "sitl",
+        "run",
+        "--vehicles",
+        str(options.drones),
+        "--home",
+        home,
+        "--base-port",
+        "0",
+        "--speedup",
+        str(options.speedup),
+        "--seed",
+        str(options.seed),
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.DEVNULL if options.quiet else None,
+    )
+    assert process.stdout is not None
+    try:
+        async with asyncio.timeout(30):
+            while True:
+                line = (await process.stdout.readline()).decode()
+                if not line:
+                    raise DemoError(f"the simulator exited with {await process.wait()} before it was ready")
+                if line.startswith("SITL READY"):
+                    return process, line.split()[2:]
+    except TimeoutError:
+        process.kill()
+        raise DemoError("the simulator did not report READY within 30 s") from None
+
+
+async def _start_agents(
+    endpoints: list[str], names: list[str], port: int, key_file: Path, quiet: bool
+) -> list[asyncio.subprocess.Process]:
+    processes = []
+    for name, endpoint in zip(names, endpoints, strict=True):
+        processes.append(
+            await asyncio.create_subprocess_exec(
+                sys.executable,
+                "-m",
+                "agent",
+                "run",
+                "--id",
+                name,
+                "--gcs",
+                f"127.0.0.1:{port}",
+                "--autopilot",
+                endpoint,
+                "--key-file",
+                str(key_file),
+                "--max-speed",
+                "10",
+                stderr=asyncio.subprocess.DEVNULL if quiet else None,
+            )
+        )
+    return processes
+
+
+async def _stop(processes: list[asyncio.subprocess.Process]) -> None:
+    for process in processes:
+        if process.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                process.terminate()
+    for process in processes:
+        try:
+            await asyncio.wait_for(process.wait(), 10)
+        except TimeoutError:
+            with contextlib.suppress(ProcessLookupError):
+                process.kill()
+            await process.wait()
+
+
+def _progress_line(daemon: Daemon, names: list[str], mission_id: str) -> str:
+    cells = []
+    for name in names:
+        session = daemon.agents.sessions.get(name)
+        status = session.status if session else None
+        if status is None:
+            cells.append(f"{name}: -")
+            continue
+        sync = f" sync{status.waiting_sync}" if status.waiting_sync is not None else ""
+        cells.append(
+            f"{name}: {status.mode:6} step {status.step:>2}{sync} alt {status.position.alt_rel:5.1f} "
+            f"bat {status.battery.pct if status.battery.pct is not None else 0:5.1f}%"
+        )
+    progress = daemon.missions.progress(mission_id)
+    released = f"{len(progress.released_steps)}/{len(progress.sync_steps)}" if progress else "?"
+    return f"[sync {released}] " + " | ".join(cells)
+
+
+async def run_demo(options: DemoOptions) -> DemoResult:
+    names = [f"drone-{i + 1}" for i in range(options.drones)]
+    task, paths = plan_demo_mission(options, names)  # plan first: a bad option fails before anything starts
+    temp = None if options.data_dir else tempfile.TemporaryDirectory(prefix="fleetgcs-demo-")
+    data_dir = options.data_dir or Path(temp.name)  # type: ignore[union-attr]
+    key_hex = secrets.token_hex(32)
+    key_file = data_dir / "fleet.key"
+    data_dir.mkdir(parents=True, exist_ok=True)
+    key_file.write_text(key_hex + "\n")
+    os.chmod(key_file, 0o600)
+    http_host, http_port = (
+        (options.http.rsplit(":", 1)[0], int(options.http.rsplit(":", 1)[1])) if options.http else (None, 0)
+    )
+    daemon = Daemon(
+        DaemonConfig(
+            listen_port=0,
+            http_host=http_host,
+            http_port=http_port,
+            data_dir=data_dir,
+            fleet_key_hex=key_hex,
+            status_period_s=0.2,
+        )
+    )
+    recorder = FlightRecorder()
+    for plan, path in zip(task.plans, paths, strict=True):
+        survey_steps = {a.step for a in plan.actions if isinstance(a, Waypoints)}
+        recorder.set_plan(plan.label, path, survey_steps)
+
+    async def record(session: object, status: StatusReport) -> None:
+        recorder.add(session.identity, status)  # type: ignore[attr-defined]
+
+    daemon.agents.on_status.append(record)
+    await daemon.start()
+    simulator: list[asyncio.subprocess.Process] = []
+    agents: list[asyncio.subprocess.Process] = []
+    try:
+        _say(
+            options, f"daemon on 127.0.0.1:{daemon.listen_port}; starting {options.drones} simulated vehicles"
+        )
+        sim_process, endpoints = await _start_simulator(options)
+        simulator.append(sim_process)
+        agents += await _start_agents(endpoints, names, daemon.listen_port, key_file, options.quiet)
+        deadline = time.monotonic() + 60
+        while not all(
+            (s := daemon.agents.session(n)) is not None and s.status is not None and s.status.gps.fix >= 3
+            for n in names
+        ):
+            if time.monotonic() > deadline:
+                raise DemoError(
+                    f"agents did not all join with a GPS fix within 60 s ({daemon.agents.sessions.keys()})"
+                )
+            await asyncio.sleep(0.2)
+        _say(
+            options,
+            f"{len(names)} agents joined; mission '{task.name}' with sync steps {task.plans[0].sync_steps()}",
+        )
+        mission_id = await daemon.missions.submit(task)
+        deadline = time.monotonic() + options.timeout_s
+        last_print = 0.0
+        while mission_id in daemon.missions.active and time.monotonic() < deadline:
+            if time.monotonic() - last_print >= 1.0:
+                _say(options, _progress_line(daemon, names, mission_id))
+                last_print = time.monotonic()
+            await asyncio.sleep(0.1)
+        if mission_id in daemon.missions.active:
+            await daemon.missions.abort(mission_id, f"demo timeout after {options.timeout_s:.0f} s")
+        settle = time.monotonic() + 60
+        while time.monotonic() < settle and not all(
+            (r := recorder.records.get(n)) is not None and r.landed and not r.armed for n in names
+        ):
+            await asyncio.sleep(0.2)
+        progress = daemon.missions.progress(mission_id)
+        landed = {n: bool((r := recorder.records.get(n)) and r.landed and not r.armed) for n in names}
+        ok = progress is not None and progress.state == "completed" and all(landed.values())
+        message = progress.result if progress and progress.result else "no result"
+        return DemoResult(ok, progress, recorder, landed, message)
+    finally:
+        await _stop(agents)  # agents first, so none sees its autopilot vanish
+        await _stop(simulator)
+        await daemon.stop()
+        if temp is not None:
+            temp.cleanup()
+
+
+def summary_table(result: DemoResult) -> str:
+    lines = [
+        f"{'drone':10} {'landed':6} {'dist m':>8} {'air s':>7} {'energy Wh':>9} {'batt used %':>11} "
+        f"{'max path err m':>14}"
+    ]
+    for name, record in sorted(result.recorder.records.items()):
+        used = record.battery_used_pct if record.battery_used_pct is not None else float("nan")
+        lines.append(
+            f"{name:10} {'yes' if result.landed.get(name) else 'NO':6} {record.distance_m:8.1f} "
+            f"{record.airborne_s:7.1f} {record.energy_wh:9.2f} {used:11.1f} "
+            f"{record.max_path_error_m:14.2f}"
+        )
+    state = result.mission.state if result.mission else "unknown"
+    lines.append(f"mission: {state} ({result.message}); result: {'SUCCESS' if result.ok else 'FAILURE'}")
+    return "\n".join(lines)

@@ -1,0 +1,109 @@
+"""Per-drone flight records built from status reports: track, distance, time, energy, path error.
+
+Distance is summed over horizontal track segments longer than a noise floor, so GPS jitter
+while hovering does not add up. Energy integrates voltage x current over time; when an autopilot
+reports no current, the battery percentage drop is reported instead. Path error is the largest
+horizontal distance between the flown track and the planned survey path, sampled while the
+drone executes a survey step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from shapely.geometry import LineString, Point
+
+from protocol.geo import distance_m, ned_offset_m
+from protocol.packets import StatusReport
+
+JITTER_FLOOR_M = 0.05
+
+
+@dataclass
+class FlightRecord:
+    agent: str
+    samples: int = 0
+    first_time: float | None = None
+    last_time: float | None = None
+    airborne_s: float = 0.0
+    distance_m: float = 0.0
+    energy_wh: float = 0.0
+    battery_start_pct: float | None = None
+    battery_end_pct: float | None = None
+    max_path_error_m: float = 0.0
+    max_alt_m: float = 0.0
+    landed: bool = True
+    armed: bool = False
+    track: list[tuple[float, float, float, float]] = field(default_factory=list)  # time, lat, lon, alt_rel
+    _last: StatusReport | None = None
+
+    def add(
+        self, status: StatusReport, planned: LineString | None, origin: tuple[float, float] | None
+    ) -> None:
+        self.samples += 1
+        if self.first_time is None:
+            self.first_time = status.time
+        previous = self._last
+        if previous is not None and status.time > previous.time:
+            dt = status.time - previous.time
+            step = distance_m(
+                previous.position.lat, previous.position.lon, status.position.lat, status.position.lon
+            )
+            if step > JITTER_FLOOR_M:
+                self.distance_m += step
+            if not previous.landed:
+                self.airborne_s += dt
+            v, a = status.battery.voltage_v, status.battery.current_a
+            if v is not None and a is not None and math.isfinite(v * a):
+                self.energy_wh += v * max(a, 0.0) * dt / 3600.0
+        if status.battery.pct is not None:
+            if self.battery_start_pct is None:
+                self.battery_start_pct = status.battery.pct
+            self.battery_end_pct = status.battery.pct
+        if planned is not None and origin is not None and not status.landed:
+            north, east = ned_offset_m(origin[0], origin[1], status.position.lat, status.position.lon)
+            self.max_path_error_m = max(self.max_path_error_m, planned.distance(Point(east, north)))
+        self.max_alt_m = max(self.max_alt_m, status.position.alt_rel)
+        self.landed, self.armed = status.landed, status.armed
+        self.last_time = status.time
+        self.track.append((status.time, status.position.lat, status.position.lon, status.position.alt_rel))
+        self._last = status
+
+    @property
+    def duration_s(self) -> float:
+        if self.first_time is None or self.last_time is None:
+            return 0.0
+        return self.last_time - self.first_time
+
+    @property
+    def battery_used_pct(self) -> float | None:
+        if self.battery_start_pct is None or self.battery_end_pct is None:
+            return None
+        return self.battery_start_pct - self.battery_end_pct
+
+
+class FlightRecorder:
+    """Collects :class:`FlightRecord` per agent; planned paths are given in lat/lon."""
+
+    def __init__(self) -> None:
+        self.records: dict[str, FlightRecord] = {}
+        self._planned: dict[str, LineString] = {}
+        self._survey_steps: dict[str, set[int]] = {}
+        self._origin: tuple[float, float] | None = None
+
+    def set_plan(self, agent: str, path_latlon: list[tuple[float, float]], survey_steps: set[int]) -> None:
+        """The survey path to measure ``agent``'s path error against (local metres around the first point)."""
+        if len(path_latlon) < 2:
+            return
+        if self._origin is None:
+            self._origin = path_latlon[0]
+        lat0, lon0 = self._origin
+        local = [ned_offset_m(lat0, lon0, lat, lon)[::-1] for lat, lon in path_latlon]
+        self._planned[agent] = LineString(local)
+        self._survey_steps[agent] = survey_steps
+
+    def add(self, agent: str, status: StatusReport) -> None:
+        record = self.records.setdefault(agent, FlightRecord(agent))
+        surveying = status.step in self._survey_steps.get(agent, set())
+        record.add(status, self._planned.get(agent) if surveying else None, self._origin)

@@ -1,0 +1,75 @@
+"""PSA trajectories -> task file, with a barrier wherever the formation turns.
+
+``gcs.planning.mission.mission_from_paths`` syncs only once at the end of the survey, which
+would let a line formation drift apart at corners; here every leg of the common-knot trajectory
+is one Waypoints action with the same step for every drone and ``sync=True``, so the daemon
+holds the fleet together at each turn (the CoUAS synchronisation the paper relies on).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from gcs.planning._psa_trajectory import FleetTrajectory
+from gcs.planning.geodesy import LocalFrame
+from protocol.actions import MAX_WAYPOINTS_PER_ACTION, Action, Goto, Land, Takeoff, Waypoint, Waypoints
+from protocol.taskfile import AgentPlan, TaskFile
+
+
+def _legs_latlon(trajectory: FleetTrajectory, frame: LocalFrame) -> list[list[list[tuple[float, float]]]]:
+    """legs[leg][drone] = lat/lon points after the leg's first knot (consecutive repeats removed)."""
+    flat = trajectory.positions.reshape(-1, 2)
+    lat, lon = frame.to_geodetic(flat[:, 0], flat[:, 1])
+    ll = np.stack([lat, lon], axis=-1).reshape(trajectory.positions.shape)
+    out = []
+    for first, last in trajectory.legs():
+        leg = []
+        for j in range(trajectory.drones):
+            seg = trajectory.positions[j, first : last + 1]
+            keep = [k for k in range(1, len(seg)) if np.any(np.abs(seg[k] - seg[k - 1]) > 1e-9)]
+            pts = [(float(ll[j, first + k, 0]), float(ll[j, first + k, 1])) for k in keep]
+            leg.append(pts or [(float(ll[j, last, 0]), float(ll[j, last, 1]))])
+        out.append(leg)
+    return out
+
+
+def psa_mission(
+    trajectory: FleetTrajectory,
+    frame: LocalFrame,
+    alt: float,
+    speed: float | None = None,
+    names: Sequence[str] | None = None,
+    name: str = "psa",
+) -> TaskFile:
+    """Takeoff (sync) -> goto formation start (sync) -> one synced Waypoints per leg -> land."""
+    m = trajectory.drones
+    labels = list(names) if names is not None else [f"drone-{j + 1}" for j in range(m)]
+    start_lat, start_lon = frame.to_geodetic(trajectory.positions[:, 0, 0], trajectory.positions[:, 0, 1])
+    plans: list[list[Action]] = [
+        [
+            Takeoff(step=0, sync=True, alt=alt),
+            Goto(step=1, sync=True, lat=float(start_lat[j]), lon=float(start_lon[j]), alt=alt, speed=speed),
+        ]
+        for j in range(m)
+    ]
+    step = 2
+    for leg in _legs_latlon(trajectory, frame):
+        chunks = max(1, max(-(-len(p) // MAX_WAYPOINTS_PER_ACTION) for p in leg))
+        for c in range(chunks):
+            for j in range(m):
+                size = -(-len(leg[j]) // chunks)
+                part = leg[j][c * size : (c + 1) * size] or leg[j][-1:]
+                plans[j].append(
+                    Waypoints(
+                        step=step,
+                        sync=c == chunks - 1,
+                        points=[Waypoint(lat=a, lon=b, alt=alt) for a, b in part],
+                        speed=speed,
+                    )
+                )
+            step += 1
+    for j in range(m):
+        plans[j].append(Land(step=step))
+    return TaskFile(name=name, plans=[AgentPlan(agent=labels[j], actions=plans[j]) for j in range(m)])

@@ -1,0 +1,286 @@
+"""Polygon-guided Scanning Algorithm (PSA, CoUAS seed 004, Algorithms 1-2, Theorem 1).
+
+A line formation of ``m`` drones spaced ``w`` apart (width ``w_max = (m - 1) w``) flies round the
+convex hull of the unvisited targets; targets within ``w_max`` of the hull (the ring ``R_k``) are
+visited on scan lines perpendicular to the current edge by short excursions of the whole
+formation; the rest are handled in later rounds on smaller hulls, joined by the transfer line
+``c_1 ... c_K``. Pure function in a local metric frame; see docs/fleet-planners.md for the
+places where this differs from the paper (excursions may go outward, formation turns are costed,
+Theorem 1's bound is not a bound on the optimum).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gcs.planning._psa_check import PlanReport, check_plan
+from gcs.planning._psa_geometry import (
+    EPS,
+    EdgeFrame,
+    FloatArray,
+    convex_hull,
+    edge_frame,
+    entry_parameter,
+    locate,
+)
+from gcs.planning._psa_trajectory import FleetTrajectory, TrajectoryBuilder, formation, pivot
+
+__all__ = ["FleetTrajectory", "PlanReport", "PsaCosts", "PsaPlan", "PsaRound", "check_plan", "plan_psa"]
+
+SCAN_TOL = 1e-6  # targets closer than this along an edge share a scan line (the paper's F_s)
+
+
+@dataclass(frozen=True)
+class PsaRound:
+    """One round: hull ``V_k``, the targets of ring ``R_k`` and where the round starts (``c_k``)."""
+
+    hull: FloatArray
+    targets: np.ndarray  # indices into the input points
+    entry: FloatArray  # c_k
+    perimeter: float  # L_k
+
+
+@dataclass(frozen=True)
+class PsaCosts:
+    """The paper's accounting next to what the trajectories really cost (metres)."""
+
+    round_lengths: tuple[float, ...]  # L_k, hull perimeters
+    transfer: float  # L_trans = |c_1 c_K|
+    scan_adjust: float  # sum of 2 L(F_s): the paper's L_adjust
+    turn_adjust: float  # formation turns at corners and round entries (Remark 1 calls it negligible)
+    fleet_length: float  # L_fleet = longest measured route
+
+    @property
+    def lower_bound(self) -> float:
+        """Theorem 1's ``sum L_k + L_trans`` (not a true bound on the optimum, see the docs)."""
+        return float(sum(self.round_lengths) + self.transfer)
+
+    @property
+    def adjust(self) -> float:
+        """Honest ``L_adjust``: scan-line excursions plus formation turns."""
+        return self.scan_adjust + self.turn_adjust
+
+
+@dataclass(frozen=True)
+class PsaPlan:
+    """Trajectories, rounds and costs of a PSA plan."""
+
+    trajectory: FleetTrajectory
+    rounds: tuple[PsaRound, ...]
+    costs: PsaCosts
+    link_range: float
+    points: FloatArray = field(repr=False)
+
+    def check(self, sample_dt: float = 0.25) -> PlanReport:
+        """Re-verify connectivity and coverage on the produced trajectories."""
+        return check_plan(self.trajectory, self.points, self.link_range, sample_dt=sample_dt)
+
+
+def _split_rounds(points: FloatArray, w_max: float) -> list[tuple[FloatArray, np.ndarray]]:
+    """Algorithm 1 lines 2-10: peel hulls; each round takes the targets within w_max of its hull."""
+    remaining = np.arange(len(points))
+    rounds = []
+    while len(remaining):
+        hull = convex_hull(points[remaining])
+        if len(hull) == 1:
+            rounds.append((hull, remaining))
+            break
+        depth, _, _ = locate(edge_frame(hull), points[remaining])
+        inside = depth <= w_max + 1e-9
+        rounds.append((hull, remaining[inside]))
+        remaining = remaining[~inside]
+    return rounds
+
+
+def _transfer_points(hulls: list[FloatArray]) -> list[FloatArray]:
+    """c_1 ... c_K: the shortest segment from a vertex of V_K to the outer boundary, cut by each hull."""
+    inner = hulls[-1]
+    if len(hulls) == 1 or len(hulls[0]) == 1:
+        return [inner[0].copy()]
+    outer = edge_frame(hulls[0])
+    depth, edge, t = locate(outer, inner)
+    best = int(np.argmin(depth))
+    c_k = inner[best]
+    c_1 = outer.point(int(edge[best]), float(t[best]))
+    entries = [c_1]
+    for hull in hulls[1:-1]:
+        s = entry_parameter(edge_frame(hull), c_1, c_k)
+        entries.append(c_1 + s * (c_k - c_1))
+    entries.append(c_k.copy())
+    return entries
+
+
+def _edge_of(frame: EdgeFrame, point: FloatArray) -> tuple[int, float]:
+    """The edge holding a boundary point (a vertex belongs to the edge it starts)."""
+    for e in range(len(frame.length)):
+        rel = point - frame.start[e]
+        if abs(float(rel @ frame.normal[e])) <= 1e-6 * max(1.0, frame.length[e]):
+            t = float(rel @ frame.direction[e])
+            if -1e-6 <= t < frame.length[e] - 1e-9:
+                return e, max(t, 0.0)
+    _, edge, tt = locate(frame, point.reshape(1, 2))
+    return int(edge[0]), float(tt[0])
+
+
+def excursion_shifts(depths: FloatArray, spacing: float, drones: int) -> tuple[float, float]:
+    """Smallest (outward a, inward b) shifts putting a drone on every target of one scan line.
+
+    Drone j sits at depth j*spacing; shifting the formation inward by b covers residues
+    [0, b] and outward by a covers [spacing - a, spacing). Choosing the largest gap between sorted
+    residues as the uncovered part minimises a + b (the paper only flies inward, never cheaper).
+    """
+    if drones == 1 or spacing <= EPS:
+        return 0.0, 0.0
+    res = np.sort(np.clip(np.asarray(depths) - np.floor(np.asarray(depths) / spacing) * spacing, 0, spacing))
+    res = res[(res > 1e-9) & (res < spacing - 1e-9)]
+    if not len(res):
+        return 0.0, 0.0
+    knots = np.concatenate([[0.0], res, [spacing]])
+    gap = int(np.argmax(np.diff(knots)))
+    inward, outward_edge = float(knots[gap]), float(knots[gap + 1])
+    return spacing - outward_edge, inward
+
+
+@dataclass
+class _RoundScanner:
+    """Algorithm 2 for one ring: fly round the hull from the entry, excursions on scan lines."""
+
+    builder: TrajectoryBuilder
+    spacing: float
+    drones: int
+    link_range: float
+    min_spacing: float
+    scan_cost: float = 0.0
+    turn_cost: float = 0.0
+
+    def ring_spacing(self, depth: FloatArray) -> float:
+        """Narrow the formation to the ring's deepest target: turns cost less, links only get shorter."""
+        if self.drones == 1:
+            return self.link_range
+        need = float(depth.max()) / (self.drones - 1) if len(depth) else 0.0
+        return float(np.clip(need, min(self.min_spacing, self.link_range), self.link_range))
+
+    def normal_now(self) -> FloatArray:
+        pos = self.builder.current
+        if self.drones == 1:
+            return self._last_normal
+        inward = pos[1] - pos[0]
+        return np.asarray(-inward / max(float(np.hypot(*inward)), EPS), dtype=float)
+
+    _last_normal: FloatArray = field(default_factory=lambda: np.array([0.0, 1.0]))
+
+    def turn_to(self, anchor: FloatArray, normal: FloatArray, spacing: float | None = None) -> None:
+        if self.drones > 1:
+            old = self.spacing
+            self.spacing = old if spacing is None else spacing
+            self.turn_cost += pivot(self.builder, anchor, self.normal_now(), normal, old, self.spacing)
+        else:
+            self.builder.move_to(anchor.reshape(1, 2))
+        self._last_normal = normal
+        self.builder.mark_sync()
+
+    def fly_edge(
+        self, frame: EdgeFrame, e: int, t_from: float, t_to: float, stops: list[tuple[float, FloatArray]]
+    ) -> None:
+        """Along edge e from t_from to t_to, stopping for excursions at scan lines ``stops``."""
+        inward = -frame.normal[e]
+        for t, depths in sorted(stops, key=lambda s: s[0]):
+            base = formation(frame.point(e, t), inward, self.spacing, self.drones)
+            self.builder.move_to(base)
+            out, inn = excursion_shifts(depths, self.spacing, self.drones)
+            for shift in (inn, -out):
+                if shift > 0 or shift < 0:
+                    self.builder.move_to(base + shift * inward)
+                    self.builder.move_to(base)
+                    self.scan_cost += 2.0 * abs(shift)
+        self.builder.move_to(formation(frame.point(e, t_to), inward, self.spacing, self.drones))
+        self.builder.mark_sync()
+
+    def scan(self, hull: FloatArray, points: FloatArray, entry: FloatArray) -> None:
+        frame = edge_frame(hull)
+        h = len(frame.length)
+        e0, t0 = _edge_of(frame, entry)
+        depth, edge, tpos = (
+            locate(frame, points) if len(points) else (np.zeros(0), np.zeros(0, int), np.zeros(0))
+        )
+        self.turn_to(entry, frame.normal[e0], self.ring_spacing(depth))
+        groups: dict[int, list[tuple[float, FloatArray]]] = {}
+        for e in range(h):
+            sel = np.flatnonzero(edge == e)
+            order = sel[np.argsort(tpos[sel])]
+            lines: list[tuple[float, FloatArray]] = []
+            for i in order:
+                if lines and tpos[i] - lines[-1][0] <= SCAN_TOL:
+                    lines[-1] = (lines[-1][0], np.append(lines[-1][1], depth[i]))
+                else:
+                    lines.append((float(tpos[i]), np.array([depth[i]])))
+            groups[e] = lines
+        first = [s for s in groups[e0] if s[0] >= t0 - SCAN_TOL]
+        last = [s for s in groups[e0] if s[0] < t0 - SCAN_TOL]
+        self.fly_edge(frame, e0, t0, float(frame.length[e0]), first)
+        for k in range(1, h + 1):
+            e = (e0 + k) % h
+            self.turn_to(frame.start[e], frame.normal[e])
+            if e == e0:
+                self.fly_edge(frame, e, 0.0, t0, last)
+            else:
+                self.fly_edge(frame, e, 0.0, float(frame.length[e]), groups[e])
+
+
+def plan_psa(
+    points: FloatArray,
+    drones: int,
+    link_range: float,
+    speed: float = 4.0,
+    *,
+    min_spacing: float = 5.0,
+    adaptive_width: bool = True,
+) -> PsaPlan:
+    """Plan the fleet's timed trajectories visiting every target with a connected line formation.
+
+    ``adaptive_width`` narrows the formation (never below ``min_spacing`` metres, for collision
+    safety) when a ring's targets are all shallower than ``w_max``; ``False`` flies the paper's
+    fixed spacing ``link_range``.
+    """
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    if len(pts) == 0:
+        raise ValueError("PSA needs at least one target")
+    if drones < 1 or link_range <= 0 or speed <= 0:
+        raise ValueError("PSA needs drones >= 1, link_range > 0 and speed > 0")
+    w_max = (drones - 1) * link_range
+    split = _split_rounds(pts, w_max)
+    hulls = [h for h, _ in split]
+    entries = _transfer_points(hulls)
+    first_frame = edge_frame(hulls[0]) if len(hulls[0]) > 1 else None
+    normal0 = (
+        first_frame.normal[_edge_of(first_frame, entries[0])[0]] if first_frame else np.array([0.0, 1.0])
+    )
+    floor = min_spacing if adaptive_width else link_range
+    builder = TrajectoryBuilder(formation(entries[0], -normal0, link_range, drones), speed)
+    scanner = _RoundScanner(builder, link_range, drones, link_range, floor, _last_normal=normal0)
+    if first_frame is not None:  # start already at the first ring's width (no re-spacing cost)
+        scanner.spacing = scanner.ring_spacing(locate(first_frame, pts[split[0][1]])[0])
+        builder = TrajectoryBuilder(formation(entries[0], -normal0, scanner.spacing, drones), speed)
+        scanner.builder = builder
+    rounds = []
+    for k, ((hull, idx), entry) in enumerate(zip(split, entries, strict=True)):
+        if k > 0:  # transfer c_{k-1} -> c_k keeping the formation's shape
+            builder.move_to(builder.current + (entry - entries[k - 1]), sync=True)
+        perimeter = 0.0
+        if len(hull) > 1:
+            scanner.scan(hull, pts[idx], entry)
+            perimeter = edge_frame(hull).perimeter
+        rounds.append(PsaRound(hull=hull, targets=idx, entry=entry, perimeter=perimeter))
+    trajectory = builder.build()
+    costs = PsaCosts(
+        round_lengths=tuple(r.perimeter for r in rounds),
+        transfer=float(np.hypot(*(entries[-1] - entries[0]))),
+        scan_adjust=scanner.scan_cost,
+        turn_adjust=scanner.turn_cost,
+        fleet_length=float(trajectory.lengths().max()),
+    )
+    return PsaPlan(
+        trajectory=trajectory, rounds=tuple(rounds), costs=costs, link_range=link_range, points=pts
+    )

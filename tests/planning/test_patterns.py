@@ -1,0 +1,116 @@
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from shapely.geometry import LineString, Point, Polygon
+
+from gcs.planning.patterns import (
+    count_turns,
+    curved,
+    line_grid,
+    path_length,
+    segmented,
+    spiral,
+    swept_footprint,
+    zigzag,
+)
+from gcs.planning.polygon import rotate
+
+from .conftest import convex_polygons
+
+RECT = np.array([(0, 0), (200, 0), (200, 150), (0, 150)], float)
+
+
+def _uncovered(poly, points, half):
+    return Polygon(poly).convex_hull.difference(swept_footprint(points, half * (1 + 1e-9) + 1e-9)).area
+
+
+@settings(max_examples=60, deadline=None)
+@given(convex_polygons(), st.floats(2.0, 40.0))
+def test_zigzag_every_point_within_half_a_swath(poly, step):
+    sw = zigzag(poly, step)
+    assert sw.spacing <= step + 1e-9
+    assert _uncovered(poly, sw.points, step / 2) == pytest.approx(0.0, abs=1e-6 * Polygon(poly).area)
+    # and pointwise, on random interior samples
+    rng = np.random.default_rng(0)
+    P = Polygon(poly)
+    minx, miny, maxx, maxy = P.bounds
+    line = LineString(sw.points) if len(sw.points) > 1 else Point(sw.points[0])
+    for x, y in rng.uniform([minx, miny], [maxx, maxy], (200, 2)):
+        if P.contains(Point(x, y)):
+            assert line.distance(Point(x, y)) <= step / 2 + 1e-6
+
+
+def test_lines_even_and_half_a_spacing_inside():
+    ys, spacing = line_grid(0.0, 150.0, 20.0)
+    assert len(ys) == 8 and spacing == pytest.approx(18.75)
+    assert ys[0] == pytest.approx(spacing / 2) and ys[-1] == pytest.approx(150 - spacing / 2)
+    sw = zigzag(RECT, 20.0)
+    assert len(sw.lines) == 8 and sw.turns == 14
+    assert sw.length == pytest.approx(8 * 200 + 7 * 18.75)
+
+
+def test_zigzag_runs_along_min_height():
+    long_thin = rotate([(0, 0), (500, 0), (500, 40), (0, 40)], 0.5)
+    sw = zigzag(long_thin, 10.0)
+    assert len(sw.lines) == 4  # 40 m across / 10 m, not 500 / 10
+    d = sw.lines[0, 1] - sw.lines[0, 0]
+    assert abs(math.atan2(d[1], d[0]) % math.pi - 0.5) < 1e-9
+
+
+def test_paper_chord_ends_miss_corners():
+    tri = np.array([(0, 0), (300, 0), (150, 60)], float)
+    chord = zigzag(tri, 20.0, extent="chord")
+    strip = zigzag(tri, 20.0)
+    assert _uncovered(tri, chord.points, 10.0) > 1.0
+    assert _uncovered(tri, strip.points, 10.0) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_start_corner_nearest():
+    sw = zigzag(RECT, 20.0, start=(210, 160))
+    assert np.hypot(*(sw.points[0] - [200, 150])) < 20
+
+
+@settings(max_examples=25, deadline=None)
+@given(convex_polygons(), st.floats(3.0, 30.0))
+def test_spiral_covers(poly, step):
+    sw = spiral(poly, step)
+    area = Polygon(poly).area
+    assert _uncovered(poly, sw.points, step / 2) <= 2e-3 * area + 1e-6
+
+
+def test_spiral_rings_and_centre():
+    sw = spiral(RECT, 20.0)
+    assert sw.meta["rings"] == 4  # 150 m across: rings at 10, 30, 50, 70 m deep
+    assert np.hypot(*(sw.points[-1] - [100, 75])) < 70
+    assert _uncovered(RECT, sw.points, 10.0) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_segmented_alg2():
+    base = zigzag(RECT, 20.0)
+    seg = segmented(base, 4)
+    assert len(seg.points) == len(base.points) + 3 * len(base.lines)
+    assert seg.length == pytest.approx(base.length)
+    assert seg.turns == base.turns  # break points are collinear
+    with pytest.raises(ValueError):
+        segmented(base, 0)
+
+
+def test_curved_alg3_shifts_midpoints_into_wind():
+    base = zigzag(RECT, 20.0, angle=0.0)  # legs east-west
+    cv = curved(base, 0.3, wind_from_deg=0.0)  # wind from north: midpoints move north
+    mids = cv.points[1::3]
+    ends = base.lines[:, 0, 1]
+    assert np.allclose(mids[:, 1] - ends, 0.3 * base.spacing)
+    assert path_length(cv.points) > base.length
+    signed = curved(base, -0.2)
+    assert np.allclose(np.abs(signed.points[1::3, 1] - ends), 0.2 * base.spacing)
+    with pytest.raises(ValueError, match="cross"):
+        curved(base, 2.0)  # the paper's |S| <= 2 would cross neighbouring legs
+
+
+def test_count_turns():
+    assert count_turns([(0, 0), (1, 0), (2, 0), (2, 1)]) == 1
+    assert count_turns([(0, 0), (1, 0)]) == 0

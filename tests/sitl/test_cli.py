@@ -1,0 +1,153 @@
+"""``sitl run``: READY line, fixed and ephemeral ports, clean exit; the real ArduPilot launcher."""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from sitl.ardupilot import ArduPilotFleet, find_binary
+from tests.sitl.conftest import Gcs, mavlink
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def _start(*args: str) -> tuple[subprocess.Popen[str], str]:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sitl", "run", *args],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None
+    ready, _, _ = select.select([proc.stdout], [], [], 15.0)
+    if not ready:
+        proc.kill()
+        raise AssertionError("no READY line within 15 s")
+    return proc, proc.stdout.readline()
+
+
+def _stop(proc: subprocess.Popen[str], sig: int = signal.SIGTERM) -> int:
+    proc.send_signal(sig)
+    try:
+        return proc.wait(10.0)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(5.0)
+        raise AssertionError("sitl did not exit on signal") from None
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_cli_ready_line_and_clean_exit(sig: int) -> None:
+    proc, line = _start(
+        "--vehicles",
+        "2",
+        "--base-port",
+        "0",
+        "--speedup",
+        "10",
+        "--home",
+        "47.39,8.54,500",
+        "--seed",
+        "3",
+        "--legacy-mission-request",
+        "--param",
+        "WPNAV_SPEED=700",
+        "--fail",
+        "2:gps_loss@100+5",
+    )
+    try:
+        words = line.split()
+        assert words[:2] == ["SITL", "READY"] and len(words) == 4, line
+        assert all(w.startswith("tcp:127.0.0.1:") for w in words[2:])
+        g = Gcs(words[3], sysid=2)
+        try:
+            hb = g.heartbeat_msg()
+            assert hb.type == mavlink.MAV_TYPE_QUADROTOR
+            g.m.mav.param_request_read_send(2, 1, b"WPNAV_SPEED", -1)
+            assert g.wait("PARAM_VALUE", lambda m: m.param_id == "WPNAV_SPEED").param_value == 700
+        finally:
+            g.close()
+    finally:
+        rc = _stop(proc, sig)
+    assert rc == 0
+    assert proc.stdout is not None and proc.stdout.read() == ""  # exactly one line on stdout
+
+
+def _free_base(n: int) -> int:
+    for _ in range(20):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if base + 10 * n > 65000:
+            continue
+        ok = True
+        for i in range(n):
+            with socket.socket() as s:
+                try:
+                    s.bind(("127.0.0.1", base + 10 * i))
+                except OSError:
+                    ok = False
+        if ok:
+            return base
+    raise AssertionError("no free port range")
+
+
+def test_cli_fixed_base_port_layout() -> None:
+    base = _free_base(3)
+    proc, line = _start("--vehicles", "3", "--base-port", str(base), "--spacing", "8")
+    try:
+        assert line.split()[2:] == [f"tcp:127.0.0.1:{base + 10 * i}" for i in range(3)]
+    finally:
+        assert _stop(proc) == 0
+
+
+def test_cli_rejects_bad_arguments() -> None:
+    for args in (["--fail", "1:boom@3"], ["--vehicles", "0"], ["--home", "abc"]):
+        proc = subprocess.run(
+            [sys.executable, "-m", "sitl", "run", "--base-port", "0", *args],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=20,
+        )
+        assert proc.returncode == 2, (args, proc.stderr)
+        assert "SITL READY" not in proc.stdout
+
+
+def test_ardupilot_command_line_layout() -> None:
+    apf = ArduPilotFleet("/opt/arducopter", 3, (47.0, 8.0, 500.0), spacing_m=10.0, defaults="/x/copter.parm")
+    cmd = apf.command(2)
+    assert cmd[:5] == ["/opt/arducopter", "-I", "2", "--model", "quad"]
+    assert cmd[cmd.index("--sysid") + 1] == "3" and cmd[cmd.index("--defaults") + 1] == "/x/copter.parm"
+    assert apf.endpoints == ["tcp:127.0.0.1:5760", "tcp:127.0.0.1:5770", "tcp:127.0.0.1:5780"]
+    homes = {apf.command(i)[apf.command(i).index("--home") + 1] for i in range(3)}
+    assert len(homes) == 3
+
+
+@pytest.mark.ardupilot
+@pytest.mark.skipif(find_binary() is None, reason="no arducopter binary (set ARDUPILOT_SITL or add to PATH)")
+def test_real_ardupilot_fleet_via_cli() -> None:
+    binary = find_binary()
+    assert binary is not None
+    proc, line = _start("--vehicles", "2", "--ardupilot", binary, "--speedup", "5")
+    try:
+        urls = line.split()[2:]
+        assert urls == ["tcp:127.0.0.1:5760", "tcp:127.0.0.1:5770"]
+        for i, url in enumerate(urls):
+            g = Gcs(url, sysid=i + 1)
+            try:
+                deadline = time.monotonic() + 60
+                hb = g.heartbeat_msg(timeout=max(1.0, deadline - time.monotonic()))
+                assert hb.autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+            finally:
+                g.close()
+    finally:
+        assert _stop(proc) == 0
