@@ -15,14 +15,12 @@ import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
-from agent.autopilot.base import Autopilot, AutopilotError, Telemetry
+from agent.autopilot.base import HEARTBEAT_TIMEOUT_S, Autopilot, AutopilotError, Telemetry
 from agent.config import AgentSettings
 from protocol.geo import distance_m, point_in_polygon
 from protocol.packets import Geofence
 
 log = logging.getLogger("agent.monitor")
-
-AUTOPILOT_LINK_TIMEOUT_S = 3.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,7 +87,7 @@ class ExceptionMonitor:
                     "link_lost", s.lost_link_action, f"no daemon contact for {now - last_contact:.0f} s"
                 )
             )
-        if t.last_heartbeat_monotonic and now - t.last_heartbeat_monotonic > AUTOPILOT_LINK_TIMEOUT_S:
+        if t.last_heartbeat_monotonic and now - t.last_heartbeat_monotonic > HEARTBEAT_TIMEOUT_S:
             found.append(Condition("autopilot_link_lost", "report", "no autopilot heartbeat"))
         if t.armed and t.gps_fix < 3:
             found.append(Condition("gps_lost", "report", f"fix type {t.gps_fix}"))

@@ -7,7 +7,7 @@ import contextlib
 import logging
 import time
 
-from agent.autopilot.base import Autopilot, FenceCircle, FenceSpec, Telemetry
+from agent.autopilot.base import HEARTBEAT_TIMEOUT_S, Autopilot, FenceCircle, FenceSpec, Telemetry
 from agent.command_queue import CommandQueue
 from agent.config import AgentConfig
 from agent.executor import ActionExecutor
@@ -138,7 +138,7 @@ class Agent:
     async def _status_loop(self) -> None:
         while True:
             t = self.autopilot.telemetry()
-            link_ok = time.monotonic() - t.last_heartbeat_monotonic < 3.0
+            link_ok = time.monotonic() - t.last_heartbeat_monotonic < HEARTBEAT_TIMEOUT_S
             await self.link.send_status(build_status(t, self.queue, self.exception_list(), link_ok))
             self._status_wakeup.clear()
             with contextlib.suppress(TimeoutError):

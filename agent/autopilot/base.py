@@ -13,9 +13,15 @@ Every command method either returns once the autopilot accepted the command, or 
 from __future__ import annotations
 
 import abc
+import asyncio
+import time
 from dataclasses import dataclass, field
 
-from protocol.geo import offset_latlon
+from protocol.geo import distance_m, offset_latlon
+
+ARM_RETRY_INTERVAL_S = 0.5  # how often backends retry arming through pre-arm refusals
+LAND_ARRIVAL_RADIUS_M = 2.0  # how close to a requested landing point before descending
+HEARTBEAT_TIMEOUT_S = 3.0  # default link-loss threshold; backends may configure their own
 
 
 class AutopilotError(Exception):
@@ -167,6 +173,37 @@ class Autopilot(abc.ABC):
         now = self.telemetry()
         lat, lon = offset_latlon(now.lat, now.lon, north_m, east_m)
         await self.goto(lat, lon, now.alt_rel + up_m, speed_mps)
+
+    def ensure_link(self, what: str) -> None:
+        """Raise :class:`LinkLost` (naming ``what``) when no heartbeat came for ``HEARTBEAT_TIMEOUT_S``."""
+        age = time.monotonic() - self.telemetry().last_heartbeat_monotonic
+        if age > HEARTBEAT_TIMEOUT_S:
+            raise LinkLost(f"{what}: no heartbeat from the vehicle for {age:.1f} s")
+
+    async def approach_landing_point(self, lat: float, lon: float) -> None:
+        """Fly to ``lat``/``lon`` at the current altitude and wait for arrival.
+
+        For autopilots whose land command ignores a position (ArduCopter's NAV_LAND, MAVSDK's
+        land): backends call it from :meth:`land` before descending. Raises
+        :class:`CommandTimeout` after 30 s + 1.5 s per metre, :class:`CommandRefused` if the
+        vehicle disarms on the way, :class:`LinkLost` if the link drops.
+        """
+        now = self.telemetry()
+        dist = distance_m(now.lat, now.lon, lat, lon)
+        if dist <= LAND_ARRIVAL_RADIUS_M or now.landed:
+            return
+        await self.goto(lat, lon, max(now.alt_rel, 2.0))
+        limit = 30.0 + 1.5 * dist
+        deadline = time.monotonic() + limit
+        while time.monotonic() < deadline:
+            self.ensure_link("land")
+            now = self.telemetry()
+            if distance_m(now.lat, now.lon, lat, lon) <= LAND_ARRIVAL_RADIUS_M:
+                return
+            if not now.armed:
+                raise CommandRefused("land", "vehicle disarmed on the way to the landing point")
+            await asyncio.sleep(0.1)
+        raise CommandTimeout("land (reposition)", limit)
 
     async def disarm(self) -> None:
         """Disarm (only on the ground). Backends override when they support it."""

@@ -25,6 +25,7 @@ from typing import Any
 
 from agent.autopilot import mavlink_mission
 from agent.autopilot.base import (
+    ARM_RETRY_INTERVAL_S,
     Autopilot,
     AutopilotError,
     CommandRefused,
@@ -35,15 +36,12 @@ from agent.autopilot.base import (
     Telemetry,
 )
 from agent.autopilot.mavlink_link import MavlinkLink, mavlink, mavutil, mission_result_name
-from protocol.geo import distance_m
 
 log = logging.getLogger(__name__)
 
 __all__ = ["MavlinkAutopilot", "decode_mode"]
 
 POSITION_TARGET_TYPE_MASK = 0x0DF8  # use x/y/z only: ignore velocity, acceleration, yaw, yaw rate
-ARM_RETRY_INTERVAL_S = 0.5
-LAND_ARRIVAL_RADIUS_M = 2.0
 
 # ArduPilot FENCE_ACTION values (Copter) for FenceSpec.breach_action.
 ARDUPILOT_FENCE_ACTION = {"report": 0, "rtl": 1, "land": 2, "hold": 4}
@@ -597,12 +595,8 @@ class MavlinkAutopilot(Autopilot):
         if (lat is None) != (lon is None):
             raise ValueError("land: give both lat and lon, or neither")
         if lat is not None and lon is not None:
-            tel = self.telemetry()
-            dist = distance_m(tel.lat, tel.lon, lat, lon)
-            if dist > LAND_ARRIVAL_RADIUS_M and not tel.landed:
-                # ArduCopter ignores NAV_LAND's lat/lon: fly there in GUIDED, then LAND.
-                await self.goto(lat, lon, max(tel.alt_rel, 2.0))
-                await self._wait_arrival("land", lat, lon, dist)
+            # ArduCopter ignores NAV_LAND's lat/lon: fly there in GUIDED, then LAND.
+            await self.approach_landing_point(lat, lon)
         try:
             await self.set_mode("LAND")
         except CommandRefused as exc:
@@ -610,18 +604,8 @@ class MavlinkAutopilot(Autopilot):
                 raise
             await self._link.command("land", mavlink.MAV_CMD_NAV_LAND, ())
 
-    async def _wait_arrival(self, what: str, lat: float, lon: float, dist: float) -> None:
-        limit = 30.0 + 3.0 * dist / 2.0
-        deadline = time.monotonic() + limit
-        while time.monotonic() < deadline:
-            self._link.ensure_link(what)
-            tel = self.telemetry()
-            if distance_m(tel.lat, tel.lon, lat, lon) <= LAND_ARRIVAL_RADIUS_M:
-                return
-            if not tel.armed:
-                raise CommandRefused(what, "vehicle disarmed on the way to the landing point")
-            await asyncio.sleep(0.1)
-        raise CommandTimeout(f"{what} (reposition)", limit)
+    def ensure_link(self, what: str) -> None:
+        self._link.ensure_link(what)
 
     async def return_to_launch(self) -> None:
         await self.set_mode("RTL")

@@ -35,6 +35,7 @@ from collections.abc import Callable
 from typing import Any
 
 from agent.autopilot.base import (
+    ARM_RETRY_INTERVAL_S,
     Autopilot,
     AutopilotError,
     CommandRefused,
@@ -46,14 +47,11 @@ from agent.autopilot.base import (
 )
 from agent.autopilot.mavlink_backend import ARDUPILOT_FENCE_ACTION, PX4_FENCE_ACTION, decode_mode
 from agent.autopilot.mavlink_link import mavlink
-from protocol.geo import distance_m
 
 log = logging.getLogger(__name__)
 
 __all__ = ["MavsdkAutopilot", "to_mavsdk_url"]
 
-ARM_RETRY_INTERVAL_S = 0.5
-LAND_ARRIVAL_RADIUS_M = 2.0
 _REFUSED = {
     "COMMAND_DENIED",
     "COMMAND_DENIED_LANDED_STATE_UNKNOWN",
@@ -387,7 +385,7 @@ class MavsdkAutopilot(Autopilot):
     def is_ardupilot(self) -> bool:
         return self._autopilot_type == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
 
-    def _ensure_link(self, what: str) -> None:
+    def ensure_link(self, what: str) -> None:
         if self._system is None or self._closed:
             raise LinkLost(f"{what}: not connected")
         age = time.monotonic() - self._last_hb
@@ -405,7 +403,7 @@ class MavsdkAutopilot(Autopilot):
         """Run a blocking MAVSDK call in the executor, mapping its errors onto ours."""
         from mavsdk import MavsdkError
 
-        self._ensure_link(what)
+        self.ensure_link(what)
         limit = timeout or self.command_timeout_s
         started = time.monotonic()
         loop = asyncio.get_running_loop()
@@ -416,7 +414,7 @@ class MavsdkAutopilot(Autopilot):
                 done, _ = await asyncio.wait({task}, timeout=min(0.1, max(0.0, deadline - time.monotonic())))
                 if done:
                     return task.result()
-                self._ensure_link(what)
+                self.ensure_link(what)
                 if time.monotonic() >= deadline:
                     raise CommandTimeout(what, limit)
         except MavsdkError as exc:
@@ -449,7 +447,7 @@ class MavsdkAutopilot(Autopilot):
         """A raw COMMAND_LONG through MavlinkDirect, waiting for its COMMAND_ACK (ArduPilot modes)."""
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
 
-        self._ensure_link(what)
+        self.ensure_link(what)
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
         fields = {
             "target_system": self._sysid,
@@ -479,7 +477,7 @@ class MavsdkAutopilot(Autopilot):
                     try:
                         result = await asyncio.wait_for(queue.get(), min(remaining, 0.1))
                     except TimeoutError:
-                        self._ensure_link(what)
+                        self.ensure_link(what)
                         continue
                     if result == mavlink.MAV_RESULT_ACCEPTED:
                         return
@@ -509,7 +507,7 @@ class MavsdkAutopilot(Autopilot):
         deadline = time.monotonic() + deadline_s
         last: AutopilotError | None = None
         while True:
-            self._ensure_link("arm")
+            self.ensure_link("arm")
             try:
                 if self.is_ardupilot:
                     await self._ardupilot_mode("GUIDED")
@@ -564,19 +562,7 @@ class MavsdkAutopilot(Autopilot):
         if (lat is None) != (lon is None):
             raise ValueError("land: give both lat and lon, or neither")
         if lat is not None and lon is not None:
-            tel = self.telemetry()
-            dist = distance_m(tel.lat, tel.lon, lat, lon)
-            if dist > LAND_ARRIVAL_RADIUS_M and not tel.landed:
-                await self.goto(lat, lon, max(tel.alt_rel, 2.0))
-                limit = 30.0 + 3.0 * dist / 2.0
-                deadline = time.monotonic() + limit
-                while (
-                    distance_m(self.telemetry().lat, self.telemetry().lon, lat, lon) > LAND_ARRIVAL_RADIUS_M
-                ):
-                    self._ensure_link("land")
-                    if time.monotonic() > deadline:
-                        raise CommandTimeout("land (reposition)", limit)
-                    await asyncio.sleep(0.1)
+            await self.approach_landing_point(lat, lon)
         await self._call("land", self._action.land)
 
     async def return_to_launch(self) -> None:
