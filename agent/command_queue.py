@@ -38,6 +38,10 @@ class CommandQueue:
         self.current_step = -1
         self.completed_step = -1
         self.waiting_sync: int | None = None
+        self.paused = False
+        self.pause_reason: str | None = None
+        self._resumed = asyncio.Event()
+        self._resumed.set()
 
     @property
     def depth(self) -> int:
@@ -78,6 +82,29 @@ class CommandQueue:
                 await current
         self.waiting_sync = None
         self.current_step = -1
+        self.resume()  # new orders (replace, or an exception reaction) override a pause
+
+    async def pause(self, reason: str | None) -> None:
+        """Stop where we are and keep the queue; the interrupted action resumes where it left off."""
+        self.pause_reason = reason
+        if self.paused:
+            return
+        self.paused = True
+        self._resumed.clear()
+        current = self._current
+        if current is not None and not current.done() and self.waiting_sync is None:
+            remaining = self._executor.continuation
+            current.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await current
+            if remaining is not None:
+                self._pending.appendleft(remaining)
+        await self._executor.hold_vehicle()
+
+    def resume(self) -> None:
+        self.paused = False
+        self.pause_reason = None
+        self._resumed.set()
 
     def release(self, mission_id: str, step: int) -> None:
         """The daemon released ``step`` (type 5)."""
@@ -91,9 +118,12 @@ class CommandQueue:
 
     async def _run(self) -> None:
         while True:
-            while not self._pending:
+            while not self._pending or self.paused:
                 self._wakeup.clear()
-                await self._wakeup.wait()
+                if self.paused:
+                    await self._resumed.wait()
+                else:
+                    await self._wakeup.wait()
             action = self._pending.popleft()
             self.current_step = action.step
             self._current = asyncio.create_task(self._perform(action), name=f"action-{action.step}")
@@ -122,3 +152,4 @@ class CommandQueue:
                 self._release_event.clear()
                 await self._release_event.wait()
             self.waiting_sync = None
+            await self._resumed.wait()  # a pause during the barrier wait holds past the release

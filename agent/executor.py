@@ -57,10 +57,13 @@ class ActionExecutor:
         self.autopilot = autopilot
         self.config = config
         self.cruise_mps: float | None = None
+        # What is left of the running action if it is interrupted now (pause), or None when idle.
+        self.continuation: Action | None = None
 
     async def run(self, action: Action) -> None:
         """Execute ``action`` to completion within its timeout, else raise :class:`ActionFailed`."""
         limit = default_timeout(action)
+        self.continuation = action
         try:
             await asyncio.wait_for(self._dispatch(action), limit)
         except TimeoutError:
@@ -69,6 +72,7 @@ class ActionExecutor:
             ) from None
         except AutopilotError as exc:
             raise ActionFailed(f"{action.kind} (step {action.step}): {exc}") from None
+        self.continuation = None
 
     async def _dispatch(self, action: Action) -> None:
         ap = self.autopilot
@@ -79,10 +83,22 @@ class ActionExecutor:
         elif isinstance(action, GoBy):
             now = ap.telemetry()
             lat, lon = offset_latlon(now.lat, now.lon, action.north, action.east)
+            alt = now.alt_rel + action.up
+            # If interrupted, what is left is a plain goto to the same fixed target.
+            self.continuation = Goto(
+                step=action.step,
+                sync=action.sync,
+                timeout_s=action.timeout_s,
+                lat=lat,
+                lon=lon,
+                alt=alt,
+                speed=action.speed,
+            )
             await ap.go_by(action.north, action.east, action.up, action.speed)
-            await self._fly_to(lat, lon, now.alt_rel + action.up, action.speed, already_sent=True)
+            await self._fly_to(lat, lon, alt, action.speed, already_sent=True)
         elif isinstance(action, Waypoints):
-            for point in action.points:
+            for index, point in enumerate(action.points):
+                self.continuation = action.model_copy(update={"points": action.points[index:]})
                 await self._fly_to(point.lat, point.lon, point.alt, action.speed)
         elif isinstance(action, Land):
             await ap.land(action.lat, action.lon)
@@ -92,7 +108,10 @@ class ActionExecutor:
             await self._until_disarmed()
         elif isinstance(action, Hold):
             await ap.hold()
-            await asyncio.sleep(action.seconds)
+            until = time.monotonic() + action.seconds
+            while (left := until - time.monotonic()) > 0:
+                self.continuation = action.model_copy(update={"seconds": left})
+                await asyncio.sleep(min(left, POLL_S * 4))
         elif isinstance(action, SetSpeed):
             await ap.set_speed(action.speed)
             self.cruise_mps = action.speed
@@ -142,6 +161,12 @@ class ActionExecutor:
                 await ap.goto(lat, lon, alt, None)
                 sent_at = time.monotonic()
             await asyncio.sleep(POLL_S)
+
+    async def hold_vehicle(self) -> None:
+        """Brake and hold position if flying (used by pause and by failures)."""
+        now = self.autopilot.telemetry()
+        if now.armed and not now.landed:
+            await self.autopilot.hold()
 
     async def _until_disarmed(self) -> None:
         ap = self.autopilot

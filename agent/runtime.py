@@ -7,7 +7,14 @@ import contextlib
 import logging
 import time
 
-from agent.autopilot.base import HEARTBEAT_TIMEOUT_S, Autopilot, FenceCircle, FenceSpec, Telemetry
+from agent.autopilot.base import (
+    HEARTBEAT_TIMEOUT_S,
+    Autopilot,
+    AutopilotError,
+    FenceCircle,
+    FenceSpec,
+    Telemetry,
+)
 from agent.command_queue import CommandQueue
 from agent.config import AgentConfig
 from agent.executor import ActionExecutor
@@ -75,6 +82,7 @@ def build_status(
         completed_step=queue.completed_step,
         queue_depth=queue.depth,
         waiting_sync=queue.waiting_sync,
+        paused=queue.paused,
         exceptions=exceptions[:32],
         autopilot_link=autopilot_link,
     )
@@ -172,9 +180,19 @@ class Agent:
     # --- handlers -------------------------------------------------------------------------------
 
     async def _on_actions(self, packet: PerformActions) -> None:
-        actions: list[Action] = list(packet.actions)
-        log.info("%s %d actions for mission %s", packet.mode, len(actions), packet.mission_id)
-        await self.queue.submit(packet.mission_id, actions, replace=packet.mode == "replace")
+        if packet.mode == "pause":
+            log.info("paused: %s", packet.reason or "no reason given")
+            try:
+                await self.queue.pause(packet.reason)
+            except AutopilotError as exc:
+                await self._on_exception("pause_failed", str(exc))
+        elif packet.mode == "resume":
+            log.info("resumed: %s", packet.reason or "no reason given")
+            self.queue.resume()
+        else:
+            actions: list[Action] = list(packet.actions)
+            log.info("%s %d actions for mission %s", packet.mode, len(actions), packet.mission_id)
+            await self.queue.submit(packet.mission_id, actions, replace=packet.mode == "replace")
         self._status_wakeup.set()
 
     async def _on_release(self, signal: SyncSignal) -> None:
@@ -198,10 +216,8 @@ class Agent:
 
     async def _on_action_failed(self, action: Action, reason: str) -> None:
         await self._on_exception("action_failed", reason)
-        t = self.autopilot.telemetry()
-        if t.armed and not t.landed:
-            with contextlib.suppress(Exception):
-                await self.autopilot.hold()
+        with contextlib.suppress(AutopilotError):
+            await self.executor.hold_vehicle()
 
     async def _on_exception(self, name: str, detail: str) -> None:
         self.reported.append((time.monotonic(), name, detail))

@@ -7,6 +7,7 @@ Reads are open on the configured (default loopback) address; every mutating call
 from __future__ import annotations
 
 import hmac
+from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
 from fastapi import Body, Depends, FastAPI, Header, Request
@@ -131,10 +132,23 @@ def create_app(daemon: Daemon) -> FastAPI:
 
     @app.post("/api/v1/missions/{mission_id}/abort", dependencies=[Depends(require_token)])
     async def abort(mission_id: str) -> MissionProgress:
+        return await _mission_command(
+            mission_id, lambda m: daemon.missions.abort(m, "aborted by the operator")
+        )
+
+    @app.post("/api/v1/missions/{mission_id}/pause", dependencies=[Depends(require_token)])
+    async def pause(mission_id: str) -> MissionProgress:
+        return await _mission_command(mission_id, daemon.missions.pause)
+
+    @app.post("/api/v1/missions/{mission_id}/resume", dependencies=[Depends(require_token)])
+    async def resume(mission_id: str) -> MissionProgress:
+        return await _mission_command(mission_id, daemon.missions.resume)
+
+    async def _mission_command(mission_id: str, command: Callable[[str], Awaitable[None]]) -> MissionProgress:
         try:
-            await daemon.missions.abort(mission_id, "aborted by the operator")
+            await command(mission_id)
         except MissionRejected as exc:
-            raise ApiProblem(409, "cannot abort", str(exc)) from None
+            raise ApiProblem(409, "mission not running", str(exc)) from None
         progress = daemon.missions.progress(mission_id)
         assert progress is not None
         return progress

@@ -8,6 +8,7 @@ import logging
 import secrets
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Literal, Protocol
 
 from gcs.agents import AgentManager
 from gcs.config import DaemonConfig
@@ -16,7 +17,7 @@ from gcs.keys import KeyRing, load_or_create_key_file
 from gcs.missions import MissionRunner
 from gcs.store import Store
 from protocol.auth import parse_key
-from protocol.packets import AgentParameters, CloseReason, Geofence, SetParameters
+from protocol.packets import AgentParameters, CloseReason, Geofence, PerformActions, SetParameters
 
 log = logging.getLogger("gcs.daemon")
 
@@ -46,6 +47,21 @@ def _quiet_server_class() -> type:
     return QuietServer
 
 
+class Service(Protocol):
+    """A fleet service running inside the daemon (collision avoidance, an extension...).
+
+    ``start`` is called after the agent listener is up, ``stop`` before it closes; a service
+    hooks into ``daemon.agents.on_status`` / ``on_join`` / ``on_lost``, ``daemon.events`` and
+    ``daemon.missions.preflight_checks``.
+    """
+
+    name: str
+
+    async def start(self, daemon: Daemon) -> None: ...
+
+    async def stop(self) -> None: ...
+
+
 class Daemon:
     """The running ground station: ``await start()``, then ``await stop()``."""
 
@@ -68,6 +84,7 @@ class Daemon:
         self._liveness: asyncio.Task[None] | None = None
         self.listen_port = config.listen_port
         self.http_port: int | None = None
+        self.services: list[Service] = []
 
     async def start(self) -> None:
         self.missions.restore()
@@ -76,6 +93,8 @@ class Daemon:
         )
         self.listen_port = self._server.sockets[0].getsockname()[1]
         self._liveness = asyncio.create_task(self.agents.watch_liveness(), name="liveness")
+        for service in self.services:
+            await service.start(self)
         if self.config.http_host:
             await self._start_http()
         self.events.publish(
@@ -115,6 +134,11 @@ class Daemon:
 
     async def stop(self) -> None:
         self.events.publish("daemon_stopping", "shutting down")
+        for service in reversed(self.services):
+            try:
+                await service.stop()
+            except Exception:  # one faulty service must not keep the others from stopping
+                log.exception("service %s failed to stop", service.name)
         if self._server is not None:
             self._server.close()
         await self.agents.close_all(CloseReason.SHUTDOWN, "daemon shutting down")
@@ -138,6 +162,22 @@ class Daemon:
 
     async def set_parameters(self, parameters: AgentParameters, agents: list[str] | None = None) -> list[str]:
         return await self._distribute(SetParameters(parameters=parameters), agents)
+
+    async def pause_agent(self, identity: str, reason: str) -> bool:
+        """Hold one agent where it is (its queue is kept); True if the pause was sent."""
+        return await self._pause_or_resume(identity, "pause", reason)
+
+    async def resume_agent(self, identity: str, reason: str) -> bool:
+        return await self._pause_or_resume(identity, "resume", reason)
+
+    async def _pause_or_resume(self, identity: str, mode: Literal["pause", "resume"], reason: str) -> bool:
+        session = self.agents.session(identity)
+        if session is None:
+            return False
+        mission_id = session.status.mission_id if session.status and session.status.mission_id else "none"
+        return await session.send(
+            PerformActions(mission_id=mission_id, mode=mode, reason=reason), self.config.send_timeout_s
+        )
 
     async def _distribute(self, body: SetParameters, agents: list[str] | None) -> list[str]:
         targets = agents if agents is not None else [s.identity for s in self.agents.connected()]

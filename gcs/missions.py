@@ -13,6 +13,7 @@ import asyncio
 import logging
 import secrets
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -27,6 +28,9 @@ from protocol.packets import PerformActions, Resume, StatusReport, SyncSignal
 from protocol.taskfile import TaskFile
 
 log = logging.getLogger("gcs.missions")
+
+PreflightCheck = Callable[[TaskFile, dict[str, list[Action]]], Awaitable[None]]
+"""Runs before a mission is accepted; raises MissionRejected (with the numbers) to refuse it."""
 
 MissionState = Literal["running", "completed", "aborted"]
 
@@ -80,6 +84,8 @@ class MissionRunner:
         self._store = store
         self._events = events
         self.active: dict[str, ActiveMission] = {}
+        self.preflight_checks: list[PreflightCheck] = []
+        self.paused: set[str] = set()
         agents.on_join.append(self._on_join)
         agents.on_status.append(self._on_status)
         agents.on_sync.append(self._on_sync)
@@ -113,6 +119,8 @@ class MissionRunner:
                 raise MissionRejected(f"agent {identity} is not connected")
             if identity in busy:
                 raise MissionRejected(f"agent {identity} is already flying another mission")
+        for check in self.preflight_checks:
+            await check(task, plans)
         mission_id = f"m-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
         mission = self._build(mission_id, task, plans)
         self._store.add_mission(mission_id, task.name, task.model_dump_json(), list(plans))
@@ -155,9 +163,7 @@ class MissionRunner:
 
     async def abort(self, mission_id: str, reason: str) -> None:
         """Stop a mission: every agent still in it returns to launch."""
-        mission = self.active.get(mission_id)
-        if mission is None:
-            raise MissionRejected(f"mission {mission_id} is not running")
+        mission = self._require(mission_id)
         rtl_step = max(m[-1].step for m in mission.plans.values()) + 1
         for identity in mission.plans:
             if identity not in mission.excluded:
@@ -169,8 +175,36 @@ class MissionRunner:
                 )
         self._finish(mission, "aborted", reason)
 
+    async def pause(self, mission_id: str, reason: str = "paused by the operator") -> None:
+        """Every agent of the mission stops where it is and keeps its queue."""
+        mission = self._require(mission_id)
+        await self._send_to_members(
+            mission, PerformActions(mission_id=mission_id, mode="pause", reason=reason)
+        )
+        self.paused.add(mission_id)
+        self._events.publish("mission_paused", reason, mission_id=mission_id)
+
+    async def resume(self, mission_id: str, reason: str = "resumed by the operator") -> None:
+        mission = self._require(mission_id)
+        await self._send_to_members(
+            mission, PerformActions(mission_id=mission_id, mode="resume", reason=reason)
+        )
+        self.paused.discard(mission_id)
+        self._events.publish("mission_resumed", reason, mission_id=mission_id)
+
+    def _require(self, mission_id: str) -> ActiveMission:
+        mission = self.active.get(mission_id)
+        if mission is None:
+            raise MissionRejected(f"mission {mission_id} is not running")
+        return mission
+
+    async def _send_to_members(self, mission: ActiveMission, body: PerformActions) -> None:
+        targets = [a for a in mission.plans if a not in mission.excluded]
+        await asyncio.gather(*(self._agents.send(identity, body) for identity in targets))
+
     def _finish(self, mission: ActiveMission, state: MissionState, result: str) -> None:
         mission.state = state
+        self.paused.discard(mission.id)
         for timer in mission.timers.values():
             timer.cancel()
         self._store.finish_mission(mission.id, state, result)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import enum
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from protocol.actions import Action, AltitudeRel, Latitude, Longitude
 
@@ -171,6 +171,7 @@ class StatusReport(_Body):
     completed_step: int = Field(default=-1, ge=-1, description="last completed step of mission_id")
     queue_depth: int = Field(default=0, ge=0)
     waiting_sync: int | None = Field(default=None, ge=0)
+    paused: bool = Field(default=False, description="held by a type-4 pause until resumed")
     exceptions: list[Annotated[str, Field(max_length=200)]] = Field(default_factory=list, max_length=32)
     autopilot_link: bool = True
     buffered: bool = Field(default=False, description="recorded while the daemon link was down")
@@ -211,11 +212,23 @@ class SetParameters(_Body):
 
 
 class PerformActions(_Body):
-    """Type 4. ``append`` adds to the agent's FIFO queue; ``replace`` empties it first."""
+    """Type 4. ``append`` adds to the agent's FIFO queue; ``replace`` empties it first.
+
+    ``pause`` stops the vehicle where it is and keeps the queue (the interrupted action resumes
+    where it left off); ``resume`` continues. Both carry no actions. ``reason`` says who paused
+    (operator, collision avoidance...), for the agent's log and status.
+    """
 
     mission_id: MissionId
-    mode: Literal["append", "replace"] = "append"
-    actions: list[Action] = Field(min_length=0, max_length=10_000)
+    mode: Literal["append", "replace", "pause", "resume"] = "append"
+    actions: list[Action] = Field(default_factory=list, max_length=10_000)
+    reason: str | None = Field(default=None, max_length=200)
+
+    @model_validator(mode="after")
+    def _no_actions_with_pause(self) -> PerformActions:
+        if self.mode in ("pause", "resume") and self.actions:
+            raise ValueError(f"mode {self.mode!r} carries no actions")
+        return self
 
 
 # --- type 5: synchronization signal ------------------------------------------------------------

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 
 import pytest
@@ -230,3 +231,36 @@ async def test_agent_buffers_status_while_daemon_is_down(tmp_path: Path) -> None
     finally:
         await running.kill()
         await daemon_cm.__aexit__(None, None, None)
+
+
+async def test_pause_holds_the_fleet_and_resume_finishes_the_leg(tmp_path: Path) -> None:
+    key = new_key()
+    names = ["p1", "p2"]
+    async with running_daemon(tmp_path, key) as daemon:
+        agents = [start_agent(name, daemon.listen_port, key, i, speedup=3.0) for i, name in enumerate(names)]
+        try:
+            await wait_for(lambda: len(daemon.agents.connected()) == 2, 10, "two agents")
+            mission_id = await daemon.missions.submit(survey_mission(names, sync_legs=1))
+            await wait_for(lambda: all(a.agent.queue.current_step == 1 for a in agents), 20, "first leg")
+            await wait_for(lambda: agents[0].autopilot.telemetry().alt_rel > 4.0, 10, "at altitude")
+            await daemon.missions.pause(mission_id)
+            await wait_for(lambda: all(a.autopilot.telemetry().mode == "BRAKE" for a in agents), 5, "braking")
+            held = [(a.autopilot.telemetry().lat, a.autopilot.telemetry().lon) for a in agents]
+            await wait_for(
+                lambda: all((s := daemon.agents.session(n)) and s.status and s.status.paused for n in names),
+                5,
+                "paused",
+            )
+            await asyncio.sleep(0.5)
+            assert [(a.autopilot.telemetry().lat, a.autopilot.telemetry().lon) for a in agents] == held
+            assert all(a.agent.queue.depth == 2 for a in agents)  # the interrupted leg is queued again
+            await daemon.missions.resume(mission_id)
+            await wait_for(lambda: mission_id not in daemon.missions.active, 60, "mission completion")
+            assert daemon.missions.progress(mission_id).state == "completed"  # type: ignore[union-attr]
+            assert [e.kind for e in daemon.events.history() if e.kind.startswith("mission_")][-3:] == [
+                "mission_paused",
+                "mission_resumed",
+                "mission_completed",
+            ]
+        finally:
+            await stop_agents(agents)
