@@ -229,7 +229,13 @@ class MissionRunner:
         if mission is None or session.identity in mission.excluded:
             return
         if resume is not None and resume.mission_id == mission.id:
-            return  # it still holds its queue; a pending sync arrives again as a 'finished' signal
+            # It still holds its queue. A sync wait it reports counts as a (repeated) arrival:
+            # the 'finished' it sent before may have died with the previous daemon process.
+            if resume.waiting_step is not None:
+                await self._on_sync(
+                    session, SyncSignal(mission_id=mission.id, step=resume.waiting_step, kind="finished")
+                )
+            return
         completed = max(mission.completed.get(session.identity, -1), resume.completed_step if resume else -1)
         remaining = [a for a in mission.plans[session.identity] if a.step > completed]
         self._events.publish(

@@ -264,3 +264,33 @@ async def test_pause_holds_the_fleet_and_resume_finishes_the_leg(tmp_path: Path)
             ]
         finally:
             await stop_agents(agents)
+
+
+async def test_sync_arrival_survives_a_daemon_restart(tmp_path: Path) -> None:
+    """An agent already waiting at a barrier when the daemon dies is counted after the restart."""
+    key = new_key()
+    daemon_cm = running_daemon(tmp_path, key)
+    daemon = await daemon_cm.__aenter__()
+    port = daemon.listen_port
+    fast = start_agent("early", port, key, 0, speedup=8.0)
+    slow = start_agent("late", port, key, 1, speedup=1.0)
+    try:
+        await wait_for(lambda: len(daemon.agents.connected()) == 2, 10, "two agents")
+        task = survey_mission(["early", "late"], sync_legs=1, sync_timeout_s=60)
+        mission_id = await daemon.missions.submit(task)
+        await wait_for(lambda: fast.agent.queue.waiting_sync == 0, 20, "early agent waiting at step 0")
+        await wait_for(
+            lambda: "early" in daemon.missions.active[mission_id].barriers.arrivals.get(0, set()),
+            5,
+            "arrival",
+        )
+        assert fast.agent.link.buffered == (0, 0)  # its 'finished' was delivered to the old daemon
+        await daemon_cm.__aexit__(None, None, None)
+        daemon_cm = running_daemon(tmp_path, key, listen_port=port)
+        daemon = await daemon_cm.__aenter__()
+        await wait_for(lambda: mission_id not in daemon.missions.active, 60, "mission completes")
+        assert daemon.missions.progress(mission_id).state == "completed"  # type: ignore[union-attr]
+        assert not daemon.events.history(kind="sync_timeout")
+    finally:
+        await stop_agents([fast, slow])
+        await daemon_cm.__aexit__(None, None, None)
