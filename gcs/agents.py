@@ -44,6 +44,27 @@ class HandshakeRefused(Exception):
     """The peer failed the handshake; the message goes back to it in the refusal."""
 
 
+class RateLimited(Exception):
+    """An authenticated peer sent frames faster than its allowance."""
+
+
+class TokenBucket:
+    """``rate`` tokens per second, at most ``burst`` saved up; one token per frame."""
+
+    def __init__(self, rate: float, burst: int) -> None:
+        self.rate, self.burst = rate, float(burst)
+        self.tokens = float(burst)
+        self.stamp = time.monotonic()
+
+    def take(self, now: float) -> bool:
+        self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
+        self.stamp = now
+        if self.tokens < 1.0:
+            return False
+        self.tokens -= 1.0
+        return True
+
+
 @dataclass(eq=False)
 class AgentSession:
     """One authenticated connection of one agent identity."""
@@ -62,13 +83,21 @@ class AgentSession:
     _seq: int = 0
     _send_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
 
-    async def send(self, body: Body, timeout: float) -> bool:
-        """Send one packet; False (and the session closed) if the peer is gone or too slow."""
+    async def send(self, body: Body, timeout: float, max_pending: int = 1 << 62) -> bool:
+        """Send one packet; False (and the session closed) if the peer is gone or too slow.
+
+        A peer that does not read (its socket buffer full and ``max_pending`` bytes queued here)
+        is cut off rather than letting the daemon's memory grow.
+        """
         if not self.open:
             return False
         async with self._send_lock:
             self._seq += 1
             try:
+                if self.writer.transport.get_write_buffer_size() > max_pending:
+                    raise ConnectionError(
+                        f"more than {max_pending} bytes waiting for a peer that does not read"
+                    )
                 self.writer.write(encode(body, self._seq))
                 await asyncio.wait_for(self.writer.drain(), timeout)
             except (OSError, TimeoutError, ConnectionError) as exc:
@@ -119,7 +148,7 @@ class AgentManager:
         session = self.session(identity)
         if session is None:
             return False
-        return await session.send(body, self.config.send_timeout_s)
+        return await session.send(body, self.config.send_timeout_s, self.config.max_pending_bytes)
 
     # --- connections ----------------------------------------------------------------------------
 
@@ -144,6 +173,11 @@ class AgentManager:
         except HandshakeRefused as exc:
             self._events.publish("agent_refused", f"{peer}: {exc}", severity="warning")
             await _close_raw(writer, CloseReason.REFUSED, str(exc), refusal=True)
+        except RateLimited as exc:
+            assert session is not None
+            self._events.publish("agent_cut_off", str(exc), severity="error", agent=session.identity)
+            await session.send(Close(reason=CloseReason.PROTOCOL_ERROR, message=str(exc)), 1.0)
+            session.close_transport()
         except ProtocolError as exc:
             who = session.identity if session else peer
             self._events.publish(
@@ -262,12 +296,18 @@ class AgentManager:
     async def _frame_loop(
         self, session: AgentSession, reader: asyncio.StreamReader, decoder: FrameDecoder
     ) -> None:
+        bucket = TokenBucket(self.config.max_frames_per_s, self.config.frame_burst)
         while session.open:
             data = await reader.read(READ_CHUNK)
             if not data:
                 return
             session.last_rx = time.monotonic()
             for frame in decoder.feed(data):
+                if not bucket.take(session.last_rx):
+                    raise RateLimited(
+                        f"more than {self.config.max_frames_per_s:g} frames/s "
+                        f"(burst {self.config.frame_burst}); cut off"
+                    )
                 await self._dispatch(session, frame)
                 if not session.open:
                     return

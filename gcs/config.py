@@ -34,6 +34,13 @@ class DaemonConfig(BaseModel):
     handshake_timeout_s: float = Field(default=5.0, gt=0.0)
     max_body_bytes: int = Field(default=DEFAULT_MAX_BODY, ge=1024, le=64 << 20)
     max_agents: int = Field(default=1000, ge=1)
+    max_frames_per_s: float = Field(
+        default=200.0, gt=0.0, description="sustained frames/s one agent may send (status at 10 Hz is 10)"
+    )
+    frame_burst: int = Field(default=400, ge=1, description="frames an agent may send at once above the rate")
+    max_pending_bytes: int = Field(
+        default=4 << 20, ge=64 << 10, description="bytes queued towards one agent before it counts as stuck"
+    )
     status_period_s: float = Field(default=0.5, ge=0.02, le=60.0)
     lost_after_periods: float = Field(default=6.0, ge=1.0)
     send_timeout_s: float = Field(default=5.0, gt=0.0)

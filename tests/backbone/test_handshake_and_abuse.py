@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import math
 import secrets
 from pathlib import Path
 
@@ -17,9 +19,13 @@ from protocol.packets import (
     Body,
     Close,
     CloseReason,
+    FenceVertex,
+    Geofence,
     PerformActions,
+    Position,
     RequestCid,
     ResponseCid,
+    StatusReport,
 )
 from protocol.wire import HEADER, MAGIC, Frame, FrameDecoder, encode
 from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
@@ -52,7 +58,10 @@ class RawClient:
         """Next frame, or None when the daemon closed the connection."""
         async with asyncio.timeout(timeout):
             while not self.frames:
-                data = await self.reader.read(65_536)
+                try:
+                    data = await self.reader.read(65_536)
+                except ConnectionResetError:  # closed with our unread bytes in its buffer: an RST
+                    return None
                 if not data:
                     return None
                 self.frames.extend(self.decoder.feed(data))
@@ -279,3 +288,56 @@ async def test_malformed_input_never_disturbs_a_running_mission(tmp_path: Path) 
             assert len(daemon.events.history(kind="protocol_error")) >= 5
         finally:
             await stop_agents(agents)
+
+
+async def test_flooding_agent_is_cut_off_and_others_keep_flying(tmp_path: Path) -> None:
+    key = new_key()
+    async with running_daemon(tmp_path, key, max_frames_per_s=50.0, frame_burst=100) as daemon:
+        steady = start_agent("steady", daemon.listen_port, key)
+        try:
+            await wait_for(lambda: daemon.agents.session("steady") is not None, 10, "steady agent")
+            flooder = await RawClient.connect(daemon.listen_port)
+            await flooder.handshake("flooder", key)
+            status = build_status_report()
+            burst = b"".join(encode(status, seq) for seq in range(3, 1003))
+            with contextlib.suppress(ConnectionError):
+                await flooder.send_raw(burst)
+            bodies = await flooder.receive_all_until_closed()
+            # The close may be lost to a TCP reset (the flooder's unread frames); the event is not.
+            assert all(isinstance(b, ResponseCid | StatusReport) for b in bodies[:-1])
+            if bodies and isinstance(bodies[-1], Close):
+                assert "frames/s" in bodies[-1].message
+            cut = daemon.events.history(kind="agent_cut_off")
+            assert [e.agent for e in cut] == ["flooder"]
+            before = daemon.agents.session("steady").status_count  # type: ignore[union-attr]
+            await wait_for(
+                lambda: daemon.agents.session("steady").status_count > before + 5,  # type: ignore[union-attr]
+                5,
+                "the well-behaved agent still reporting",
+            )
+        finally:
+            await stop_agents([steady])
+
+
+async def test_peer_that_never_reads_is_cut_off(tmp_path: Path) -> None:
+    key = new_key()
+    async with running_daemon(tmp_path, key, max_pending_bytes=64 << 10) as daemon:
+        deaf = await RawClient.connect(daemon.listen_port)
+        await deaf.handshake("deaf", key)
+        ring = [
+            FenceVertex(lat=47.0 + 0.001 * math.sin(i / 80), lon=8.0 + 0.001 * math.cos(i / 80))
+            for i in range(500)
+        ]
+        fence = Geofence(polygon=ring)
+        delivered: list[str] = ["deaf"]
+        for _ in range(2000):  # ~25 KB each: socket buffers fill long before this bound
+            delivered = await daemon.set_geofence(fence, ["deaf"])
+            if not delivered:
+                break
+        assert delivered == []
+        assert daemon.agents.session("deaf") is None
+        deaf.close()
+
+
+def build_status_report() -> StatusReport:
+    return StatusReport(time=0.0, position=Position(lat=47.0, lon=8.0, alt_rel=0.0, alt_amsl=400.0))
