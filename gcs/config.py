@@ -16,6 +16,18 @@ def default_data_dir() -> Path:
     return Path.home() / ".local" / "state" / "fleetgcs"
 
 
+class TelemetryConfig(BaseModel):
+    """How status reports are logged to the database (see gcs/telemetry.py)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = True
+    period_s: float = Field(default=0.0, ge=0.0, description="keep one sample per agent per period; 0 = all")
+    flush_s: float = Field(default=0.5, gt=0.0, le=60.0, description="batch write interval")
+    retention_s: float = Field(default=7 * 86_400.0, gt=0.0, description="delete samples older than this")
+    prune_every_s: float = Field(default=300.0, gt=0.0)
+
+
 class DaemonConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -47,6 +59,7 @@ class DaemonConfig(BaseModel):
     default_sync_timeout_s: float = Field(default=120.0, gt=0.0)
     lost_agent_policy: Literal["abort", "continue"] = "abort"
     agent_parameters: AgentParameters = AgentParameters()
+    telemetry: TelemetryConfig = Field(default_factory=TelemetryConfig)
 
     @property
     def database_path(self) -> Path:

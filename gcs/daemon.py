@@ -16,6 +16,7 @@ from gcs.events import EventBus
 from gcs.keys import KeyRing, load_or_create_key_file
 from gcs.missions import MissionRunner
 from gcs.store import Store
+from gcs.telemetry import TelemetryRecorder
 from protocol.auth import parse_key
 from protocol.packets import AgentParameters, CloseReason, Geofence, PerformActions, SetParameters
 
@@ -84,7 +85,8 @@ class Daemon:
         self._liveness: asyncio.Task[None] | None = None
         self.listen_port = config.listen_port
         self.http_port: int | None = None
-        self.services: list[Service] = []
+        self.telemetry = TelemetryRecorder(config.telemetry)
+        self.services: list[Service] = [self.telemetry]
 
     async def start(self) -> None:
         self.missions.restore()

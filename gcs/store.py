@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -60,7 +60,49 @@ _MIGRATIONS: dict[int, str] = {
     );
     CREATE INDEX events_kind ON events(kind);
     """,
+    2: """
+    CREATE TABLE telemetry (
+        id INTEGER PRIMARY KEY AUTOINCREMENT,
+        agent TEXT NOT NULL,
+        time REAL NOT NULL,
+        received REAL NOT NULL,
+        lat REAL NOT NULL, lon REAL NOT NULL, alt_rel REAL NOT NULL, alt_amsl REAL NOT NULL,
+        vn REAL NOT NULL, ve REAL NOT NULL, vd REAL NOT NULL, heading_deg REAL NOT NULL,
+        battery_pct REAL, voltage_v REAL, current_a REAL,
+        mode TEXT NOT NULL, armed INTEGER NOT NULL, landed INTEGER NOT NULL,
+        gps_fix INTEGER NOT NULL, satellites INTEGER NOT NULL,
+        step INTEGER NOT NULL, mission_id TEXT, buffered INTEGER NOT NULL
+    );
+    CREATE INDEX telemetry_agent_time ON telemetry(agent, time);
+    CREATE INDEX telemetry_received ON telemetry(received);
+    """,
 }
+
+
+TELEMETRY_COLUMNS = (
+    "agent",
+    "time",
+    "received",
+    "lat",
+    "lon",
+    "alt_rel",
+    "alt_amsl",
+    "vn",
+    "ve",
+    "vd",
+    "heading_deg",
+    "battery_pct",
+    "voltage_v",
+    "current_a",
+    "mode",
+    "armed",
+    "landed",
+    "gps_fix",
+    "satellites",
+    "step",
+    "mission_id",
+    "buffered",
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -236,6 +278,43 @@ class Store:
             StoredEvent(int(r[0]), r[1], r[2], r[3], r[4], r[5], r[6], json.loads(r[7]))
             for r in self._db.execute(sql, args)
         ]
+
+    # --- telemetry ------------------------------------------------------------------------------
+
+    def add_telemetry(self, rows: list[tuple[Any, ...]]) -> None:
+        """Insert rows in ``TELEMETRY_COLUMNS`` order, in one transaction."""
+        if not rows:
+            return
+        placeholders = ",".join("?" * len(TELEMETRY_COLUMNS))
+        with self._tx():
+            self._db.executemany(
+                f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) VALUES ({placeholders})", rows
+            )
+
+    def telemetry(
+        self,
+        agent: str,
+        since: float = 0.0,
+        until: float = float("inf"),
+        mission_id: str | None = None,
+        limit: int = 1_000_000,
+    ) -> list[dict[str, Any]]:
+        """Stored samples of ``agent`` with agent time in [since, until], oldest first."""
+        sql = f"SELECT {','.join(TELEMETRY_COLUMNS)} FROM telemetry WHERE agent=? AND time>=? AND time<=?"
+        args: list[Any] = [agent, since, until if until != float("inf") else 1e18]
+        if mission_id is not None:
+            sql += " AND mission_id=?"
+            args.append(mission_id)
+        sql += " ORDER BY time, id LIMIT ?"
+        args.append(limit)
+        return [dict(zip(TELEMETRY_COLUMNS, row, strict=True)) for row in self._db.execute(sql, args)]
+
+    def telemetry_agents(self) -> list[str]:
+        return [str(r[0]) for r in self._db.execute("SELECT DISTINCT agent FROM telemetry ORDER BY agent")]
+
+    def prune_telemetry(self, older_than: float) -> int:
+        """Delete samples received before ``older_than`` (UNIX time); returns how many."""
+        return int(self._db.execute("DELETE FROM telemetry WHERE received < ?", (older_than,)).rowcount)
 
     def _tx(self) -> _Transaction:
         return _Transaction(self._db)
