@@ -25,7 +25,13 @@ def split_host_port(text: str, default_port: int) -> tuple[str, int]:
     return host.strip("[]") or "127.0.0.1", int(port)
 
 
-def make_autopilot(backend: str, connection: str, speedup: float) -> Autopilot:
+def make_autopilot(
+    backend: str,
+    connection: str,
+    speedup: float,
+    tlog: str | None = None,
+    signing_key_file: str | None = None,
+) -> Autopilot:
     """The backend named on the command line. ``memory`` takes 'LAT,LON[,ALT]' as its connection."""
     if backend == "memory":
         from agent.autopilot.memory import MemoryAutopilot
@@ -35,7 +41,15 @@ def make_autopilot(backend: str, connection: str, speedup: float) -> Autopilot:
         return MemoryAutopilot(home, speedup=speedup) if home else MemoryAutopilot(speedup=speedup)
     from agent.autopilot.factory import create_autopilot
 
-    return create_autopilot(backend, connection)
+    options: dict[str, object] = {}
+    if backend == "mavlink":
+        if tlog:
+            options["tlog_path"] = tlog
+        if signing_key_file:
+            options["signing_key"] = Path(signing_key_file).read_text().strip()
+    elif tlog or signing_key_file:
+        raise SystemExit("agent: --tlog and --mavlink-signing-key-file need --autopilot-backend mavlink")
+    return create_autopilot(backend, connection, **options)
 
 
 def read_key(args: argparse.Namespace) -> str:
@@ -58,11 +72,17 @@ def run(args: argparse.Namespace) -> int:
         capabilities=Capabilities(
             max_speed_mps=args.max_speed, endurance_s=args.endurance, autopilot=args.autopilot_backend
         ),
+        tls_ca=args.tls_ca,
+        tls_cert=args.tls_cert,
+        tls_key=args.tls_key,
+        tls_server_name=args.tls_server_name,
         settings=AgentSettings(
             lost_link_timeout_s=args.lost_link_timeout, lost_link_action=args.lost_link_action
         ),
     )
-    autopilot = make_autopilot(args.autopilot_backend, args.autopilot, args.speedup)
+    autopilot = make_autopilot(
+        args.autopilot_backend, args.autopilot, args.speedup, args.tlog, args.mavlink_signing_key_file
+    )
 
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops like Ctrl-C
     with contextlib.suppress(KeyboardInterrupt):
@@ -86,6 +106,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lost-link-timeout", type=float, default=15.0)
     p.add_argument("--lost-link-action", default="continue", choices=["continue", "hold", "rtl", "land"])
     p.add_argument("--speedup", type=float, default=1.0, help="memory backend only: time speed-up")
+    p.add_argument("--tlog", help="append the MAVLink traffic to this .tlog file (replay with MAVProxy)")
+    p.add_argument("--mavlink-signing-key-file", help="MAVLink 2 signing key (64 hex digits or a passphrase)")
+    p.add_argument("--tls-ca", type=Path, help="PEM CA: connect to the daemon over TLS and verify it")
+    p.add_argument("--tls-cert", type=Path, help="PEM client certificate (mutual TLS)")
+    p.add_argument("--tls-key", type=Path, help="PEM private key of --tls-cert")
+    p.add_argument("--tls-server-name", help="name in the daemon's certificate (default: the --gcs host)")
     p.set_defaults(run=run)
     return parser
 

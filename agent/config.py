@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -48,6 +49,12 @@ class AgentConfig(BaseModel):
     reconnect_min_s: float = Field(default=0.2, gt=0.0)
     reconnect_max_s: float = Field(default=5.0, gt=0.0)
     handshake_timeout_s: float = Field(default=5.0, gt=0.0)
+    tls_ca: Path | None = Field(
+        default=None, description="PEM CA bundle: connect over TLS, verify the daemon"
+    )
+    tls_cert: Path | None = Field(default=None, description="PEM client certificate (mutual TLS)")
+    tls_key: Path | None = Field(default=None, description="PEM private key of tls_cert")
+    tls_server_name: str | None = Field(default=None, description="name in the daemon's certificate")
     status_buffer: int = Field(default=1200, ge=1, description="status reports kept while offline")
     arm_deadline_s: float = Field(default=60.0, gt=0.0)
     takeoff_tolerance: float = Field(default=0.95, gt=0.5, le=1.0, description="fraction of target altitude")

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import logging
 import random
+import ssl
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -39,6 +40,17 @@ log = logging.getLogger("agent.link")
 
 REPLACED_BACKOFF_S = 30.0
 REFUSED_BACKOFF_S = 10.0
+
+
+def client_tls_context(config: AgentConfig) -> ssl.SSLContext | None:
+    """TLS towards the daemon when a CA is configured; with tls_cert, mutual TLS."""
+    if config.tls_ca is None:
+        return None
+    context = ssl.create_default_context(ssl.Purpose.SERVER_AUTH, cafile=str(config.tls_ca))
+    context.minimum_version = ssl.TLSVersion.TLSv1_2
+    if config.tls_cert is not None:
+        context.load_cert_chain(config.tls_cert, config.tls_key)
+    return context
 
 
 class HandshakeFailed(Exception):
@@ -118,12 +130,22 @@ class DaemonLink:
         while not self._stopping:
             backoff: float | None = None
             try:
+                tls = client_tls_context(self.config)
                 reader, writer = await asyncio.wait_for(
-                    asyncio.open_connection(self.config.gcs_host, self.config.gcs_port),
+                    asyncio.open_connection(
+                        self.config.gcs_host,
+                        self.config.gcs_port,
+                        ssl=tls,
+                        server_hostname=(self.config.tls_server_name or self.config.gcs_host)
+                        if tls
+                        else None,
+                    ),
                     self.config.handshake_timeout_s,
                 )
-            except (OSError, TimeoutError) as exc:
-                self.last_error = f"cannot reach daemon {self.config.gcs_host}:{self.config.gcs_port}: {exc}"
+            except (OSError, TimeoutError) as exc:  # ssl.SSLError is an OSError
+                self.last_error = (
+                    f"cannot reach daemon {self.config.gcs_host}:{self.config.gcs_port}: {exc!r}"
+                )
             else:
                 try:
                     await self._session(reader, writer)

@@ -124,6 +124,7 @@ class MavlinkAutopilot(Autopilot):
         telemetry_hz: rate asked for position, attitude, HUD, landed state and mission progress.
         local_offset_targets: use MAV_FRAME_LOCAL_OFFSET_NED for :meth:`go_by`; None = when the
             vehicle's AUTOPILOT_VERSION advertises SET_POSITION_TARGET_LOCAL_NED.
+        tlog_path: append every MAVLink message received and sent to this .tlog file (MAVProxy format).
         signing_key: MAVLink 2 signing secret (32 bytes, 64 hex digits or a passphrase); when set,
             every frame we send is signed and unsigned frames from the vehicle are dropped unless
             ``allow_unsigned`` (RADIO_STATUS is always accepted).
@@ -143,6 +144,7 @@ class MavlinkAutopilot(Autopilot):
         local_offset_targets: bool | None = None,
         signing_key: bytes | str | None = None,
         allow_unsigned: bool = False,
+        tlog_path: str | None = None,
     ) -> None:
         if telemetry_hz <= 0:
             raise ValueError("telemetry_hz must be positive")
@@ -165,6 +167,7 @@ class MavlinkAutopilot(Autopilot):
             on_link_restored=self._on_link_restored,
             signing_key=signing_key,
             allow_unsigned=allow_unsigned,
+            tlog_path=tlog_path,
         )
         self._state_lock = threading.Lock()
         self._tel = Telemetry()

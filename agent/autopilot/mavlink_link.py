@@ -25,6 +25,7 @@ import hashlib
 import logging
 import math
 import os
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -167,8 +168,10 @@ class MavlinkLink:
         on_link_restored: Callable[[], None],
         signing_key: bytes | str | None = None,
         allow_unsigned: bool = False,
+        tlog_path: str | None = None,
     ) -> None:
         self.connection = connection
+        self._tlog_path = tlog_path
         self._signing_key = None if signing_key is None else signing_key_bytes(signing_key)
         self._allow_unsigned = allow_unsigned
         self._wanted_system = target_system
@@ -221,6 +224,10 @@ class MavlinkLink:
             self._conn = mavutil.mavlink_connection(device, **kwargs)
         except OSError as exc:
             raise LinkLost(f"cannot open {self.connection!r}: {exc}") from exc
+        if self._tlog_path:
+            # Telemetry log in the .tlog format MAVProxy and Mission Planner read: a big-endian
+            # 8-byte microsecond timestamp before each message; received here, sent in send().
+            self._conn.setup_logfile(self._tlog_path, mode="ab")
         # Make sure we speak MAVLink 2 even if another module loaded the v1 dialect first.
         if not isinstance(self._conn.mav, mavlink.MAVLink):
             self._conn.mav = mavlink.MAVLink(self._conn, srcSystem=src, srcComponent=self.source_component)
@@ -292,6 +299,8 @@ class MavlinkLink:
             raise LinkLost("link is closed")
         with self._send_lock:
             conn.mav.send(msg)
+            if conn.logfile is not None:
+                conn.logfile.write(struct.pack(">Q", int(time.time() * 1e6) & ~3) + msg.get_msgbuf())
 
     def send_command_long(self, command: int, params: Iterable[float], confirmation: int = 0) -> None:
         p = [float(x) for x in params]
