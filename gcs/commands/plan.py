@@ -69,7 +69,7 @@ def add_area_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "area", nargs="?", help="area file: GeoJSON Polygon/Feature, QGC .plan, or [[lat,lon],...]"
     )
-    parser.add_argument("--drones", type=int, default=1, help="number of drones (default 1)")
+    parser.add_argument("--drones", type=int, help="number of drones (default 1; psa: the target file's)")
     parser.add_argument("--pattern", choices=["zigzag", "spiral", "segmented", "curved"], default="zigzag")
     parser.add_argument("--division", choices=["path", "region"], default="path")
     parser.add_argument("--swath", type=float, help="footprint width across track (m); needs --alt")
@@ -77,7 +77,7 @@ def add_area_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--target-size", type=_floats, default=[0.5], help="pattern W[,H] in m (camera mode)")
     parser.add_argument("--overlap", type=float, default=0.0, help="side overlap fraction, 0..0.9")
     parser.add_argument("--alt", type=float, help="survey altitude above home (m); camera default: h_max")
-    parser.add_argument("--speed", type=float, default=5.0, help="cruise speed (m/s)")
+    parser.add_argument("--speed", type=float, help="cruise speed m/s (default 5; psa: the target file's)")
     parser.add_argument("--home", type=_latlon, help="LAT,LON of the launch point (default: first vertex)")
     parser.add_argument("--out", type=Path, default=Path("plan-out"), help="output directory")
     parser.add_argument("--battery", type=_floats, help="battery fraction per drone, e.g. 1,0.8,0.5")
@@ -152,6 +152,13 @@ def _spacing(args: argparse.Namespace) -> Spacing:
     return spacing_from_swath(args.swath, args.alt if args.alt is not None else 30.0, args.overlap)
 
 
+DEFAULT_SPEED_MPS = 5.0
+
+
+def _speed(args: argparse.Namespace) -> float:
+    return float(args.speed) if args.speed is not None else DEFAULT_SPEED_MPS
+
+
 def _drones(args: argparse.Namespace) -> list[DroneSpec]:
     n = getattr(args, "drones", 1) or 1
     batteries = args.battery or [1.0] * n
@@ -161,7 +168,9 @@ def _drones(args: argparse.Namespace) -> list[DroneSpec]:
     if len(names) != n:
         raise ValueError(f"--names lists {len(names)} names for {n} drones")
     return [
-        DroneSpec(name=nm, battery=b, endurance_s=args.endurance, speed_mps=args.speed, reserve=args.reserve)
+        DroneSpec(
+            name=nm, battery=b, endurance_s=args.endurance, speed_mps=_speed(args), reserve=args.reserve
+        )
         for nm, b in zip(names, batteries, strict=True)
     ]
 
@@ -185,7 +194,9 @@ def _run_area(args: argparse.Namespace) -> int:
         transit_alt_step=args.stagger,
         name=area.name,
     )
-    plan = plan_search(area, drones, _spacing(args), config, args.home, args.speed, [d.name for d in drones])
+    plan = plan_search(
+        area, drones, _spacing(args), config, args.home, _speed(args), [d.name for d in drones]
+    )
     write_outputs(plan, args.out)
     print(json.dumps(plan.summary, indent=2))
     return 0

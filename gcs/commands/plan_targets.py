@@ -24,8 +24,6 @@ from gcs.planning.rsa import RsaError, plan_rsa
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of the PSA / RSA planners (names chosen not to clash with the plan command's)."""
-    # the file's config wins over the plan command's own defaults for these (e.g. --drones 1)
-    parser.set_defaults(fleet_planner_parser_defaults={k: parser.get_default(k) for k in _SHARED})
     g = parser.add_argument_group("fleet planners (psa, rsa)")
     g.add_argument(
         "--targets", type=Path, metavar="FILE", help="PSA target file (JSON, docs/fleet-planners.md)"
@@ -42,16 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-_SHARED = ("drones", "speed", "alt")  # owned by the plan command, which may give them defaults
-
-
 def _opt(args: argparse.Namespace, name: str, default: object) -> object:
-    """The command-line value, unless absent or merely the plan command's default (then the file's)."""
+    """The command-line value when given, else the file's (or the planner's) default."""
     value = getattr(args, name, None)
-    parser_defaults = getattr(args, "fleet_planner_parser_defaults", {}) or {}
-    if value is None or (name in _SHARED and name in parser_defaults and value == parser_defaults[name]):
-        return default
-    return value
+    return default if value is None else value
 
 
 def _plot(out: Path, title: str, paths: list[np.ndarray], extra: list[tuple[np.ndarray, str]]) -> None:
