@@ -16,6 +16,7 @@ from agent.autopilot.base import Autopilot
 from agent.config import AgentConfig, AgentSettings
 from agent.runtime import Agent
 from protocol.packets import Capabilities
+from protocol.settings_file import LoggingConfig, configure_logging
 
 
 def split_host_port(text: str, default_port: int) -> tuple[str, int]:
@@ -62,7 +63,48 @@ def read_key(args: argparse.Namespace) -> str:
     raise SystemExit("agent: give the key with --key-file, --key or FLEETGCS_KEY (see `gcs keygen`)")
 
 
+def config_from_file(args: argparse.Namespace) -> tuple[AgentConfig, Autopilot, LoggingConfig]:
+    """--config FILE (+ FLEETGCS_AGENT_* environment); flags given on the command line win."""
+    from agent.config_file import load_agent_config
+
+    defaults = args.parser_defaults
+    agent: dict[str, object] = {}
+    if args.id:
+        agent["identity"] = args.id
+    if args.gcs != defaults.gcs:
+        agent["gcs_host"], agent["gcs_port"] = split_host_port(args.gcs, 4396)
+    if args.key or args.key_file:
+        agent["key_hex"] = read_key(args)
+    autopilot: dict[str, object] = {}
+    if args.autopilot != defaults.autopilot:
+        autopilot["connection"] = args.autopilot
+    if args.autopilot_backend != defaults.autopilot_backend:
+        autopilot["backend"] = args.autopilot_backend
+    try:
+        loaded = load_agent_config(args.config, agent, autopilot)
+    except ValueError as exc:
+        raise SystemExit(f"agent: {exc}") from None
+    a = loaded.autopilot
+    pilot = make_autopilot(
+        a.backend,
+        a.connection,
+        a.speedup,
+        str(a.tlog) if a.tlog else None,
+        str(a.mavlink_signing_key_file) if a.mavlink_signing_key_file else None,
+    )
+    return loaded.agent, pilot, loaded.log
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.config is not None:
+        file_config, file_autopilot, log = config_from_file(args)
+        configure_logging(log, verbose=args.verbose)
+        signal.signal(signal.SIGTERM, signal.default_int_handler)
+        with contextlib.suppress(KeyboardInterrupt):
+            asyncio.run(Agent(file_config, file_autopilot).run())
+        return 0
+    if not args.id:
+        raise SystemExit("agent run: give --id (or --config FILE with [agent] identity)")
     host, port = split_host_port(args.gcs, 4396)
     config = AgentConfig(
         identity=args.id,
@@ -98,7 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gcs", default="127.0.0.1:4396", help="daemon HOST:PORT (default %(default)s)")
     p.add_argument("--autopilot", default="tcp:127.0.0.1:5760", help="MAVLink connection string")
     p.add_argument("--autopilot-backend", default="mavlink", choices=["mavlink", "mavsdk", "memory"])
-    p.add_argument("--id", required=True, help="agent identity (unique in the fleet)")
+    p.add_argument("--id", help="agent identity (unique in the fleet; required without --config)")
     p.add_argument("--key-file", help="file holding the hex key (fleet key or this agent's key)")
     p.add_argument("--key", help="hex key (prefer --key-file or FLEETGCS_KEY: argv is visible to all users)")
     p.add_argument("--max-speed", type=float, default=10.0, help="capability: max speed m/s")
@@ -112,8 +154,84 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tls-cert", type=Path, help="PEM client certificate (mutual TLS)")
     p.add_argument("--tls-key", type=Path, help="PEM private key of --tls-cert")
     p.add_argument("--tls-server-name", help="name in the daemon's certificate (default: the --gcs host)")
+    p.add_argument("--config", type=Path, help="TOML configuration file (docs/configuration.md)")
     p.set_defaults(run=run)
+    p.set_defaults(parser_defaults=argparse.Namespace(**{a.dest: a.default for a in p._actions}))
+    d = sub.add_parser(
+        "doctor",
+        help="check the autopilot link, the daemon link (handshake with the key), time sync and clock drift",
+        parents=[_shared(p)],
+        conflict_handler="resolve",
+    )
+    d.add_argument("--skip-autopilot", action="store_true", help="check only the key and the daemon link")
+    d.add_argument("--probe-identity", help="identity for the test handshake (default: the agent's own)")
+    d.add_argument("--timeout", type=float, default=10.0, help="per-check timeout, s")
+    d.add_argument("--drift-interval", type=float, default=3.0, help="s between two offset samples; 0 = skip")
+    d.set_defaults(run=doctor, parser_defaults=argparse.Namespace(**{a.dest: a.default for a in p._actions}))
     return parser
+
+
+def _shared(run_parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The connection options of `run`, reused by `doctor`."""
+    shared = argparse.ArgumentParser(add_help=False)
+    names: tuple[str, ...] = (
+        "--gcs",
+        "--autopilot",
+        "--autopilot-backend",
+        "--id",
+        "--key-file",
+        "--key",
+        "--config",
+        "--speedup",
+    )
+    names += (
+        "--tls-ca",
+        "--tls-cert",
+        "--tls-key",
+        "--tls-server-name",
+        "--tlog",
+        "--mavlink-signing-key-file",
+    )
+    for action in run_parser._actions:
+        if action.option_strings and action.option_strings[0] in names:
+            shared._add_action(action)
+    return shared
+
+
+def doctor(args: argparse.Namespace) -> int:
+    """Run the checks of agent/doctor.py and print what is wrong."""
+    from agent.doctor import diagnose
+
+    args.max_speed, args.endurance = 10.0, 1200.0
+    if args.config is not None:
+        config, autopilot, _ = config_from_file(args)
+    else:
+        if not args.id:
+            raise SystemExit("agent doctor: give --id (or --config FILE)")
+        host, port = split_host_port(args.gcs, 4396)
+        config = AgentConfig(
+            identity=args.id,
+            gcs_host=host,
+            gcs_port=port,
+            key_hex=read_key(args),
+            tls_ca=args.tls_ca,
+            tls_cert=args.tls_cert,
+            tls_key=args.tls_key,
+            tls_server_name=args.tls_server_name,
+        )
+        autopilot = make_autopilot(args.autopilot_backend, args.autopilot, args.speedup, None, None)
+    report = asyncio.run(
+        diagnose(
+            config,
+            None if args.skip_autopilot else autopilot,
+            Path(args.key_file) if args.key_file else None,
+            args.probe_identity,
+            args.timeout,
+            args.drift_interval,
+        )
+    )
+    print(report.render())
+    return 0 if report.ok else 1
 
 
 def main(argv: Sequence[str] | None = None) -> int:

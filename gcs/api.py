@@ -1,58 +1,68 @@
-"""HTTP API of the daemon (FastAPI: the OpenAPI schema comes from the same pydantic models).
+"""HTTP/WebSocket API of the daemon and the dashboard's server (FastAPI; schema from pydantic models).
 
 Reads are open on the configured (default loopback) address; every mutating call needs
 ``Authorization: Bearer <token>``. Errors are ``application/problem+json`` with a reason.
+``/api/v1/stream`` is a WebSocket of status reports and events (each frame a JSON array of
+messages), ``/metrics`` is Prometheus text, ``/`` is the dashboard (static files, no CDN).
+See docs/api.md.
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import hmac
+import time
 from collections.abc import Awaitable, Callable
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from fastapi import Body, Depends, FastAPI, Header, Request
+from fastapi import Body, Depends, FastAPI, Header, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
-from pydantic import BaseModel
+from fastapi.responses import JSONResponse, RedirectResponse, Response
+from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from gcs.api_models import (
+    AgentView,
+    Coverage,
+    Delivered,
+    FleetCommand,
+    FleetCommandResult,
+    GeofenceRequest,
+    GeofenceState,
+    Health,
+    MissionCreated,
+    MissionGeometry,
+    MissionSummary,
+    UiConfig,
+)
+from gcs.api_planning import DroneInfo, PlanningError, PlanPreview, PlanRequest, plan, task_paths
 from gcs.events import Event
+from gcs.live import LiveHub, StatusSample, StreamClient
+from gcs.metrics import CONTENT_TYPE
 from gcs.missions import MissionProgress, MissionRejected
-from protocol.packets import Capabilities, Geofence, GeoPoint, StatusReport
-from protocol.taskfile import TaskFileError, parse_task_document
+from protocol.actions import Land, ReturnToLaunch
+from protocol.packets import PerformActions
+from protocol.taskfile import TaskFile, TaskFileError, parse_task_document
 
 if TYPE_CHECKING:
+    from gcs.agents import AgentSession
     from gcs.daemon import Daemon
+
+WEB_DIR = Path(__file__).parent / "web"
+PLAN_TIMEOUT_S = 60.0
+MAX_ID = 2**62
+TASK_DOCUMENT_SCHEMA: dict[str, Any] = {
+    "description": "a fleetgcs task file (object) or a CoUAS task file (array of action rows)",
+    "oneOf": [{"$ref": "#/components/schemas/TaskFile"}, {"type": "array", "items": {"type": "object"}}],
+}
 
 
 class ApiProblem(Exception):
     def __init__(self, status: int, title: str, detail: str) -> None:
         super().__init__(detail)
         self.status, self.title, self.detail = status, title, detail
-
-
-class AgentView(BaseModel):
-    identity: str
-    cid: int
-    connected: bool
-    lost: bool
-    peer: str
-    capabilities: Capabilities
-    home: GeoPoint | None
-    status: StatusReport | None
-    status_count: int
-
-
-class MissionCreated(BaseModel):
-    mission_id: str
-
-
-class GeofenceRequest(BaseModel):
-    geofence: Geofence | None = None
-    agents: list[str] | None = None
-
-
-class Delivered(BaseModel):
-    delivered: list[str]
 
 
 def _problem(status: int, title: str, detail: str) -> JSONResponse:
@@ -63,8 +73,32 @@ def _problem(status: int, title: str, detail: str) -> JSONResponse:
     )
 
 
+def _agent_view(daemon: Daemon, s: AgentSession) -> AgentView:
+    return AgentView(
+        identity=s.identity,
+        cid=s.cid,
+        connected=s.open,
+        lost=s.identity in daemon.agents.lost,
+        peer=s.peer,
+        capabilities=s.capabilities,
+        home=s.home,
+        status=s.status,
+        status_count=s.status_count,
+        link_age_s=round(time.monotonic() - s.last_rx, 3),
+        connected_at=s.connected_at,
+    )
+
+
 def create_app(daemon: Daemon) -> FastAPI:
-    app = FastAPI(title="fleetgcs", version="0.1.0", description="Fleet ground control station API")
+    """The API of ``daemon``; installs a :class:`LiveHub` (rings, stream, metrics) on first call."""
+    hub = _hub_for(daemon)
+    app = FastAPI(
+        title="fleetgcs",
+        version="0.2.0",
+        description="Fleet ground control station API: fleet, missions, planning, stream. See docs/api.md.",
+    )
+    app.state.hub = hub
+    app.state.daemon = daemon
 
     @app.exception_handler(ApiProblem)
     async def _api_problem(_: Request, exc: ApiProblem) -> JSONResponse:
@@ -76,85 +110,437 @@ def create_app(daemon: Daemon) -> FastAPI:
         where = ".".join(str(p) for p in first.get("loc", ()))
         return _problem(422, "invalid request", f"{where}: {first.get('msg', 'invalid')}")
 
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        return _problem(exc.status_code, str(exc.detail), str(exc.detail))
+
+    @app.exception_handler(Exception)
+    async def _crash(_: Request, exc: Exception) -> JSONResponse:  # a bug costs one request, reported
+        return _problem(500, "internal error", f"{type(exc).__name__}: {exc}"[:500])
+
     def require_token(authorization: str | None = Header(default=None)) -> None:
         expected = f"Bearer {daemon.api_token}"
-        if authorization is None or not hmac.compare_digest(authorization.encode(), expected.encode()):
+        if authorization is None or not hmac.compare_digest(
+            authorization.encode("utf-8", "replace"), expected.encode()
+        ):
             raise ApiProblem(
                 401, "unauthorized", "this call needs 'Authorization: Bearer <token>' (see api.token)"
             )
 
+    token = [Depends(require_token)]
+
+    # --- fleet --------------------------------------------------------------------------------------
+
     @app.get("/api/v1/health")
-    async def health() -> dict[str, Any]:
-        return {
-            "ok": True,
-            "agents_connected": len(daemon.agents.connected()),
-            "missions": len(daemon.missions.active),
-        }
+    async def health() -> Health:
+        return Health(
+            ok=True,
+            agents_connected=len(daemon.agents.connected()),
+            missions=len(daemon.missions.active),
+            server_time=time.time(),
+        )
+
+    @app.get("/api/v1/ui-config")
+    async def ui_config() -> UiConfig:
+        return UiConfig(
+            tile_url=getattr(daemon.config, "tile_url", None), status_period_s=daemon.config.status_period_s
+        )
 
     @app.get("/api/v1/agents")
     async def agents() -> list[AgentView]:
-        return [
-            AgentView(
-                identity=s.identity,
-                cid=s.cid,
-                connected=s.open,
-                lost=s.identity in daemon.agents.lost,
-                peer=s.peer,
-                capabilities=s.capabilities,
-                home=s.home,
-                status=s.status,
-                status_count=s.status_count,
-            )
-            for s in sorted(daemon.agents.sessions.values(), key=lambda s: s.cid)
-        ]
+        return [_agent_view(daemon, s) for s in sorted(daemon.agents.sessions.values(), key=lambda s: s.cid)]
+
+    @app.get("/api/v1/agents/{identity}")
+    async def agent(identity: str) -> AgentView:
+        session = daemon.agents.sessions.get(identity)
+        if session is None:
+            raise ApiProblem(404, "no such agent", f"agent {identity!r} has never connected")
+        return _agent_view(daemon, session)
+
+    @app.get("/api/v1/agents/{identity}/history")
+    async def history(
+        identity: str,
+        since: Annotated[float, Query(ge=0, le=1e12, description="UNIX time; samples after it")] = 0.0,
+        limit: Annotated[int, Query(ge=1, le=100_000)] = 1000,
+        every: Annotated[int, Query(ge=1, le=10_000, description="keep every n-th sample")] = 1,
+    ) -> list[StatusSample]:
+        if identity not in daemon.agents.sessions and identity not in hub.history:
+            raise ApiProblem(404, "no such agent", f"agent {identity!r} has never connected")
+        samples = hub.agent_history(identity, since, limit * every)
+        return samples[::-1][::every][::-1][-limit:] if every > 1 else samples
 
     @app.get("/api/v1/events")
     async def events(
-        since_id: int = 0, kind: str | None = None, agent: str | None = None, limit: int = 500
+        since_id: Annotated[int, Query(ge=0, le=MAX_ID)] = 0,
+        kind: Annotated[str | None, Query(max_length=64)] = None,
+        agent: Annotated[str | None, Query(max_length=64)] = None,
+        mission_id: Annotated[str | None, Query(max_length=64)] = None,
+        severity: Literal["info", "warning", "error"] | None = None,
+        last: Annotated[int | None, Query(ge=1, le=2000, description="the newest n (from memory)")] = None,
+        limit: Annotated[int, Query(ge=1, le=10_000)] = 500,
     ) -> list[Event]:
-        return daemon.events.history(since_id, kind, agent, limit)
+        def keep(e: Event) -> bool:
+            return (
+                e.id > since_id
+                and (kind is None or e.kind == kind)
+                and (agent is None or e.agent == agent)
+                and (mission_id is None or e.mission_id == mission_id)
+                and (severity is None or e.severity == severity)
+            )
 
-    @app.post("/api/v1/missions", status_code=201, dependencies=[Depends(require_token)])
-    async def submit(document: Any = Body(...)) -> MissionCreated:  # noqa: B008 - FastAPI idiom
+        if last is not None:
+            return [e for e in hub.recent_events if keep(e)][-last:][:limit]
+        rows = daemon.events.history(since_id, kind, agent, limit if not (mission_id or severity) else 10_000)
+        return [e for e in rows if keep(e)][:limit]
+
+    @app.websocket("/api/v1/stream")
+    async def stream(
+        websocket: WebSocket,
+        status: bool = True,
+        events: bool = True,
+        agents: str | None = None,
+        max_rate_hz: float = 0.0,
+    ) -> None:
+        """Push status reports and events; the first frame is a snapshot of the fleet."""
+        await websocket.accept()
+        names = frozenset(a for a in agents.split(",") if a) if agents else None
+        rate = max_rate_hz if 0 < max_rate_hz < 1e6 else 0.0
+        client = StreamClient(
+            status=status, events=events, agents=names, min_interval_s=1.0 / rate if rate else 0.0
+        )
+        snapshot = {
+            "type": "hello",
+            "server_time": time.time(),
+            "agents": [
+                _agent_view(daemon, s).model_dump(mode="json") for s in daemon.agents.sessions.values()
+            ],
+        }
+        hub.subscribe(client)
+        reader = asyncio.create_task(_drain_incoming(websocket))
+        try:
+            await websocket.send_json([snapshot])
+            while not reader.done():
+                batch = asyncio.create_task(client.next_batch())
+                await asyncio.wait({batch, reader}, return_when=asyncio.FIRST_COMPLETED)
+                if not batch.done():
+                    batch.cancel()
+                    break
+                await websocket.send_text(batch.result())
+        except (WebSocketDisconnect, RuntimeError, OSError):
+            pass
+        finally:
+            hub.unsubscribe(client)
+            reader.cancel()
+            with contextlib.suppress(BaseException):
+                await reader
+
+    @app.get("/metrics", include_in_schema=False)
+    async def metrics() -> Response:
+        return Response(hub.metrics.render(), media_type=CONTENT_TYPE)
+
+    # --- missions -------------------------------------------------------------------------------------
+
+    @app.get("/api/v1/missions")
+    async def missions(
+        state: Literal["running", "completed", "aborted"] | None = None,
+        limit: Annotated[int, Query(ge=1, le=1000)] = 50,
+    ) -> list[MissionSummary]:
+        rows = daemon.store.missions(state)[-limit:][::-1]
+        return [
+            MissionSummary(
+                id=m.id, name=m.name, state=m.state, created=m.created, finished=m.finished, result=m.result
+            )
+            for m in rows
+        ]
+
+    @app.post("/api/v1/missions", status_code=201, dependencies=token)
+    async def submit(
+        document: Any = Body(..., description=TASK_DOCUMENT_SCHEMA["description"]),  # noqa: B008
+    ) -> MissionCreated:
+        """Submit a fleetgcs task file or a CoUAS task file (validated against the live fleet)."""
         try:
             task = parse_task_document(document)
-            mission_id = await daemon.missions.submit(task)
-        except (TaskFileError, MissionRejected) as exc:
+        except (TaskFileError, ValueError, TypeError) as exc:
+            raise ApiProblem(422, "invalid task file", str(exc)[:1000]) from None
+        return MissionCreated(mission_id=await _submit(task))
+
+    async def _submit(task: TaskFile) -> str:
+        try:
+            return await daemon.missions.submit(task)
+        except MissionRejected as exc:
             raise ApiProblem(422, "mission rejected", str(exc)) from None
-        return MissionCreated(mission_id=mission_id)
+
+    @app.post("/api/v1/plan")
+    async def preview(request: Annotated[PlanRequest, Body(discriminator="method")]) -> PlanPreview:
+        """Plan without flying: the task file and predicted length, time and energy per drone."""
+        return await _plan(request)
+
+    @app.post("/api/v1/missions/plan", status_code=201, dependencies=token)
+    async def plan_and_fly(request: Annotated[PlanRequest, Body(discriminator="method")]) -> MissionCreated:
+        """Plan, then submit the plan's task file as a mission."""
+        planned = await _plan(request)
+        mission_id = await _submit(planned.taskfile)
+        hub.plans[mission_id] = planned
+        return MissionCreated(mission_id=mission_id, plan=planned)
+
+    async def _plan(request: Any) -> PlanPreview:
+        infos = _drone_infos(daemon, list(request.drones))
+        try:
+            return await asyncio.wait_for(asyncio.to_thread(plan, request, infos), PLAN_TIMEOUT_S)
+        except PlanningError as exc:
+            raise ApiProblem(422, "cannot plan", str(exc)[:1000]) from None
+        except TimeoutError:
+            raise ApiProblem(
+                422, "cannot plan", f"planning took longer than {PLAN_TIMEOUT_S:.0f} s"
+            ) from None
 
     @app.get("/api/v1/missions/{mission_id}")
     async def mission(mission_id: str) -> MissionProgress:
+        return _progress(mission_id)
+
+    def _progress(mission_id: str) -> MissionProgress:
         progress = daemon.missions.progress(mission_id)
         if progress is None:
             raise ApiProblem(404, "no such mission", f"mission {mission_id!r} does not exist")
         return progress
 
-    @app.post("/api/v1/missions/{mission_id}/abort", dependencies=[Depends(require_token)])
-    async def abort(mission_id: str) -> MissionProgress:
-        return await _mission_command(
-            mission_id, lambda m: daemon.missions.abort(m, "aborted by the operator")
+    @app.get("/api/v1/missions/{mission_id}/plan")
+    async def mission_geometry(mission_id: str) -> MissionGeometry:
+        planned = hub.plans.get(mission_id)
+        stored = daemon.store.mission(mission_id)
+        if stored is None:
+            raise ApiProblem(404, "no such mission", f"mission {mission_id!r} does not exist")
+        if planned is not None:
+            return MissionGeometry(
+                mission_id=mission_id,
+                paths={d.agent: d.points for d in planned.drones},
+                area=planned.area,
+                targets=planned.targets,
+                swath_m=planned.swath_m,
+            )
+        return MissionGeometry(
+            mission_id=mission_id, paths=task_paths(TaskFile.model_validate_json(stored.task_json))
         )
 
-    @app.post("/api/v1/missions/{mission_id}/pause", dependencies=[Depends(require_token)])
-    async def pause(mission_id: str) -> MissionProgress:
-        return await _mission_command(mission_id, daemon.missions.pause)
+    @app.get("/api/v1/missions/{mission_id}/coverage")
+    async def coverage(mission_id: str) -> Coverage:
+        _progress(mission_id)
+        planned = hub.plans.get(mission_id)
+        tracks = {p.label: hub.track(p.label, mission_id) for p in planned.taskfile.plans} if planned else {}
+        samples = sum(len(t) for t in tracks.values())
+        if planned is None or planned.area is None or planned.swath_m is None:
+            return Coverage(mission_id=mission_id, covered_pct=None, swath_m=None, samples=samples)
+        pct = await asyncio.to_thread(_covered_pct, planned.area, list(tracks.values()), planned.swath_m)
+        return Coverage(mission_id=mission_id, covered_pct=pct, swath_m=planned.swath_m, samples=samples)
 
-    @app.post("/api/v1/missions/{mission_id}/resume", dependencies=[Depends(require_token)])
+    @app.post("/api/v1/missions/{mission_id}/abort", dependencies=token)
+    async def abort(
+        mission_id: str,
+        then: Annotated[
+            Literal["rtl", "hold"], Query(description="rtl: fly home (default); hold: stop where they are")
+        ] = "rtl",
+    ) -> MissionProgress:
+        members = _members(mission_id)
+        started = time.perf_counter()
+        progress = await _mission_command(
+            mission_id, lambda m: daemon.missions.abort(m, f"aborted by the operator ({then})")
+        )
+        if then == "hold":  # the RTL just queued waits behind a pause until the operator decides
+            await _send_all(
+                members, PerformActions(mission_id=mission_id, mode="pause", reason="abort: hold")
+            )
+        hub.metrics.command_latency.labels(f"abort_{then}").observe(time.perf_counter() - started)
+        return progress
+
+    @app.post("/api/v1/missions/{mission_id}/pause", dependencies=token)
+    async def pause(mission_id: str) -> MissionProgress:
+        return await _timed("pause", _mission_command(mission_id, daemon.missions.pause))
+
+    @app.post("/api/v1/missions/{mission_id}/resume", dependencies=token)
     async def resume(mission_id: str) -> MissionProgress:
-        return await _mission_command(mission_id, daemon.missions.resume)
+        return await _timed("resume", _mission_command(mission_id, daemon.missions.resume))
+
+    async def _timed(name: str, command: Awaitable[MissionProgress]) -> MissionProgress:
+        started = time.perf_counter()
+        result = await command
+        hub.metrics.command_latency.labels(name).observe(time.perf_counter() - started)
+        return result
+
+    def _members(mission_id: str) -> list[str]:
+        active = daemon.missions.active.get(mission_id)
+        return [a for a in active.plans if a not in active.excluded] if active else []
 
     async def _mission_command(mission_id: str, command: Callable[[str], Awaitable[None]]) -> MissionProgress:
+        _progress(mission_id)
         try:
             await command(mission_id)
         except MissionRejected as exc:
             raise ApiProblem(409, "mission not running", str(exc)) from None
-        progress = daemon.missions.progress(mission_id)
-        assert progress is not None
-        return progress
+        return _progress(mission_id)
 
-    @app.post("/api/v1/geofence", dependencies=[Depends(require_token)])
+    async def _send_all(identities: list[str], body: PerformActions) -> list[str]:
+        sent = await asyncio.gather(*(daemon.agents.send(i, body) for i in identities))
+        return [i for i, ok in zip(identities, sent, strict=True) if ok]
+
+    # --- fleet commands -------------------------------------------------------------------------------
+
+    def _targets(command: FleetCommand | None) -> list[str]:
+        connected = [s.identity for s in daemon.agents.connected()]
+        if command is None or command.agents is None:
+            return connected
+        return [a for a in command.agents if a in connected]
+
+    async def _stop_missions(targets: list[str], why: str) -> list[str]:
+        aborted = []
+        for mission_id in list(daemon.missions.active):
+            if set(_members(mission_id)) & set(targets):
+                with contextlib.suppress(MissionRejected):
+                    await daemon.missions.abort(mission_id, why)
+                    aborted.append(mission_id)
+        return aborted
+
+    async def _fleet_return(kind: Literal["rtl", "land"], command: FleetCommand | None) -> FleetCommandResult:
+        started = time.perf_counter()
+        targets = _targets(command)
+        reason = command.reason if command else "operator"
+        aborted = await _stop_missions(targets, f"fleet {kind} ({reason})")
+        action = ReturnToLaunch(step=0) if kind == "rtl" else Land(step=0)
+        order = PerformActions(
+            mission_id=f"{kind}-{time.strftime('%H%M%S')}", mode="replace", actions=[action], reason=reason
+        )
+        delivered = await _send_all(targets, order)
+        hub.metrics.command_latency.labels(kind).observe(time.perf_counter() - started)
+        daemon.events.publish(
+            f"fleet_{kind}", f"{kind} sent to {len(delivered)} agents ({reason})", data={"agents": delivered}
+        )
+        return FleetCommandResult(command=kind, delivered=delivered, aborted_missions=aborted)
+
+    @app.post("/api/v1/fleet/rtl", dependencies=token)
+    async def fleet_rtl(command: FleetCommand | None = None) -> FleetCommandResult:
+        """Abort the missions involved and send every (or the given) agent home."""
+        return await _fleet_return("rtl", command)
+
+    @app.post("/api/v1/fleet/land", dependencies=token)
+    async def fleet_land(command: FleetCommand | None = None) -> FleetCommandResult:
+        """Abort the missions involved and land every (or the given) agent where it is."""
+        return await _fleet_return("land", command)
+
+    async def _fleet_pause(
+        kind: Literal["hold", "resume"], command: FleetCommand | None
+    ) -> FleetCommandResult:
+        started = time.perf_counter()
+        targets = _targets(command)
+        reason = command.reason if command else "operator"
+        mode: Literal["pause", "resume"] = "pause" if kind == "hold" else "resume"
+        for mission_id in list(daemon.missions.active):
+            if set(_members(mission_id)) & set(targets):
+                with contextlib.suppress(MissionRejected):
+                    await (daemon.missions.pause if mode == "pause" else daemon.missions.resume)(
+                        mission_id, f"fleet {kind} ({reason})"
+                    )
+        delivered = [
+            t
+            for t in targets
+            if await (daemon.pause_agent if mode == "pause" else daemon.resume_agent)(
+                t, f"fleet {kind}: {reason}"
+            )
+        ]
+        hub.metrics.command_latency.labels(kind).observe(time.perf_counter() - started)
+        return FleetCommandResult(command=kind, delivered=delivered)
+
+    @app.post("/api/v1/fleet/hold", dependencies=token)
+    async def fleet_hold(command: FleetCommand | None = None) -> FleetCommandResult:
+        """Every (or the given) agent stops where it is and keeps its queue."""
+        return await _fleet_pause("hold", command)
+
+    @app.post("/api/v1/fleet/resume", dependencies=token)
+    async def fleet_resume(command: FleetCommand | None = None) -> FleetCommandResult:
+        return await _fleet_pause("resume", command)
+
+    @app.get("/api/v1/geofence")
+    async def get_geofence() -> GeofenceState:
+        return GeofenceState(geofence=hub.geofence)
+
+    @app.post("/api/v1/geofence", dependencies=token)
     async def geofence(request: GeofenceRequest) -> Delivered:
-        return Delivered(delivered=await daemon.set_geofence(request.geofence, request.agents))
+        started = time.perf_counter()
+        delivered = await daemon.set_geofence(request.geofence, request.agents)
+        if request.agents is None:
+            hub.geofence = request.geofence
+        hub.metrics.command_latency.labels("geofence").observe(time.perf_counter() - started)
+        return Delivered(delivered=delivered)
 
+    # --- dashboard ------------------------------------------------------------------------------------
+
+    @app.get("/", include_in_schema=False)
+    async def root() -> RedirectResponse:
+        return RedirectResponse("/ui/")
+
+    if WEB_DIR.is_dir():
+        app.mount("/ui", StaticFiles(directory=WEB_DIR, html=True), name="ui")
     return app
+
+
+def _hub_for(daemon: Daemon) -> LiveHub:
+    """One hub per daemon, registered as a service so ``daemon.stop()`` stops it."""
+    for service in daemon.services:
+        if isinstance(service, LiveHub):
+            return service
+    hub = LiveHub(daemon)
+    daemon.services.append(hub)
+    with contextlib.suppress(RuntimeError):  # no running loop yet: started on first use
+        asyncio.get_running_loop().create_task(hub.start())
+    return hub
+
+
+def _drone_infos(daemon: Daemon, names: list[str]) -> list[DroneInfo]:
+    """Planner inputs for the named agents, or for every connected agent not busy with a mission."""
+    if not names:
+        busy = {a for m in daemon.missions.active.values() for a in m.plans if a not in m.excluded}
+        names = [
+            s.identity
+            for s in sorted(daemon.agents.connected(), key=lambda s: s.cid)
+            if s.identity not in busy
+        ]
+    infos = []
+    for name in names:
+        session = daemon.agents.sessions.get(name)
+        if session is None:
+            infos.append(DroneInfo(name=name))
+            continue
+        home = (session.home.lat, session.home.lon) if session.home else None
+        if home is None and session.status is not None:
+            home = (session.status.position.lat, session.status.position.lon)
+        infos.append(
+            DroneInfo(name=name, capabilities=session.capabilities, home=home, status=session.status)
+        )
+    return infos
+
+
+def _covered_pct(
+    area: list[tuple[float, float]], tracks: list[list[tuple[float, float]]], swath: float
+) -> float:
+    """Percent of ``area`` within swath/2 of the flown tracks (local frame of the area)."""
+    import numpy as np
+    import shapely
+    from shapely.geometry import Polygon
+
+    from gcs.planning.geodesy import LocalFrame
+
+    arr = np.asarray(area)
+    frame = LocalFrame.centred_on(arr[:, 0], arr[:, 1])
+    poly = Polygon(frame.points_to_local(area)).buffer(0)
+    lines = [shapely.linestrings(frame.points_to_local(t)) for t in tracks if len(t) > 1]
+    if not lines or poly.area <= 0:
+        return 0.0
+    seen = shapely.union_all([shapely.buffer(line, swath / 2.0) for line in lines])
+    return round(100.0 * poly.intersection(seen).area / poly.area, 2)
+
+
+async def _drain_incoming(websocket: WebSocket) -> None:
+    """Read (and ignore) what the client sends, so a closed socket is noticed at once."""
+    with contextlib.suppress(WebSocketDisconnect, RuntimeError, OSError):
+        while True:
+            message = await websocket.receive()
+            if message.get("type") == "websocket.disconnect":
+                return

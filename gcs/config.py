@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from gcs.cooperation.config import CooperationConfig
 from protocol.packets import AgentParameters
 from protocol.wire import DEFAULT_MAX_BODY
 
@@ -44,6 +45,11 @@ class DaemonConfig(BaseModel):
     )
     api_token: str | None = Field(default=None, description="default: DATA_DIR/api.token")
     handshake_timeout_s: float = Field(default=5.0, gt=0.0)
+    tls_cert: Path | None = Field(default=None, description="PEM certificate: serve the agent link over TLS")
+    tls_key: Path | None = Field(default=None, description="PEM private key of tls_cert")
+    tls_client_ca: Path | None = Field(
+        default=None, description="PEM CA bundle: require agents to present a certificate it signed (mTLS)"
+    )
     max_body_bytes: int = Field(default=DEFAULT_MAX_BODY, ge=1024, le=64 << 20)
     max_agents: int = Field(default=1000, ge=1)
     max_frames_per_s: float = Field(
@@ -59,7 +65,18 @@ class DaemonConfig(BaseModel):
     default_sync_timeout_s: float = Field(default=120.0, gt=0.0)
     lost_agent_policy: Literal["abort", "continue"] = "abort"
     agent_parameters: AgentParameters = AgentParameters()
+    cooperation: CooperationConfig = Field(default_factory=CooperationConfig)
     telemetry: TelemetryConfig = Field(default_factory=TelemetryConfig)
+    # operator interfaces (docs/configuration.md)
+    tile_url: str | None = Field(
+        default=None, max_length=500, description="dashboard background tiles, '{z}/{x}/{y}' template"
+    )
+    extensions: list[str] = Field(
+        default_factory=list, description="extension modules 'pkg.mod' or 'pkg.mod:factory' (docs/api.md)"
+    )
+    extension_options: dict[str, dict[str, Any]] = Field(
+        default_factory=dict, description="options per extension, keyed by the module path as listed"
+    )
 
     @property
     def database_path(self) -> Path:

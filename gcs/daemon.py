@@ -6,13 +6,16 @@ import asyncio
 import contextlib
 import logging
 import secrets
+import ssl
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Literal, Protocol
 
 from gcs.agents import AgentManager
 from gcs.config import DaemonConfig
+from gcs.cooperation import cooperation_services
 from gcs.events import EventBus
+from gcs.extensions import load_extensions
 from gcs.keys import KeyRing, load_or_create_key_file
 from gcs.missions import MissionRunner
 from gcs.store import Store
@@ -21,6 +24,21 @@ from protocol.auth import parse_key
 from protocol.packets import AgentParameters, CloseReason, Geofence, PerformActions, SetParameters
 
 log = logging.getLogger("gcs.daemon")
+
+
+def server_tls_context(config: DaemonConfig) -> ssl.SSLContext | None:
+    """TLS for the agent listener when a certificate is configured; mutual TLS with a client CA."""
+    if config.tls_cert is None:
+        return None
+    if config.tls_key is None:
+        raise ValueError("tls_cert needs tls_key")
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    context.minimum_version = ssl.TLSVersion.TLSv1_2
+    context.load_cert_chain(config.tls_cert, config.tls_key)
+    if config.tls_client_ca is not None:
+        context.load_verify_locations(config.tls_client_ca)
+        context.verify_mode = ssl.CERT_REQUIRED
+    return context
 
 
 def load_api_token(config: DaemonConfig) -> str:
@@ -87,11 +105,19 @@ class Daemon:
         self.http_port: int | None = None
         self.telemetry = TelemetryRecorder(config.telemetry)
         self.services: list[Service] = [self.telemetry]
+        self.services += load_extensions(config)  # user modules listed in the configuration
+        self.services.extend(cooperation_services(config.cooperation))
 
     async def start(self) -> None:
         self.missions.restore()
+        tls = server_tls_context(self.config)
         self._server = await asyncio.start_server(
-            self.agents.handle_connection, self.config.listen_host, self.config.listen_port, limit=1 << 16
+            self.agents.handle_connection,
+            self.config.listen_host,
+            self.config.listen_port,
+            limit=1 << 16,
+            ssl=tls,
+            ssl_handshake_timeout=self.config.handshake_timeout_s if tls else None,
         )
         self.listen_port = self._server.sockets[0].getsockname()[1]
         self._liveness = asyncio.create_task(self.agents.watch_liveness(), name="liveness")

@@ -30,6 +30,8 @@ from protocol.geo import offset_latlon
 from protocol.packets import StatusReport
 from protocol.taskfile import TaskFile
 
+HOME_SPACING_M = 6.0  # between simulated vehicles' homes: more than the collision margin
+
 
 @dataclass
 class DemoOptions:
@@ -75,19 +77,33 @@ def survey_area(options: DemoOptions) -> list[tuple[float, float]]:
     return [offset_latlon(lat, lon, n, e) for n, e in corners]
 
 
+def vehicle_homes(options: DemoOptions) -> list[tuple[float, float]]:
+    """Where the simulator puts each vehicle: ``HOME_SPACING_M`` apart, eastwards."""
+    lat, lon, _ = options.home
+    return [offset_latlon(lat, lon, 0.0, HOME_SPACING_M * i) for i in range(options.drones)]
+
+
 def plan_demo_mission(
     options: DemoOptions, names: list[str]
 ) -> tuple[TaskFile, list[list[tuple[float, float]]]]:
     area = area_from_latlon(survey_area(options), name="demo-area")
     drones = [DroneSpec(name=n, speed_mps=options.speed_mps, endurance_s=900.0) for n in names]
+    config = PlanConfig(
+        pattern=options.pattern,  # type: ignore[arg-type]
+        division=options.division,  # type: ignore[arg-type]
+        name="demo",
+        transit_alt_step=3.0,  # transit and return legs at different altitudes per drone
+        return_mode="land_home",  # each back to its own launch point, not all onto one RTL spot
+    )
     plan = plan_search(
         area,
         drones,
         spacing_from_swath(options.swath_m, options.altitude_m),
-        PlanConfig(pattern=options.pattern, division=options.division, name="demo", transit_alt_step=3.0),  # type: ignore[arg-type]
+        config,
         home_latlon=(options.home[0], options.home[1]),
         speed=options.speed_mps,
         agent_names=names,
+        homes_latlon=vehicle_homes(options),
     )
     return plan.taskfile, plan.paths_latlon
 
@@ -109,6 +125,8 @@ async def _start_simulator(options: DemoOptions) -> tuple[asyncio.subprocess.Pro
         str(options.speedup),
         "--seed",
         str(options.seed),
+        "--spacing",
+        str(HOME_SPACING_M),
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.DEVNULL if options.quiet else None,
     )

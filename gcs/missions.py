@@ -175,6 +175,20 @@ class MissionRunner:
                 )
         self._finish(mission, "aborted", reason)
 
+    async def withdraw(self, identity: str, reason: str, actions: list[Action]) -> bool:
+        """Take one agent out of its mission (emergency): exclude it, then send it ``actions``.
+
+        The others go on without it (barriers it blocked are released). Its new orders carry the
+        mission id but no longer count towards completion. False if it flies no active mission.
+        """
+        mission = self._mission_of(identity)
+        if mission is None or identity in mission.excluded:
+            return False
+        await self._exclude(mission, identity, f"withdrawn: {reason}")
+        orders = PerformActions(mission_id=mission.id, mode="replace", actions=actions)
+        await self._agents.send(identity, orders)
+        return True
+
     async def pause(self, mission_id: str, reason: str = "paused by the operator") -> None:
         """Every agent of the mission stops where it is and keeps its queue."""
         mission = self._require(mission_id)

@@ -5,13 +5,17 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import logging
 import signal
+import sys
 from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
 
 from gcs.config import DaemonConfig, default_data_dir
+from gcs.config_file import ConfigFileError, load_daemon_config
 from gcs.daemon import serve_forever
+from protocol.settings_file import LoggingConfig, configure_logging
 
 
 def split_host_port(text: str, default_port: int) -> tuple[str, int]:
@@ -37,6 +41,11 @@ def add_daemon_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--agent-keys", type=Path, help="JSON file {identity: hex key} of per-agent keys")
     parser.add_argument("--status-period", type=float, default=0.5, help="agent status period, s")
     parser.add_argument("--lost-after", type=float, default=6.0, help="status periods of silence = lost")
+    parser.add_argument("--tls-cert", type=Path, help="PEM certificate: serve the agent link over TLS")
+    parser.add_argument("--tls-key", type=Path, help="PEM private key of --tls-cert")
+    parser.add_argument(
+        "--tls-client-ca", type=Path, help="PEM CA: require agent certificates it signed (mTLS)"
+    )
 
 
 def config_from_args(args: argparse.Namespace) -> DaemonConfig:
@@ -55,12 +64,35 @@ def config_from_args(args: argparse.Namespace) -> DaemonConfig:
         agent_keys_file=args.agent_keys,
         status_period_s=args.status_period,
         lost_after_periods=args.lost_after,
+        tls_cert=args.tls_cert,
+        tls_key=args.tls_key,
+        tls_client_ca=args.tls_client_ca,
     )
 
 
 def run(args: argparse.Namespace) -> int:
-    config = config_from_args(args)
+    try:
+        config, log = resolve_config(args)
+    except (ConfigFileError, ValueError) as exc:
+        print(f"gcs serve: {exc}", file=sys.stderr)
+        return 2
+    configure_logging(log, verbose=logging.getLogger().level == logging.DEBUG)
     return run_until_signalled(serve_forever(config, args.ready_file))
+
+
+def resolve_config(args: argparse.Namespace) -> tuple[DaemonConfig, LoggingConfig]:
+    """Defaults < --config file < FLEETGCS_* environment < flags given on the command line."""
+    cli, defaults = config_from_args(args), config_from_args(args.parser_defaults)
+    explicit = {
+        name: getattr(cli, name)
+        for name in cli.model_fields_set
+        if getattr(cli, name) != getattr(defaults, name)
+    }
+    config, log = load_daemon_config(args.config, explicit)
+    updates = {"json_format": True} if args.log_json else {}
+    if args.log_file is not None:
+        updates["file"] = args.log_file
+    return config, log.model_copy(update=updates)
 
 
 def run_until_signalled(coroutine: Coroutine[Any, Any, None]) -> int:
@@ -75,4 +107,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("serve", help="run the ground station daemon")
     add_daemon_arguments(parser)
     parser.add_argument("--ready-file", type=Path, help="write 'AGENT_PORT HTTP_PORT' here once listening")
-    parser.set_defaults(run=run)
+    parser.add_argument("--config", type=Path, help="TOML configuration file (docs/configuration.md)")
+    parser.add_argument("--log-json", action="store_true", help="log one JSON object per line")
+    parser.add_argument("--log-file", type=Path, help="log to this file, rotated at 10 MiB (5 kept)")
+    parser.set_defaults(run=run, parser_defaults=parser.parse_args([]))

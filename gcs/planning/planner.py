@@ -92,8 +92,14 @@ def plan_search(
     home_latlon: tuple[float, float] | None = None,
     speed: float | None = None,
     agent_names: Sequence[str] | None = None,
+    homes_latlon: Sequence[tuple[float, float]] | None = None,
 ) -> SearchPlan:
-    """Plan the search; raises SelfIntersectionError, CameraError or InsufficientCapabilityError."""
+    """Plan the search; raises SelfIntersectionError, CameraError or InsufficientCapabilityError.
+
+    ``home_latlon`` is the fleet's common home (default: the area's first vertex);
+    ``homes_latlon`` gives each drone its own (its launch point), which division costs and a
+    ``land_home`` return use, so drones do not all converge on one landing spot.
+    """
     cfg = config or PlanConfig()
     if not drones:
         raise ValueError("need at least one drone")
@@ -105,6 +111,13 @@ def plan_search(
         home_latlon = area.vertices[0]
     he, hn = frame.to_local(*home_latlon)
     home = np.array([float(he), float(hn)])
+    if homes_latlon is not None:
+        if len(homes_latlon) != len(drones):
+            raise ValueError(f"{len(homes_latlon)} homes for {len(drones)} drones")
+        own = frame.points_to_local(list(homes_latlon))
+        drones = [
+            d.model_copy(update={"home": (float(e), float(n))}) for d, (e, n) in zip(drones, own, strict=True)
+        ]
     drones = [d if d.home is not None else d.model_copy(update={"home": (home[0], home[1])}) for d in drones]
     angle = math.radians(cfg.angle_deg) if cfg.angle_deg is not None else min_height_rotation(work)[0]
     paths: list[FloatArray] = []
@@ -165,7 +178,10 @@ def plan_search(
         spacing.altitude,
         speed,
         agent_names,
-        homes_latlon=[home_latlon] * len(drones),
+        homes_latlon=[
+            (float(a), float(b))
+            for a, b in frame.points_to_geodetic([d.home or (home[0], home[1]) for d in drones])
+        ],
         return_mode=cfg.return_mode,
         transit_alt_step=cfg.transit_alt_step,
         name=cfg.name,

@@ -57,6 +57,7 @@ def start_agent(
     index: int = 0,
     speedup: float = 8.0,
     settings: AgentSettings | None = None,
+    **config_overrides: object,
 ) -> RunningAgent:
     lat, lon = offset_latlon(HOME[0], HOME[1], 0.0, 6.0 * index)
     autopilot = MemoryAutopilot((lat, lon, HOME[2]), speedup=speedup, speed_mps=6.0, climb_mps=4.0)
@@ -69,7 +70,7 @@ def start_agent(
         reconnect_max_s=0.3,
         resend_target_s=1.0,
         monitor_period_s=0.05,
-    )
+    ).model_copy(update=config_overrides)
     agent = Agent(config, autopilot)
     return RunningAgent(agent, autopilot, asyncio.create_task(agent.run(), name=f"agent-{identity}"))
 

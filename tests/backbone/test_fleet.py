@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from gcs.missions import MissionRejected
+from protocol.actions import ReturnToLaunch
 from protocol.packets import FenceCircle, Geofence
 from tests.backbone.helpers import (
     HOME,
@@ -294,3 +295,23 @@ async def test_sync_arrival_survives_a_daemon_restart(tmp_path: Path) -> None:
     finally:
         await stop_agents([fast, slow])
         await daemon_cm.__aexit__(None, None, None)
+
+
+async def test_withdrawn_agent_no_longer_counts_towards_completion(tmp_path: Path) -> None:
+    key = new_key()
+    names = ["stays", "leaves"]
+    async with running_daemon(tmp_path, key) as daemon:
+        agents = [start_agent(name, daemon.listen_port, key, i) for i, name in enumerate(names)]
+        try:
+            await wait_for(lambda: len(daemon.agents.connected()) == 2, 10, "two agents")
+            mission_id = await daemon.missions.submit(survey_mission(names, sync_legs=3))
+            await wait_for(lambda: 0 in daemon.missions.active[mission_id].barriers.released, 20, "airborne")
+            assert await daemon.missions.withdraw("leaves", "battery critical", [ReturnToLaunch(step=99)])
+            await wait_for(lambda: agents[1].autopilot.telemetry().landed, 30, "withdrawn agent back home")
+            await wait_for(lambda: mission_id not in daemon.missions.active, 60, "mission completes")
+            progress = daemon.missions.progress(mission_id)
+            assert progress is not None and progress.state == "completed"
+            assert {a.agent: a.excluded for a in progress.agents} == {"stays": False, "leaves": True}
+            assert agents[0].autopilot.telemetry().landed and agents[0].agent.queue.completed_step == 4
+        finally:
+            await stop_agents(agents)

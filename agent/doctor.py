@@ -1,0 +1,317 @@
+"""``agent doctor``: check what a field agent needs and print what is wrong, in plain words.
+
+Checks, in order: the key (readable, long enough, not world-readable), the autopilot link
+(heartbeat, GPS, battery, home), the daemon link (TCP/TLS connect and the full authenticated
+handshake with the key, round-trip time), time sync (clock offset against the daemon's
+``server_time`` in the accept, NTP state) and clock drift (the offset measured twice,
+``drift_interval_s`` apart). Exit code 0 when nothing failed.
+
+The handshake uses the agent's own identity by default: a running agent with that identity is
+replaced for a moment (stop the service first, or give ``--probe-identity``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import shutil
+import stat
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from agent.autopilot.base import Autopilot
+from agent.config import AgentConfig
+from agent.link import client_tls_context
+from protocol import auth
+from protocol.packets import PROTOCOL_VERSION, Close, CloseReason, RequestCid, ResponseCid
+from protocol.wire import Frame, FrameDecoder, ProtocolError, encode
+
+Verdict = Literal["ok", "warn", "fail", "skip"]
+OFFSET_WARN_S, OFFSET_FAIL_S = 0.2, 1.0
+DRIFT_WARN_PPM = 100.0
+
+
+@dataclass
+class Check:
+    name: str
+    verdict: Verdict
+    detail: str
+    hint: str = ""
+
+
+@dataclass
+class Report:
+    checks: list[Check] = field(default_factory=list)
+
+    def add(self, name: str, verdict: Verdict, detail: str, hint: str = "") -> Check:
+        check = Check(name, verdict, detail, hint)
+        self.checks.append(check)
+        return check
+
+    @property
+    def ok(self) -> bool:
+        return not any(c.verdict == "fail" for c in self.checks)
+
+    def render(self) -> str:
+        tags = {"ok": "[ OK ]", "warn": "[WARN]", "fail": "[FAIL]", "skip": "[SKIP]"}
+        lines = []
+        for c in self.checks:
+            lines.append(f"{tags[c.verdict]} {c.name}: {c.detail}")
+            if c.hint and c.verdict in ("warn", "fail"):
+                lines.append(f"       -> {c.hint}")
+        failed = sum(c.verdict == "fail" for c in self.checks)
+        warned = sum(c.verdict == "warn" for c in self.checks)
+        lines.append(
+            "all checks passed" if not failed and not warned else f"{failed} failed, {warned} warnings"
+        )
+        return "\n".join(lines)
+
+
+@dataclass
+class Handshake:
+    cid: int
+    rtt_s: float
+    offset_s: float  # daemon clock - our clock
+
+
+class HandshakeError(Exception):
+    def __init__(self, message: str, hint: str = "") -> None:
+        super().__init__(message)
+        self.hint = hint
+
+
+def check_key_file(report: Report, key_file: Path | None, key_hex: str) -> None:
+    if key_file is not None:
+        try:
+            mode = key_file.stat().st_mode
+        except OSError as exc:
+            report.add(
+                "key",
+                "fail",
+                f"cannot read {key_file}: {exc.strerror}",
+                "copy the fleet key here (gcs keygen)",
+            )
+            return
+        if mode & (stat.S_IRWXG | stat.S_IRWXO):
+            report.add(
+                "key file permissions",
+                "warn",
+                f"{key_file} is readable by other users (mode {stat.S_IMODE(mode):o})",
+                f"chmod 600 {key_file}",
+            )
+    try:
+        key = auth.parse_key(key_hex)
+    except ValueError as exc:
+        report.add("key", "fail", str(exc), "the key is hex, at least 32 digits (gcs keygen makes one)")
+        return
+    report.add("key", "ok", f"{len(key) * 8}-bit key")
+
+
+async def check_autopilot(report: Report, autopilot: Autopilot, timeout: float) -> None:
+    try:
+        await asyncio.wait_for(autopilot.connect(timeout), timeout + 5)
+    except Exception as exc:
+        report.add(
+            "autopilot link",
+            "fail",
+            f"no heartbeat: {type(exc).__name__}: {exc}",
+            "check the wiring (TX->RX, RX->TX, GND), the baud rate, SERIALn_PROTOCOL=2 on ArduPilot, "
+            "and that the serial console is off "
+            "(raspi-config -> Interface -> Serial: login shell no, port yes)",
+        )
+        return
+    try:
+        t = autopilot.telemetry()
+        seen = (
+            f"heartbeat {time.monotonic() - t.last_heartbeat_monotonic:.1f} s ago"
+            if t.last_heartbeat_monotonic > 0
+            else "connected"
+        )
+        report.add("autopilot link", "ok", f"{seen}, mode {t.mode}, armed {t.armed}")
+        if t.gps_fix >= 3:
+            report.add("GPS", "ok", f"fix {t.gps_fix}, {t.satellites} satellites")
+        else:
+            report.add(
+                "GPS", "warn", f"fix {t.gps_fix} ({t.satellites} satellites)", "wait for a 3D fix outdoors"
+            )
+        if t.home_lat is None:
+            report.add("home position", "warn", "not set yet", "the autopilot sets home at the first 3D fix")
+        pct = t.battery_pct
+        if pct is None:
+            report.add("battery", "warn", "no battery percentage reported", "configure the battery monitor")
+        else:
+            report.add("battery", "ok" if pct > 30 else "warn", f"{pct:.0f} %")
+    finally:
+        with contextlib.suppress(Exception):
+            await autopilot.close()
+
+
+async def handshake(config: AgentConfig, identity: str, timeout: float) -> Handshake:
+    """One full authenticated handshake; measures round trip and clock offset (midpoint method)."""
+    key = auth.parse_key(config.key_hex)
+    tls = client_tls_context(config)
+    try:
+        reader, writer = await asyncio.wait_for(
+            asyncio.open_connection(
+                config.gcs_host,
+                config.gcs_port,
+                ssl=tls,
+                server_hostname=(config.tls_server_name or config.gcs_host) if tls else None,
+            ),
+            timeout,
+        )
+    except (OSError, TimeoutError) as exc:
+        raise HandshakeError(
+            f"cannot connect to {config.gcs_host}:{config.gcs_port}: {exc or 'timeout'}",
+            "is `gcs serve` running, listening beyond loopback (--listen 0.0.0.0:4396), "
+            "and is the port open in the firewall?",
+        ) from None
+    decoder = FrameDecoder()
+    backlog: list[Frame] = []
+
+    async def read() -> Frame:
+        while not backlog:
+            data = await asyncio.wait_for(reader.read(65_536), timeout)
+            if not data:
+                raise HandshakeError(
+                    "the daemon closed the connection", "see the daemon's log (agent_refused)"
+                )
+            backlog.extend(decoder.feed(data))
+        return backlog.pop(0)
+
+    try:
+        nonce = auth.new_nonce()
+        writer.write(
+            encode(RequestCid(identity=identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce), 1)
+        )
+        await writer.drain()
+        challenge = (await read()).body
+        if isinstance(challenge, ResponseCid) and challenge.outcome == "refused":
+            raise HandshakeError(
+                f"refused: {challenge.reason}", "is this identity listed in the daemon's agent keys?"
+            )
+        if not isinstance(challenge, ResponseCid) or challenge.server_nonce is None:
+            raise HandshakeError(f"unexpected answer to hello: {type(challenge).__name__}")
+        proof = auth.agent_proof(key, identity, challenge.server_nonce, nonce)
+        sent = time.time()
+        writer.write(
+            encode(
+                RequestCid(
+                    identity=identity,
+                    protocol_version=PROTOCOL_VERSION,
+                    client_nonce=nonce,
+                    capabilities=config.capabilities,
+                    proof=proof,
+                ),
+                2,
+            )
+        )
+        await writer.drain()
+        answer = (await read()).body
+        received = time.time()
+        if not isinstance(answer, ResponseCid) or answer.outcome != "accepted" or answer.cid is None:
+            reason = answer.reason if isinstance(answer, ResponseCid) else getattr(answer, "message", "")
+            raise HandshakeError(
+                f"refused: {reason}", "the key must be the daemon's fleet key (or this agent's own key)"
+            )
+        expected = auth.daemon_proof(key, identity, nonce, challenge.server_nonce)
+        if answer.server_proof is None or not auth.proofs_equal(answer.server_proof, expected):
+            raise HandshakeError(
+                "the daemon could not prove it holds the key", "wrong daemon address, or a spoof"
+            )
+        if answer.server_time is None:
+            raise HandshakeError("the daemon sent no server_time", "upgrade the daemon")
+        offset = answer.server_time - (sent + received) / 2
+        with contextlib.suppress(Exception):
+            writer.write(encode(Close(reason=CloseReason.NORMAL, message="agent doctor"), 3))
+            await writer.drain()
+        return Handshake(cid=answer.cid, rtt_s=received - sent, offset_s=offset)
+    except ProtocolError as exc:
+        raise HandshakeError(
+            f"protocol error: {exc}", "is this port really the fleetgcs agent listener?"
+        ) from None
+    except TimeoutError:
+        raise HandshakeError("the daemon did not answer in time", "network or daemon overloaded") from None
+    finally:
+        with contextlib.suppress(Exception):
+            writer.close()
+
+
+def ntp_state() -> str | None:
+    """'yes'/'no' from timedatectl when available."""
+    if shutil.which("timedatectl") is None:
+        return None
+    with contextlib.suppress(Exception):
+        out = subprocess.run(
+            ["timedatectl", "show", "-p", "NTPSynchronized", "--value"],
+            capture_output=True,
+            text=True,
+            timeout=3,
+        )
+        return out.stdout.strip() or None
+    return None
+
+
+async def check_daemon(
+    report: Report, config: AgentConfig, identity: str, timeout: float, drift_interval_s: float
+) -> None:
+    try:
+        first = await handshake(config, identity, timeout)
+    except HandshakeError as exc:
+        report.add("daemon link", "fail", str(exc), exc.hint)
+        report.add("time sync", "skip", "needs the daemon link")
+        return
+    report.add(
+        "daemon link",
+        "ok",
+        f"{config.gcs_host}:{config.gcs_port} accepted {identity} as cid {first.cid}, "
+        f"round trip {first.rtt_s * 1000:.1f} ms",
+    )
+    off = first.offset_s
+    verdict: Verdict = "ok" if abs(off) < OFFSET_WARN_S else ("warn" if abs(off) < OFFSET_FAIL_S else "fail")
+    report.add(
+        "time sync",
+        verdict,
+        f"clock offset to the daemon {off * 1000:+.0f} ms (+/- {first.rtt_s * 500:.0f} ms)",
+        "sync both clocks with NTP (timedatectl set-ntp true; chrony on a field network)",
+    )
+    ntp = ntp_state()
+    if ntp == "no":
+        report.add("NTP", "warn", "this clock is not NTP-synchronised", "timedatectl set-ntp true")
+    if drift_interval_s > 0:
+        await asyncio.sleep(drift_interval_s)
+        try:
+            second = await handshake(config, identity, timeout)
+        except HandshakeError as exc:
+            report.add("clock drift", "fail", f"second handshake failed: {exc}", exc.hint)
+            return
+        elapsed = drift_interval_s + (second.rtt_s + first.rtt_s) / 2
+        ppm = (second.offset_s - first.offset_s) / elapsed * 1e6
+        noise = (first.rtt_s + second.rtt_s) / 2 / elapsed * 1e6
+        report.add(
+            "clock drift",
+            "ok" if abs(ppm) < max(DRIFT_WARN_PPM, noise) else "warn",
+            f"{ppm:+.0f} ppm over {elapsed:.1f} s (resolution {noise:.0f} ppm)",
+            "a drifting clock needs NTP; a Raspberry Pi has no RTC, so sync before flight",
+        )
+
+
+async def diagnose(
+    config: AgentConfig,
+    autopilot: Autopilot | None,
+    key_file: Path | None = None,
+    identity: str | None = None,
+    timeout: float = 10.0,
+    drift_interval_s: float = 3.0,
+) -> Report:
+    report = Report()
+    check_key_file(report, key_file, config.key_hex)
+    if autopilot is None:
+        report.add("autopilot link", "skip", "not checked (--skip-autopilot)")
+    else:
+        await check_autopilot(report, autopilot, timeout)
+    await check_daemon(report, config, identity or config.identity, timeout, drift_interval_s)
+    return report

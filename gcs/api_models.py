@@ -1,0 +1,102 @@
+"""Pydantic models of the HTTP API, shared by the server (``gcs.api``), the client (``gcs.client``)
+and the OpenAPI schema, so the three never disagree."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from gcs.api_planning import PlanPreview
+from protocol.packets import Capabilities, Geofence, GeoPoint, StatusReport
+
+AgentName = str
+
+
+class AgentView(BaseModel):
+    """One agent as the daemon sees it: session, capabilities and latest status."""
+
+    identity: str
+    cid: int
+    connected: bool
+    lost: bool
+    peer: str
+    capabilities: Capabilities
+    home: GeoPoint | None
+    status: StatusReport | None
+    status_count: int
+    link_age_s: float | None = Field(default=None, description="seconds since the last packet from it")
+    connected_at: float | None = None
+
+
+class MissionCreated(BaseModel):
+    mission_id: str
+    plan: PlanPreview | None = None
+
+
+class MissionSummary(BaseModel):
+    id: str
+    name: str
+    state: str
+    created: float
+    finished: float | None
+    result: str | None
+
+
+class MissionGeometry(BaseModel):
+    """What the map draws for a mission: each agent's planned points, and the area if planned."""
+
+    mission_id: str
+    paths: dict[str, list[tuple[float, float]]]
+    area: list[tuple[float, float]] | None = None
+    targets: list[tuple[float, float]] | None = None
+    swath_m: float | None = None
+
+
+class Coverage(BaseModel):
+    mission_id: str
+    covered_pct: float | None
+    swath_m: float | None
+    samples: int
+
+
+class GeofenceRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    geofence: Geofence | None = None
+    agents: list[str] | None = Field(default=None, max_length=1000)
+
+
+class GeofenceState(BaseModel):
+    geofence: Geofence | None
+
+
+class Delivered(BaseModel):
+    delivered: list[str]
+
+
+class FleetCommand(BaseModel):
+    """A fleet-wide order; ``agents`` narrows it (default: every connected agent)."""
+
+    model_config = ConfigDict(extra="forbid")
+    agents: list[str] | None = Field(default=None, max_length=1000)
+    reason: str = Field(default="operator", max_length=200)
+
+
+class FleetCommandResult(BaseModel):
+    command: Literal["rtl", "land", "hold", "resume"]
+    delivered: list[str]
+    aborted_missions: list[str] = []
+
+
+class Health(BaseModel):
+    ok: bool
+    agents_connected: int
+    missions: int
+    server_time: float
+
+
+class UiConfig(BaseModel):
+    """Dashboard settings served by the daemon (no secrets)."""
+
+    tile_url: str | None = None
+    status_period_s: float

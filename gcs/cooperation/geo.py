@@ -1,0 +1,43 @@
+"""A local flat frame (north, east, up metres) around a reference point, vectorised with numpy.
+
+Over the few kilometres a fleet spans, an equirectangular projection is accurate to well under
+GPS noise, and it lets conflict checks run on whole arrays at once.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from protocol.geo import EARTH_RADIUS_M
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LocalFrame:
+    lat0: float
+    lon0: float
+
+    @property
+    def _k_north(self) -> float:
+        return math.radians(1.0) * EARTH_RADIUS_M
+
+    @property
+    def _k_east(self) -> float:
+        return math.radians(1.0) * EARTH_RADIUS_M * math.cos(math.radians(self.lat0))
+
+    def to_ne(self, lat: ArrayLike, lon: ArrayLike) -> FloatArray:
+        """(..., 2) north/east metres of the given points."""
+        lat_a = np.asarray(lat, dtype=float)
+        lon_a = np.asarray(lon, dtype=float)
+        return np.stack([(lat_a - self.lat0) * self._k_north, (lon_a - self.lon0) * self._k_east], axis=-1)
+
+    def point(self, lat: float, lon: float) -> tuple[float, float]:
+        return (lat - self.lat0) * self._k_north, (lon - self.lon0) * self._k_east
+
+    def to_latlon(self, north: float, east: float) -> tuple[float, float]:
+        return self.lat0 + north / self._k_north, self.lon0 + east / self._k_east

@@ -1,0 +1,234 @@
+"""In-process extensions: user modules that watch the fleet and act, loaded from the configuration.
+
+In the spirit of CoUAS user modules (seed 004, Fig. 6: applications on top of the message center)
+and Skybrush extensions, an extension is a :class:`gcs.daemon.Service` that subclasses
+:class:`Extension` and overrides the hooks it needs:
+
+* ``on_status(agent, status)``: every status report (keep it quick: it runs in the agent's
+  frame loop; schedule slow work with :meth:`Extension.spawn`);
+* ``on_event(event)``: every fleet event (agent_joined, mission_completed, ...);
+* ``on_join(agent)`` / ``on_leave(agent, why)``: an agent connected / was lost or disconnected;
+* ``setup()`` / ``teardown()``: after start / before stop.
+
+and uses the helpers: :meth:`every` / :meth:`after` (scheduled actions), :meth:`send` /
+:meth:`send_all` (any protocol body to one or all agents), :meth:`command` (rtl, land, hold,
+resume), :meth:`publish` (an event), :attr:`statuses` (latest status per agent).
+
+A hook that raises is logged and counted; it never costs an agent its connection.
+
+Configuration (``[daemon] extensions = ["gcs.extensions_builtin.geofence_alarm"]`` and
+``[daemon.extension_options."gcs.extensions_builtin.geofence_alarm"]``): each entry is
+``package.module`` (the module's ``create_extension(options)`` builds it) or
+``package.module:name`` (``name(options)`` builds it: a class or a factory function).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import importlib
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any, Literal
+
+from gcs.events import Event, Severity
+from protocol.actions import Hold, Land, ReturnToLaunch
+from protocol.packets import Body, PerformActions, Resume, StatusReport
+
+if TYPE_CHECKING:
+    from gcs.agents import AgentSession
+    from gcs.config import DaemonConfig
+    from gcs.daemon import Daemon, Service
+
+log = logging.getLogger("gcs.extensions")
+
+Command = Literal["rtl", "land", "hold", "resume"]
+
+
+class ExtensionError(RuntimeError):
+    """An extension that cannot be loaded; the message names it."""
+
+
+class Extension:
+    """Base class of extensions; subclass it and override the hooks you need."""
+
+    name = "extension"
+
+    def __init__(self, options: dict[str, Any] | None = None) -> None:
+        self.options: dict[str, Any] = dict(options or {})
+        self.daemon: Daemon | None = None
+        self.hook_errors = 0
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._events: asyncio.Queue[Event] | None = None
+
+    # --- hooks (override) ---------------------------------------------------------------------------
+
+    async def setup(self) -> None:
+        """Called once the extension is attached to the running daemon."""
+
+    async def teardown(self) -> None:
+        """Called before the daemon stops."""
+
+    async def on_status(self, agent: str, status: StatusReport) -> None:
+        """Every status report of every agent."""
+
+    async def on_event(self, event: Event) -> None:
+        """Every fleet event."""
+
+    async def on_join(self, agent: str) -> None:
+        """An agent completed its handshake."""
+
+    async def on_leave(self, agent: str, why: str) -> None:
+        """An agent was lost (silent) or its connection ended."""
+
+    # --- Service protocol -----------------------------------------------------------------------------
+
+    async def start(self, daemon: Daemon) -> None:
+        self.daemon = daemon
+        daemon.agents.on_status.append(self._status_hook)
+        daemon.agents.on_join.append(self._join_hook)
+        self._events = daemon.events.subscribe()
+        self.spawn(self._pump())
+        await self._guard("setup", self.setup())
+
+    async def stop(self) -> None:
+        await self._guard("teardown", self.teardown())
+        if self.daemon is not None:
+            with contextlib.suppress(ValueError):
+                self.daemon.agents.on_status.remove(self._status_hook)
+            with contextlib.suppress(ValueError):
+                self.daemon.agents.on_join.remove(self._join_hook)
+            if self._events is not None:
+                self.daemon.events.unsubscribe(self._events)
+        for task in list(self._tasks):
+            task.cancel()
+        for task in list(self._tasks):
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+
+    # --- helpers --------------------------------------------------------------------------------------
+
+    @property
+    def statuses(self) -> dict[str, StatusReport]:
+        """Latest status of every connected agent."""
+        assert self.daemon is not None, "extension not started"
+        return {s.identity: s.status for s in self.daemon.agents.connected() if s.status is not None}
+
+    def spawn(self, coroutine: Awaitable[Any]) -> asyncio.Task[Any]:
+        """Run a coroutine in the background; cancelled when the extension stops."""
+        task = asyncio.ensure_future(coroutine)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    def every(self, seconds: float, callback: Callable[[], Awaitable[None]]) -> asyncio.Task[Any]:
+        """Call ``callback`` every ``seconds`` until the extension stops."""
+
+        async def loop() -> None:
+            while True:
+                await asyncio.sleep(seconds)
+                await self._guard("every", callback())
+
+        return self.spawn(loop())
+
+    def after(self, seconds: float, callback: Callable[[], Awaitable[None]]) -> asyncio.Task[Any]:
+        """Call ``callback`` once, ``seconds`` from now."""
+
+        async def once() -> None:
+            await asyncio.sleep(seconds)
+            await self._guard("after", callback())
+
+        return self.spawn(once())
+
+    async def send(self, agent: str, body: Body) -> bool:
+        """Send one protocol body (type 3, 4 ...) to one agent; False if it is not connected."""
+        assert self.daemon is not None, "extension not started"
+        return await self.daemon.agents.send(agent, body)
+
+    async def send_all(self, body: Body) -> list[str]:
+        """Send one body to every connected agent; returns who got it."""
+        assert self.daemon is not None, "extension not started"
+        names = [s.identity for s in self.daemon.agents.connected()]
+        sent = await asyncio.gather(*(self.send(n, body) for n in names))
+        return [n for n, ok in zip(names, sent, strict=True) if ok]
+
+    async def command(self, agent: str, command: Command, reason: str = "") -> bool:
+        """rtl / land (new orders, replacing the queue), hold / resume (keep the queue)."""
+        assert self.daemon is not None, "extension not started"
+        why = f"{self.name}: {reason}" if reason else self.name
+        if command == "hold":
+            return await self.daemon.pause_agent(agent, why)
+        if command == "resume":
+            return await self.daemon.resume_agent(agent, why)
+        action = ReturnToLaunch(step=0) if command == "rtl" else Land(step=0)
+        body = PerformActions(
+            mission_id=f"{self.name[:40]}-{command}-{int(time.time())}", mode="replace", actions=[action]
+        )
+        return await self.send(agent, body)
+
+    def publish(
+        self,
+        kind: str,
+        message: str,
+        *,
+        severity: Severity = "info",
+        agent: str | None = None,
+        data: dict[str, Any] | None = None,
+    ) -> Event:
+        assert self.daemon is not None, "extension not started"
+        return self.daemon.events.publish(
+            kind, message, severity=severity, agent=agent, data={"extension": self.name, **(data or {})}
+        )
+
+    # --- plumbing -------------------------------------------------------------------------------------
+
+    async def _guard(self, what: str, coroutine: Awaitable[None]) -> None:
+        try:
+            await coroutine
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            self.hook_errors += 1
+            log.exception("extension %s: %s failed", self.name, what)
+
+    async def _status_hook(self, session: AgentSession, status: StatusReport) -> None:
+        await self._guard("on_status", self.on_status(session.identity, status))
+
+    async def _join_hook(self, session: AgentSession, resume: Resume | None) -> None:
+        await self._guard("on_join", self.on_join(session.identity))
+
+    async def _pump(self) -> None:
+        assert self._events is not None
+        while True:
+            event = await self._events.get()
+            if event.agent and event.kind in ("agent_lost", "agent_disconnected"):
+                await self._guard("on_leave", self.on_leave(event.agent, event.kind))
+            await self._guard("on_event", self.on_event(event))
+
+
+# re-exported for extension authors: the actions an extension may queue
+__all__ = ["Command", "Extension", "ExtensionError", "Hold", "load_extension", "load_extensions"]
+
+
+def load_extension(path: str, options: dict[str, Any] | None = None) -> Service:
+    """Import ``package.module[:name]`` and build the extension with ``options``."""
+    module_name, _, attr = path.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise ExtensionError(f"extension {path!r}: cannot import {module_name!r}: {exc}") from None
+    factory = getattr(module, attr or "create_extension", None)
+    if not callable(factory):
+        raise ExtensionError(
+            f"extension {path!r}: {module_name} has no {'callable ' + attr if attr else 'create_extension()'}"
+        )
+    service = factory(dict(options or {}))
+    if not all(hasattr(service, a) for a in ("name", "start", "stop")):
+        raise ExtensionError(f"extension {path!r} did not build a service (name, start, stop)")
+    return service
+
+
+def load_extensions(config: DaemonConfig) -> list[Service]:
+    """Every extension the configuration lists, in order."""
+    return [load_extension(p, config.extension_options.get(p)) for p in config.extensions]

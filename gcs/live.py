@@ -1,0 +1,236 @@
+"""Live view of the fleet for the API and the dashboard: status rings, event ring, stream fan-out.
+
+The agent manager keeps only each agent's latest status; operators also need a short history
+(flown tracks, link age, coverage so far) and a push stream. :class:`LiveHub` hooks
+``on_status`` and subscribes to the event bus once, keeps a bounded ring per agent, and hands
+each message, serialised once, to every WebSocket client's bounded queue. A slow client loses
+its oldest messages (counted), never slows the daemon or the other clients.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import json
+import logging
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from pydantic import BaseModel
+
+from gcs.events import Event
+from gcs.metrics import DaemonMetrics
+from protocol.packets import Geofence, StatusReport
+
+if TYPE_CHECKING:
+    from gcs.agents import AgentSession
+    from gcs.daemon import Daemon
+
+log = logging.getLogger("gcs.live")
+
+
+class StatusSample(BaseModel):
+    """One status report with the daemon's receive time (UNIX s)."""
+
+    received: float
+    status: StatusReport
+
+
+@dataclass(eq=False)
+class StreamClient:
+    """One WebSocket subscriber: filters, a minimum interval per agent, a bounded queue of JSON texts."""
+
+    status: bool = True
+    events: bool = True
+    agents: frozenset[str] | None = None
+    min_interval_s: float = 0.0
+    queue_size: int = 5000
+    queue: asyncio.Queue[str] = field(init=False)
+    dropped: int = 0
+    _last_sent: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.queue = asyncio.Queue(self.queue_size)
+
+    def offer(self, text: str) -> None:
+        if self.queue.full():  # drop the oldest: a live view wants the newest state
+            with contextlib.suppress(asyncio.QueueEmpty):
+                self.queue.get_nowait()
+            self.dropped += 1
+        self.queue.put_nowait(text)
+
+    def wants_status(self, identity: str, now: float) -> bool:
+        if not self.status or (self.agents is not None and identity not in self.agents):
+            return False
+        if self.min_interval_s > 0:
+            if now - self._last_sent.get(identity, 0.0) < self.min_interval_s:
+                return False
+            self._last_sent[identity] = now
+        return True
+
+    async def next_batch(self, max_items: int = 500) -> str:
+        """Wait for at least one message; return everything queued (up to ``max_items``) as a JSON array."""
+        items = [await self.queue.get()]
+        while len(items) < max_items and not self.queue.empty():
+            items.append(self.queue.get_nowait())
+        return "[" + ",".join(items) + "]"
+
+
+class LiveHub:
+    """Rings and fan-out for one daemon; also the daemon's metrics and the operator's last geofence."""
+
+    name = "live-hub"
+
+    def __init__(self, daemon: Daemon, history_size: int = 3000, event_ring: int = 2000) -> None:
+        self.daemon = daemon
+        self.metrics = DaemonMetrics(daemon)
+        self.history: dict[str, collections.deque[StatusSample]] = {}
+        self.recent_events: collections.deque[Event] = collections.deque(maxlen=event_ring)
+        self.clients: set[StreamClient] = set()
+        self.geofence: Geofence | None = None
+        self.plans: dict[str, Any] = {}  # mission id -> PlanPreview of missions started from a plan
+        self._history_size = history_size
+        self._events_queue: asyncio.Queue[Event] | None = None
+        self._pump: asyncio.Task[None] | None = None
+        daemon.agents.on_status.append(self._on_status)
+        daemon.agents.on_sync.append(self._on_sync)
+
+    # --- lifecycle (a Service: the daemon stops it with its other services) ------------------------
+
+    async def start(self, daemon: Daemon | None = None) -> None:
+        if self._pump is None:
+            self._events_queue = self.daemon.events.subscribe()
+            self._pump = asyncio.create_task(self._pump_events(), name="live-hub-events")
+
+    async def stop(self) -> None:
+        if self._pump is not None:
+            self._pump.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._pump
+            self._pump = None
+        if self._events_queue is not None:
+            self.daemon.events.unsubscribe(self._events_queue)
+            self._events_queue = None
+
+    # --- inputs -----------------------------------------------------------------------------------
+
+    async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
+        now = time.time()
+        ring = self.history.get(session.identity)
+        if ring is None:
+            ring = self.history[session.identity] = collections.deque(maxlen=self._history_size)
+        ring.append(StatusSample(received=now, status=status))
+        self.metrics.on_status(session, status)
+        if not self.clients:
+            return
+        text: str | None = None
+        for client in self.clients:
+            if client.wants_status(session.identity, now):
+                if text is None:
+                    text = (
+                        f'{{"type":"status","agent":{json.dumps(session.identity)},"cid":{session.cid},'
+                        f'"received":{now!r},"status":{status.model_dump_json(exclude_none=True)}}}'
+                    )
+                client.offer(text)
+
+    async def _on_sync(self, session: AgentSession, signal: Any) -> None:
+        self.metrics.on_sync(session, signal)
+
+    async def _pump_events(self) -> None:
+        assert self._events_queue is not None
+        while True:
+            event = await self._events_queue.get()
+            self.recent_events.append(event)
+            self.metrics.on_event(event)
+            if self.clients:
+                text = f'{{"type":"event","event":{event.model_dump_json()}}}'
+                for client in self.clients:
+                    if client.events and (
+                        client.agents is None or event.agent is None or event.agent in client.agents
+                    ):
+                        client.offer(text)
+
+    # --- reads ------------------------------------------------------------------------------------
+
+    def agent_history(self, identity: str, since: float = 0.0, limit: int = 1000) -> list[StatusSample]:
+        """Statuses of one agent after ``since``, oldest first, at most the newest ``limit``.
+
+        The in-memory ring answers for recent history; older history comes from the daemon's
+        telemetry storage (``daemon.telemetry.history``) when it has one.
+        """
+        ring = self.history.get(identity, ())
+        telemetry = getattr(self.daemon, "telemetry", None)
+        older = since > 0 and (not ring or since < ring[0].received)
+        if older and telemetry is not None and hasattr(telemetry, "history"):
+            with contextlib.suppress(Exception):  # fall back to the ring if storage misbehaves
+                return _samples(telemetry.history(identity, since, limit))[:limit]
+        return [s for s in ring if s.received > since][-limit:]
+
+    def track(self, identity: str, mission_id: str | None = None) -> list[tuple[float, float]]:
+        return [
+            (s.status.position.lat, s.status.position.lon)
+            for s in self.history.get(identity, ())
+            if mission_id is None or s.status.mission_id == mission_id
+        ]
+
+    def subscribe(self, client: StreamClient) -> None:
+        self.clients.add(client)
+        self.metrics.ws_clients.set(len(self.clients))
+
+    def unsubscribe(self, client: StreamClient) -> None:
+        self.clients.discard(client)
+        self.metrics.ws_clients.set(len(self.clients))
+
+
+def _samples(items: Iterable[Any]) -> list[StatusSample]:
+    """Accept what a telemetry store may return: samples, (time, status) pairs, statuses or dicts."""
+    out = []
+    for item in items:
+        if isinstance(item, StatusSample):
+            out.append(item)
+        elif isinstance(item, StatusReport):
+            out.append(StatusSample(received=item.time, status=item))
+        elif isinstance(item, tuple) and len(item) == 2:
+            status = item[1] if isinstance(item[1], StatusReport) else StatusReport.model_validate(item[1])
+            out.append(StatusSample(received=float(item[0]), status=status))
+        elif isinstance(item, dict) and "status" in item:
+            out.append(StatusSample.model_validate(item))
+        elif isinstance(item, dict) and "lat" in item:
+            out.append(_from_row(item))
+        elif isinstance(item, dict):
+            status = StatusReport.model_validate(item)
+            out.append(StatusSample(received=status.time, status=status))
+        elif hasattr(item, "status"):
+            status = item.status
+            if not isinstance(status, StatusReport):
+                status = StatusReport.model_validate(status)
+            out.append(StatusSample(received=float(getattr(item, "received", status.time)), status=status))
+    return out
+
+
+def _from_row(row: dict[str, Any]) -> StatusSample:
+    """A flat telemetry row (gcs.store.TELEMETRY_COLUMNS) back into a status sample."""
+    status = StatusReport.model_validate(
+        {
+            "time": row["time"],
+            "position": {k: row[k] for k in ("lat", "lon", "alt_rel", "alt_amsl")},
+            "velocity": {k: row.get(k) or 0.0 for k in ("vn", "ve", "vd")},
+            "heading_deg": row.get("heading_deg") or 0.0,
+            "battery": {
+                "pct": row.get("battery_pct"),
+                "voltage_v": row.get("voltage_v"),
+                "current_a": row.get("current_a"),
+            },
+            "mode": row.get("mode") or "UNKNOWN",
+            "armed": bool(row.get("armed")),
+            "landed": bool(row.get("landed")),
+            "gps": {"fix": row.get("gps_fix") or 0, "satellites": row.get("satellites") or 0},
+            "mission_id": row.get("mission_id"),
+            "step": row.get("step", -1),
+            "buffered": bool(row.get("buffered")),
+        }
+    )
+    return StatusSample(received=float(row.get("received") or row["time"]), status=status)

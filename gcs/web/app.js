@@ -1,0 +1,617 @@
+// fleetgcs dashboard: plain JS, no build step, no network beyond the daemon (and optional tiles).
+// State comes from the WebSocket stream (/api/v1/stream) plus a few REST reads; the map is a
+// local equirectangular projection drawn on a canvas, so it works offline.
+"use strict";
+
+const R = 6371008.8;
+const COLORS = ["#1f6feb", "#d9480f", "#2b8a3e", "#ae3ec9", "#e8590c", "#0b7285", "#c2255c", "#5c940d"];
+const MAX_TRACK = 4000;
+
+const S = {
+  agents: new Map(),      // identity -> {view, status, received, track: [[lat, lon]], color}
+  origin: null,           // [lat0, lon0] of the local projection
+  view: { cx: 0, cy: 0, scale: 2 },  // map centre (m east/north) and pixels per metre
+  mission: null,          // {id, name, progress, geometry, coverage}
+  preview: null,          // PlanPreview of the last preview
+  drawing: null,          // [[lat, lon], ...] while drawing, else null
+  area: null,             // the chosen search area [[lat, lon], ...]
+  geofence: null,
+  events: [],
+  clockOffset: 0,         // server_time - Date.now()/1000
+  tileUrl: null,
+  tiles: new Map(),
+  ws: null,
+  connected: false,
+  dirty: true,
+  userMoved: false,
+};
+window.fleetgcs = S;      // for tests and the curious
+
+const $ = (id) => document.getElementById(id);
+const canvas = $("map");
+const ctx = canvas.getContext("2d");
+
+// --- token & HTTP ---------------------------------------------------------------------------------
+(function initToken() {
+  const m = location.hash.match(/token=([^&]+)/);
+  if (m) {
+    localStorage.setItem("fleetgcs.token", decodeURIComponent(m[1]));
+    history.replaceState(null, "", location.pathname + location.search);
+  }
+  $("token").value = localStorage.getItem("fleetgcs.token") || "";
+  $("token").addEventListener("change", () => localStorage.setItem("fleetgcs.token", $("token").value.trim()));
+})();
+
+async function api(method, path, body) {
+  const headers = { "Content-Type": "application/json" };
+  const token = $("token").value.trim();
+  if (token) headers.Authorization = "Bearer " + token;
+  const res = await fetch(path, { method, headers, body: body === undefined ? undefined : JSON.stringify(body) });
+  const text = await res.text();
+  let data = null;
+  try { data = text ? JSON.parse(text) : null; } catch (e) { data = text; }
+  if (!res.ok) {
+    const msg = data && data.detail ? `${data.title}: ${data.detail}` : `HTTP ${res.status}`;
+    throw new Error(msg);
+  }
+  return data;
+}
+
+function toast(text, error) {
+  const t = $("toast");
+  t.textContent = text;
+  t.className = "show" + (error ? " error" : "");
+  clearTimeout(toast.timer);
+  toast.timer = setTimeout(() => { t.className = ""; }, error ? 6000 : 2500);
+}
+
+async function act(label, fn) {
+  try {
+    const r = await fn();
+    toast(label + ": done");
+    return r;
+  } catch (e) {
+    toast(label + ": " + e.message, true);
+    return null;
+  }
+}
+
+// --- projection -------------------------------------------------------------------------------------
+function toLocal(lat, lon) {
+  const [lat0, lon0] = S.origin;
+  return [((lon - lon0) * Math.PI / 180) * R * Math.cos(lat0 * Math.PI / 180), ((lat - lat0) * Math.PI / 180) * R];
+}
+function fromLocal(x, y) {
+  const [lat0, lon0] = S.origin;
+  return [lat0 + (y / R) * 180 / Math.PI, lon0 + (x / (R * Math.cos(lat0 * Math.PI / 180))) * 180 / Math.PI];
+}
+function toScreen(lat, lon) {
+  const [x, y] = toLocal(lat, lon);
+  return [canvas.width / 2 + (x - S.view.cx) * S.view.scale, canvas.height / 2 - (y - S.view.cy) * S.view.scale];
+}
+function screenToLatLon(px, py) {
+  return fromLocal(S.view.cx + (px - canvas.width / 2) / S.view.scale, S.view.cy - (py - canvas.height / 2) / S.view.scale);
+}
+S.toScreen = (lat, lon) => {  // CSS pixels relative to the canvas, for tests
+  const [x, y] = toScreen(lat, lon);
+  const k = canvas.clientWidth / canvas.width;
+  return [x * k, y * k];
+};
+function ensureOrigin(lat, lon) { if (!S.origin) { S.origin = [lat, lon]; S.dirty = true; } }
+
+// --- agents -----------------------------------------------------------------------------------------
+function agentEntry(identity) {
+  let a = S.agents.get(identity);
+  if (!a) {
+    a = { identity, view: null, status: null, received: 0, track: [], color: COLORS[S.agents.size % COLORS.length] };
+    S.agents.set(identity, a);
+    renderDronePicks();
+  }
+  return a;
+}
+
+function onStatus(msg) {
+  const a = agentEntry(msg.agent);
+  const st = msg.status;
+  a.status = st;
+  a.received = msg.received;
+  ensureOrigin(st.position.lat, st.position.lon);
+  const last = a.track[a.track.length - 1];
+  if (!last || last[0] !== st.position.lat || last[1] !== st.position.lon) {
+    a.track.push([st.position.lat, st.position.lon, st.mission_id || null]);
+    if (a.track.length > MAX_TRACK) a.track.splice(0, a.track.length - MAX_TRACK);
+  }
+  S.dirty = true;
+  S.tableDirty = true;
+}
+
+function onEvent(ev) {
+  S.events.unshift(ev);
+  if (S.events.length > 300) S.events.length = 300;
+  renderEvents();
+  if (ev.kind.startsWith("mission_") || ev.kind === "sync_released" || ev.kind.startsWith("fleet_")) {
+    if (ev.mission_id && (!S.mission || S.mission.id !== ev.mission_id) && ev.kind === "mission_started") {
+      loadMission(ev.mission_id);
+    } else {
+      refreshMission();
+    }
+  }
+  if (ev.kind === "geofence_sent") loadGeofence();
+}
+
+// --- stream -----------------------------------------------------------------------------------------
+function connect() {
+  const proto = location.protocol === "https:" ? "wss:" : "ws:";
+  const ws = new WebSocket(`${proto}//${location.host}/api/v1/stream?max_rate_hz=10`);
+  S.ws = ws;
+  ws.onopen = () => { S.connected = true; setLinkState(); };
+  ws.onclose = () => { S.connected = false; setLinkState(); setTimeout(connect, 1000); };
+  ws.onerror = () => ws.close();
+  ws.onmessage = (e) => {
+    let batch;
+    try { batch = JSON.parse(e.data); } catch (err) { return; }
+    for (const msg of batch) {
+      if (msg.type === "status") onStatus(msg);
+      else if (msg.type === "event") onEvent(msg.event);
+      else if (msg.type === "hello") onHello(msg);
+    }
+  };
+}
+
+function onHello(msg) {
+  S.clockOffset = msg.server_time - Date.now() / 1000;
+  for (const v of msg.agents) {
+    const a = agentEntry(v.identity);
+    a.view = v;
+    if (v.status) {
+      a.status = v.status;
+      a.received = msg.server_time - (v.link_age_s || 0);
+      ensureOrigin(v.status.position.lat, v.status.position.lon);
+    } else if (v.home) {
+      ensureOrigin(v.home.lat, v.home.lon);
+    }
+  }
+  loadTracks();
+  S.dirty = S.tableDirty = true;
+}
+
+function setLinkState() {
+  const el = $("link-state");
+  el.textContent = S.connected ? "live" : "offline";
+  el.className = "badge " + (S.connected ? "ok" : "bad");
+}
+
+async function loadTracks() {
+  for (const a of S.agents.values()) {
+    try {
+      const samples = await api("GET", `/api/v1/agents/${encodeURIComponent(a.identity)}/history?limit=1500`);
+      const pts = samples.map((s) => [s.status.position.lat, s.status.position.lon, s.status.mission_id || null]);
+      a.track = pts.concat(a.track).slice(-MAX_TRACK);
+    } catch (e) { /* agent gone: keep what we have */ }
+  }
+  S.dirty = true;
+}
+
+// --- missions ---------------------------------------------------------------------------------------
+async function loadMission(id) {
+  S.mission = { id, name: id, progress: null, geometry: null, coverage: null };
+  try { S.mission.geometry = await api("GET", `/api/v1/missions/${id}/plan`); } catch (e) { /* none */ }
+  await refreshMission();
+}
+
+async function refreshMission() {
+  if (!S.mission) return;
+  try {
+    const p = await api("GET", `/api/v1/missions/${S.mission.id}`);
+    S.mission.progress = p;
+    S.mission.name = p.name;
+  } catch (e) { return; }
+  renderMission();
+  S.dirty = true;
+}
+
+async function refreshCoverage() {
+  if (!S.mission || !S.mission.geometry || !S.mission.geometry.area) return;
+  try {
+    const c = await api("GET", `/api/v1/missions/${S.mission.id}/coverage`);
+    S.mission.coverage = c.covered_pct;
+    $("coverage").textContent = c.covered_pct == null ? "" : `covered ${c.covered_pct.toFixed(1)} %`;
+  } catch (e) { /* ignore */ }
+}
+
+function renderMission() {
+  const m = S.mission;
+  const p = m && m.progress;
+  $("mission-name").textContent = m ? m.name : "none";
+  const state = p ? p.state : "idle";
+  const paused = p && S.events.find((e) => e.mission_id === p.id && (e.kind === "mission_paused" || e.kind === "mission_resumed"));
+  const shown = state === "running" && paused && paused.kind === "mission_paused" ? "paused" : state;
+  const badge = $("mission-state");
+  badge.textContent = shown;
+  badge.className = "badge " + (shown === "running" ? "ok" : shown === "completed" ? "ok" : shown === "idle" ? "" : "warn");
+  const running = state === "running";
+  $("btn-pause").disabled = !running || shown === "paused";
+  $("btn-resume").disabled = !running || shown !== "paused";
+  $("btn-abort").disabled = !running;
+  const box = $("progress");
+  box.innerHTML = "";
+  if (!p) return;
+  for (const ag of p.agents) {
+    const total = ag.last_step + 1;
+    const done = ag.completed_step + 1;
+    const pct = total > 0 ? Math.max(0, Math.min(100, (100 * done) / total)) : 0;
+    const row = document.createElement("div");
+    row.className = "progress" + (ag.done ? " done" : "");
+    row.dataset.agent = ag.agent;
+    row.dataset.pct = pct.toFixed(0);
+    const what = ag.excluded ? "excluded" : ag.done ? "done" : ag.waiting_sync != null ? `sync ${ag.waiting_sync}` : `step ${ag.step}`;
+    row.innerHTML = `<span class="name"></span><span class="bar"><span class="fill" style="width:${pct}%"></span></span><span class="label">${done}/${total} ${what}</span>`;
+    row.querySelector(".name").textContent = ag.agent;
+    box.appendChild(row);
+  }
+}
+
+async function missionCommand(kind, query) {
+  if (!S.mission) return;
+  const r = await act(kind, () => api("POST", `/api/v1/missions/${S.mission.id}/${kind}${query || ""}`));
+  if (r) { S.mission.progress = r; renderMission(); }
+}
+
+// --- planner ----------------------------------------------------------------------------------------
+function renderDronePicks() {
+  const box = $("drone-picks");
+  const checked = new Set([...box.querySelectorAll("input:checked")].map((i) => i.value));
+  const fresh = box.children.length === 0;
+  box.innerHTML = "";
+  for (const a of [...S.agents.values()].sort((x, y) => x.identity.localeCompare(y.identity))) {
+    const label = document.createElement("label");
+    const input = document.createElement("input");
+    input.type = "checkbox";
+    input.value = a.identity;
+    input.checked = fresh || checked.has(a.identity) || !box.dataset.touched;
+    input.addEventListener("change", () => { box.dataset.touched = "1"; });
+    label.appendChild(input);
+    label.append(" " + a.identity);
+    box.appendChild(label);
+  }
+}
+
+function readArea() {
+  if (S.area && S.area.length >= 3) return { area: S.area };
+  const text = $("area-text").value.trim();
+  if (!text) throw new Error("draw an area on the map, or paste/upload one");
+  const doc = JSON.parse(text);
+  return Array.isArray(doc) ? { area: doc } : { area_document: doc };
+}
+
+function planRequest() {
+  const req = {
+    method: "search",
+    name: "dashboard-search",
+    pattern: $("pattern").value,
+    division: $("division").value,
+    swath_m: Number($("swath").value),
+    altitude_m: Number($("altitude").value),
+    speed_mps: Number($("speed").value),
+    drones: [...$("drone-picks").querySelectorAll("input:checked")].map((i) => i.value),
+  };
+  return Object.assign(req, readArea());
+}
+
+async function preview() {
+  let req;
+  try { req = planRequest(); } catch (e) { toast(e.message, true); return; }
+  const p = await act("preview", () => api("POST", "/api/v1/plan", req));
+  S.preview = p;
+  $("btn-start").disabled = !p;
+  if (!p) { $("plan-result").textContent = ""; return; }
+  if (p.area) { S.area = p.area; if (!S.origin) ensureOrigin(p.area[0][0], p.area[0][1]); }
+  const rows = p.drones.map((d) => `${d.agent}: ${(d.length_m / 1000).toFixed(2)} km, ${fmtTime(d.time_s)}, ${d.energy_wh.toFixed(1)} Wh`);
+  $("plan-result").innerHTML = `<div id="plan-summary">total ${(p.total_length_m / 1000).toFixed(2)} km, longest ${fmtTime(p.max_time_s)}, ${p.total_energy_wh.toFixed(1)} Wh` +
+    (p.coverage_pct != null ? `, planned coverage ${p.coverage_pct.toFixed(1)} %` : "") + "</div>" + rows.map((r) => `<div>${r}</div>`).join("");
+  S.dirty = true;
+}
+
+async function startMission() {
+  let req;
+  try { req = planRequest(); } catch (e) { toast(e.message, true); return; }
+  const r = await act("start", () => api("POST", "/api/v1/missions/plan", req));
+  if (!r) return;
+  S.preview = null;
+  $("btn-start").disabled = true;
+  await loadMission(r.mission_id);
+}
+
+function fmtTime(s) { return s >= 60 ? `${Math.floor(s / 60)} min ${Math.round(s % 60)} s` : `${Math.round(s)} s`; }
+
+// --- fleet table & events ---------------------------------------------------------------------------
+function renderTable() {
+  const body = $("fleet-table").querySelector("tbody");
+  const now = Date.now() / 1000 + S.clockOffset;
+  const rows = [];
+  for (const a of [...S.agents.values()].sort((x, y) => x.identity.localeCompare(y.identity))) {
+    const st = a.status;
+    const age = a.received ? Math.max(0, now - a.received) : null;
+    const bat = st && st.battery && st.battery.pct != null ? st.battery.pct.toFixed(0) + " %" : "-";
+    const gps = st ? `${st.gps ? st.gps.fix : 0}/${st.gps ? st.gps.satellites : 0}` : "-";
+    const exc = st && st.exceptions ? st.exceptions.join("; ") : "";
+    rows.push(`<tr data-agent="${esc(a.identity)}"><td><span style="color:${a.color}">&#9650;</span> ${esc(a.identity)}</td>` +
+      `<td class="mode">${st ? esc(st.mode) + (st.paused ? " (held)" : "") : "-"}</td><td>${st ? (st.armed ? "yes" : "no") : "-"}</td>` +
+      `<td>${bat}</td><td>${gps}</td><td>${st ? st.step : "-"}</td>` +
+      `<td class="${age != null && age > 3 ? "exc" : ""}">${age == null ? "-" : age.toFixed(1) + " s"}</td><td class="exc">${esc(exc)}</td></tr>`);
+  }
+  body.innerHTML = rows.join("");
+  $("fleet-count").textContent = `${S.agents.size} drones`;
+}
+
+function renderEvents() {
+  const ol = $("events");
+  ol.innerHTML = S.events.slice(0, 200).map((e) =>
+    `<li class="${e.severity}" data-kind="${esc(e.kind)}"><span class="t">${new Date(e.time * 1000).toLocaleTimeString()}</span>` +
+    `<b>${esc(e.kind)}</b>${e.agent ? " [" + esc(e.agent) + "]" : ""} ${esc(e.message)}</li>`).join("");
+}
+
+function esc(s) { return String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]); }
+
+async function loadGeofence() {
+  try { S.geofence = (await api("GET", "/api/v1/geofence")).geofence; S.dirty = true; } catch (e) { /* ignore */ }
+}
+
+// --- drawing ----------------------------------------------------------------------------------------
+function resize() {
+  const dpr = window.devicePixelRatio || 1;
+  const w = Math.max(1, Math.round(canvas.clientWidth * dpr));
+  const h = Math.max(1, Math.round(canvas.clientHeight * dpr));
+  if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; S.dirty = true; }
+}
+
+function polyline(points, close) {
+  ctx.beginPath();
+  points.forEach((p, i) => { const [x, y] = toScreen(p[0], p[1]); if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y); });
+  if (close) ctx.closePath();
+}
+
+function fitView() {
+  const pts = [];
+  for (const a of S.agents.values()) if (a.status) pts.push([a.status.position.lat, a.status.position.lon]);
+  const g = S.mission && S.mission.geometry;
+  if (g && g.area) pts.push(...g.area);
+  if (g) for (const p of Object.values(g.paths)) pts.push(...p);
+  if (S.area) pts.push(...S.area);
+  if (!pts.length || !S.origin) return;
+  const xy = pts.map((p) => toLocal(p[0], p[1]));
+  const xs = xy.map((p) => p[0]), ys = xy.map((p) => p[1]);
+  const [x0, x1, y0, y1] = [Math.min(...xs), Math.max(...xs), Math.min(...ys), Math.max(...ys)];
+  S.view.cx = (x0 + x1) / 2;
+  S.view.cy = (y0 + y1) / 2;
+  const span = Math.max(x1 - x0, y1 - y0, 30);
+  S.view.scale = Math.min(canvas.width, canvas.height) / (span * 1.3);
+  S.dirty = true;
+}
+
+function drawTiles() {
+  if (!S.tileUrl || !S.origin) return;
+  const mpp = 1 / S.view.scale;  // metres per pixel
+  const z = Math.max(0, Math.min(20, Math.round(Math.log2((156543.03 * Math.cos(S.origin[0] * Math.PI / 180)) / mpp))));
+  const n = 2 ** z;
+  const tileOf = (lat, lon) => [Math.floor(((lon + 180) / 360) * n),
+    Math.floor(((1 - Math.log(Math.tan(lat * Math.PI / 180) + 1 / Math.cos(lat * Math.PI / 180)) / Math.PI) / 2) * n)];
+  const [la0, lo0] = screenToLatLon(0, 0), [la1, lo1] = screenToLatLon(canvas.width, canvas.height);
+  const [tx0, ty0] = tileOf(la0, lo0), [tx1, ty1] = tileOf(la1, lo1);
+  if ((tx1 - tx0 + 1) * (ty1 - ty0 + 1) > 64) return;
+  const lonOf = (x) => (x / n) * 360 - 180;
+  const latOf = (y) => (Math.atan(Math.sinh(Math.PI * (1 - (2 * y) / n))) * 180) / Math.PI;
+  for (let tx = tx0; tx <= tx1; tx++) {
+    for (let ty = ty0; ty <= ty1; ty++) {
+      const url = S.tileUrl.replace("{z}", z).replace("{x}", tx).replace("{y}", ty);
+      let img = S.tiles.get(url);
+      if (!img) {
+        img = new Image();
+        img.onload = () => { S.dirty = true; };
+        img.src = url;
+        S.tiles.set(url, img);
+        if (S.tiles.size > 400) S.tiles.delete(S.tiles.keys().next().value);
+      }
+      if (!img.complete || !img.naturalWidth) continue;
+      const [xa, ya] = toScreen(latOf(ty), lonOf(tx));
+      const [xb, yb] = toScreen(latOf(ty + 1), lonOf(tx + 1));
+      ctx.drawImage(img, xa, ya, xb - xa, yb - ya);
+    }
+  }
+}
+
+function drawGrid() {
+  const step = [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000, 2000, 5000].find((s) => s * S.view.scale > 60) || 10000;
+  ctx.strokeStyle = "#d5dbe1";
+  ctx.lineWidth = 1;
+  const [w, h] = [canvas.width, canvas.height];
+  const xmin = S.view.cx - w / 2 / S.view.scale, ymin = S.view.cy - h / 2 / S.view.scale;
+  ctx.beginPath();
+  for (let x = Math.floor(xmin / step) * step; x < xmin + w / S.view.scale; x += step) {
+    const px = w / 2 + (x - S.view.cx) * S.view.scale; ctx.moveTo(px, 0); ctx.lineTo(px, h);
+  }
+  for (let y = Math.floor(ymin / step) * step; y < ymin + h / S.view.scale; y += step) {
+    const py = h / 2 - (y - S.view.cy) * S.view.scale; ctx.moveTo(0, py); ctx.lineTo(w, py);
+  }
+  ctx.stroke();
+  $("map-info").textContent = `grid ${step} m` + (S.origin ? ` · origin ${S.origin[0].toFixed(5)}, ${S.origin[1].toFixed(5)}` : "");
+}
+
+function drawGeofence() {
+  const g = S.geofence;
+  if (!g) return;
+  ctx.strokeStyle = "#c92a2a";
+  ctx.lineWidth = 2;
+  ctx.setLineDash([8, 5]);
+  if (g.polygon) { polyline(g.polygon.map((v) => [v.lat, v.lon]), true); ctx.stroke(); }
+  if (g.circle) {
+    const [x, y] = toScreen(g.circle.lat, g.circle.lon);
+    ctx.beginPath(); ctx.arc(x, y, g.circle.radius_m * S.view.scale, 0, 2 * Math.PI); ctx.stroke();
+  }
+  ctx.setLineDash([]);
+}
+
+function drawDrone(a) {
+  const st = a.status;
+  if (!st) return;
+  const [x, y] = toScreen(st.position.lat, st.position.lon);
+  const dpr = window.devicePixelRatio || 1;
+  ctx.save();
+  ctx.translate(x, y);
+  ctx.rotate(((st.heading_deg || 0) * Math.PI) / 180);
+  ctx.beginPath();
+  const s = 9 * dpr;
+  ctx.moveTo(0, -s); ctx.lineTo(s * 0.65, s * 0.75); ctx.lineTo(0, s * 0.35); ctx.lineTo(-s * 0.65, s * 0.75); ctx.closePath();
+  ctx.fillStyle = st.exceptions && st.exceptions.length ? "#c92a2a" : a.color;
+  ctx.strokeStyle = "#fff";
+  ctx.lineWidth = 1.5;
+  ctx.fill(); ctx.stroke();
+  ctx.restore();
+  ctx.fillStyle = "#1d2329";
+  ctx.font = `${11 * dpr}px system-ui`;
+  ctx.fillText(`${a.identity} ${st.position.alt_rel.toFixed(0)} m`, x + 11 * dpr, y - 6 * dpr);
+}
+
+function draw() {
+  resize();
+  if (S.tableDirty) { renderTable(); S.tableDirty = false; }
+  if (!S.dirty) return;
+  S.dirty = false;
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  if (!S.origin) { ctx.fillStyle = "#66707a"; ctx.fillText("waiting for drones...", 20, 40); return; }
+  if ($("follow").checked && !S.userMoved) fitView();
+  drawTiles();
+  drawGrid();
+  const g = S.mission && S.mission.geometry;
+  const area = (g && g.area) || S.area;
+  if (area) {
+    ctx.fillStyle = "rgba(31,111,235,0.07)"; ctx.strokeStyle = "#1f6feb"; ctx.lineWidth = 2;
+    polyline(area, true); ctx.fill(); ctx.stroke();
+  }
+  if (S.drawing && S.drawing.length) {
+    ctx.strokeStyle = "#e8590c"; ctx.lineWidth = 2; polyline(S.drawing, false); ctx.stroke();
+    for (const p of S.drawing) { const [x, y] = toScreen(p[0], p[1]); ctx.fillStyle = "#e8590c"; ctx.fillRect(x - 3, y - 3, 6, 6); }
+  }
+  // coverage so far: the flown track of the mission, as wide as the swath
+  if (g && g.swath_m && S.mission) {
+    ctx.strokeStyle = "rgba(46,125,50,0.22)"; ctx.lineWidth = Math.max(1, g.swath_m * S.view.scale); ctx.lineCap = "round"; ctx.lineJoin = "round";
+    for (const a of S.agents.values()) {
+      const pts = a.track.filter((p) => p[2] === S.mission.id);
+      if (pts.length > 1) { polyline(pts, false); ctx.stroke(); }
+    }
+    ctx.lineCap = "butt";
+  }
+  const planned = g ? g.paths : S.preview ? Object.fromEntries(S.preview.drones.map((d) => [d.agent, d.points])) : null;
+  if (planned) {
+    ctx.setLineDash([6, 4]); ctx.lineWidth = 1.5;
+    for (const [name, pts] of Object.entries(planned)) {
+      const a = S.agents.get(name);
+      ctx.strokeStyle = a ? a.color : "#555";
+      if (pts.length > 1) { polyline(pts, false); ctx.stroke(); }
+    }
+    ctx.setLineDash([]);
+  }
+  if (g && g.targets) {
+    ctx.fillStyle = "#c92a2a";
+    for (const t of g.targets) { const [x, y] = toScreen(t[0], t[1]); ctx.fillRect(x - 2, y - 2, 4, 4); }
+  }
+  ctx.lineWidth = 2;
+  for (const a of S.agents.values()) {
+    if (a.track.length > 1) { ctx.strokeStyle = a.color; polyline(a.track.slice(-1500), false); ctx.stroke(); }
+  }
+  drawGeofence();
+  for (const a of S.agents.values()) drawDrone(a);
+}
+
+function loop() { draw(); requestAnimationFrame(loop); }
+
+// --- map interaction --------------------------------------------------------------------------------
+(function mapInput() {
+  let drag = null;
+  const dpr = () => window.devicePixelRatio || 1;
+  canvas.addEventListener("mousedown", (e) => { drag = { x: e.offsetX, y: e.offsetY, moved: false }; });
+  canvas.addEventListener("mousemove", (e) => {
+    if (!drag) return;
+    const dx = (e.offsetX - drag.x) * dpr(), dy = (e.offsetY - drag.y) * dpr();
+    if (Math.abs(dx) + Math.abs(dy) > 3) drag.moved = true;
+    if (!drag.moved) return;
+    S.view.cx -= dx / S.view.scale; S.view.cy += dy / S.view.scale;
+    drag.x = e.offsetX; drag.y = e.offsetY;
+    S.userMoved = true; S.dirty = true;
+  });
+  window.addEventListener("mouseup", (e) => {
+    if (drag && !drag.moved && S.drawing && e.target === canvas && S.origin) {
+      S.drawing.push(screenToLatLon(e.offsetX * dpr(), e.offsetY * dpr()));
+      S.dirty = true;
+    }
+    drag = null;
+  });
+  canvas.addEventListener("wheel", (e) => {
+    e.preventDefault();
+    const k = e.deltaY < 0 ? 1.2 : 1 / 1.2;
+    const [lat, lon] = S.origin ? screenToLatLon(e.offsetX * dpr(), e.offsetY * dpr()) : [0, 0];
+    S.view.scale = Math.max(0.005, Math.min(200, S.view.scale * k));
+    if (S.origin) {  // keep the point under the cursor fixed
+      const [x, y] = toLocal(lat, lon);
+      S.view.cx = x - (e.offsetX * dpr() - canvas.width / 2) / S.view.scale;
+      S.view.cy = y + (e.offsetY * dpr() - canvas.height / 2) / S.view.scale;
+    }
+    S.userMoved = true; S.dirty = true;
+  }, { passive: false });
+})();
+
+function zoom(k) { S.view.scale = Math.max(0.005, Math.min(200, S.view.scale * k)); S.userMoved = true; S.dirty = true; }
+
+// --- wiring -----------------------------------------------------------------------------------------
+$("btn-zoom-in").onclick = () => zoom(1.5);
+$("btn-zoom-out").onclick = () => zoom(1 / 1.5);
+$("btn-fit").onclick = () => { S.userMoved = false; fitView(); };
+$("follow").onchange = () => { S.userMoved = false; S.dirty = true; };
+$("btn-draw").onclick = () => {
+  S.drawing = []; S.area = null; S.preview = null; $("btn-start").disabled = true;
+  $("btn-draw").classList.add("active"); $("btn-finish-draw").disabled = false; canvas.classList.add("drawing");
+  $("follow").checked = false; S.dirty = true;
+};
+$("btn-finish-draw").onclick = () => {
+  if (S.drawing && S.drawing.length >= 3) { S.area = S.drawing; $("area-text").value = JSON.stringify(S.area.map((p) => [+p[0].toFixed(7), +p[1].toFixed(7)])); }
+  else toast("an area needs at least 3 corners", true);
+  S.drawing = null; $("btn-draw").classList.remove("active"); $("btn-finish-draw").disabled = true; canvas.classList.remove("drawing"); S.dirty = true;
+};
+$("btn-clear-area").onclick = () => { S.area = null; S.drawing = null; S.preview = null; $("area-text").value = ""; $("btn-start").disabled = true; S.dirty = true; };
+$("area-text").addEventListener("input", () => { S.area = null; S.preview = null; $("btn-start").disabled = true; });
+$("area-file").addEventListener("change", async (e) => {
+  const f = e.target.files[0];
+  if (!f) return;
+  $("area-text").value = await f.text();
+  S.area = null;
+  toast(`loaded ${f.name}; press Preview`);
+});
+$("btn-preview").onclick = preview;
+$("btn-start").onclick = startMission;
+$("btn-pause").onclick = () => missionCommand("pause");
+$("btn-resume").onclick = () => missionCommand("resume");
+$("btn-abort").onclick = () => missionCommand("abort", "?then=hold");
+$("btn-hold-all").onclick = () => act("hold all", () => api("POST", "/api/v1/fleet/hold", {}));
+$("btn-resume-all").onclick = () => act("resume all", () => api("POST", "/api/v1/fleet/resume", {}));
+$("btn-rtl-all").onclick = () => act("RTL all", () => api("POST", "/api/v1/fleet/rtl", {}));
+$("btn-land-all").onclick = () => act("land all", () => api("POST", "/api/v1/fleet/land", {}));
+window.addEventListener("resize", () => { S.dirty = true; });
+
+async function init() {
+  try { S.tileUrl = (await api("GET", "/api/v1/ui-config")).tile_url; } catch (e) { /* ignore */ }
+  try {
+    const evs = await api("GET", "/api/v1/events?last=100");
+    S.events = evs.reverse();
+    renderEvents();
+  } catch (e) { /* ignore */ }
+  try {
+    const running = await api("GET", "/api/v1/missions?state=running&limit=1");
+    if (running.length) await loadMission(running[0].id);
+  } catch (e) { /* ignore */ }
+  loadGeofence();
+  connect();
+  setInterval(() => { S.tableDirty = true; }, 1000);
+  setInterval(() => { if (S.mission && S.mission.progress && S.mission.progress.state === "running") { refreshMission(); refreshCoverage(); } }, 1500);
+  requestAnimationFrame(loop);
+}
+init();

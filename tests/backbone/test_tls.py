@@ -1,0 +1,111 @@
+"""Optional TLS and mutual TLS on the agent link, with certificates made for the test."""
+
+from __future__ import annotations
+
+import asyncio
+import datetime
+import ipaddress
+from pathlib import Path
+
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import NameOID
+
+from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, wait_for
+
+
+def _name(common: str) -> x509.Name:
+    return x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common)])
+
+
+def _write(path: Path, cert: x509.Certificate, key: ec.EllipticCurvePrivateKey) -> tuple[Path, Path]:
+    cert_path, key_path = path.with_suffix(".crt"), path.with_suffix(".key")
+    cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    key_path.write_bytes(
+        key.private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+        )
+    )
+    return cert_path, key_path
+
+
+def make_pki(folder: Path) -> dict[str, Path]:
+    """A CA, a server certificate for 127.0.0.1, a client certificate, and a rogue CA's client."""
+    now = datetime.datetime.now(datetime.UTC)
+
+    def issue(
+        subject: str, issuer: x509.Name, signer: ec.EllipticCurvePrivateKey | None, ca: bool, server: bool
+    ) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey]:
+        key = ec.generate_private_key(ec.SECP256R1())
+        builder = (
+            x509.CertificateBuilder()
+            .subject_name(_name(subject))
+            .issuer_name(issuer)
+            .public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - datetime.timedelta(minutes=5))
+            .not_valid_after(now + datetime.timedelta(days=1))
+            .add_extension(x509.BasicConstraints(ca=ca, path_length=None), critical=True)
+        )
+        if server:
+            builder = builder.add_extension(
+                x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]),
+                critical=False,
+            )
+        return builder.sign(signer or key, hashes.SHA256()), key
+
+    ca_cert, ca_key = issue("fleet CA", _name("fleet CA"), None, ca=True, server=False)
+    rogue_cert, rogue_key = issue("rogue CA", _name("rogue CA"), None, ca=True, server=False)
+    server = issue("gcs", ca_cert.subject, ca_key, ca=False, server=True)
+    client = issue("drone-1", ca_cert.subject, ca_key, ca=False, server=False)
+    impostor = issue("drone-1", rogue_cert.subject, rogue_key, ca=False, server=False)
+    paths: dict[str, Path] = {}
+    paths["ca"], _ = _write(folder / "ca", ca_cert, ca_key)
+    paths["server_cert"], paths["server_key"] = _write(folder / "server", *server)
+    paths["client_cert"], paths["client_key"] = _write(folder / "client", *client)
+    paths["impostor_cert"], paths["impostor_key"] = _write(folder / "impostor", *impostor)
+    return paths
+
+
+async def test_agent_joins_over_tls_and_plain_tcp_is_refused(tmp_path: Path) -> None:
+    pki = make_pki(tmp_path)
+    key = new_key()
+    async with running_daemon(
+        tmp_path, key, tls_cert=pki["server_cert"], tls_key=pki["server_key"]
+    ) as daemon:
+        running = start_agent("secure", daemon.listen_port, key, tls_ca=pki["ca"])
+        plain = start_agent("plain", daemon.listen_port, key)
+        try:
+            await wait_for(lambda: daemon.agents.session("secure") is not None, 10, "TLS agent joins")
+            await asyncio.sleep(0.5)
+            assert daemon.agents.session("plain") is None
+            assert plain.agent.link.sessions == 0
+        finally:
+            await stop_agents([running, plain])
+
+
+async def test_mutual_tls_requires_a_client_certificate_from_the_fleet_ca(tmp_path: Path) -> None:
+    pki = make_pki(tmp_path)
+    key = new_key()
+    overrides = {"tls_cert": pki["server_cert"], "tls_key": pki["server_key"], "tls_client_ca": pki["ca"]}
+    async with running_daemon(tmp_path, key, **overrides) as daemon:
+        good = start_agent("drone-1", daemon.listen_port, key)
+        good.agent.link.config.tls_ca = pki["ca"]
+        good.agent.link.config.tls_cert, good.agent.link.config.tls_key = (
+            pki["client_cert"],
+            pki["client_key"],
+        )
+        anonymous = start_agent("anonymous", daemon.listen_port, key, index=1)
+        anonymous.agent.link.config.tls_ca = pki["ca"]
+        impostor = start_agent("impostor", daemon.listen_port, key, index=2)
+        impostor.agent.link.config.tls_ca = pki["ca"]
+        impostor.agent.link.config.tls_cert = pki["impostor_cert"]
+        impostor.agent.link.config.tls_key = pki["impostor_key"]
+        try:
+            await wait_for(lambda: daemon.agents.session("drone-1") is not None, 10, "certified agent joins")
+            await wait_for(lambda: anonymous.agent.link.last_error is not None, 5, "anonymous agent fails")
+            await wait_for(lambda: impostor.agent.link.last_error is not None, 5, "impostor fails")
+            assert daemon.agents.session("anonymous") is None and daemon.agents.session("impostor") is None
+        finally:
+            await stop_agents([good, anonymous, impostor])

@@ -1,0 +1,162 @@
+"""A real simulator fleet, in-process agents on the MAVLink backend, and a daemon, all on loopback.
+
+Every wait is bounded. The simulator runs at SPEEDUP x; agent timers that are in wall time
+(target re-send, status period) are shortened to match.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import secrets
+import threading
+import time
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from agent.autopilot.mavlink_backend import MavlinkAutopilot
+from agent.config import AgentConfig, AgentSettings
+from agent.runtime import Agent
+from gcs.config import DaemonConfig
+from gcs.cooperation.config import CooperationConfig
+from gcs.cooperation.service import CooperationService
+from gcs.daemon import Daemon
+from protocol.geo import ned_offset_m, offset_latlon
+from sitl.fleet import FleetConfig, SimFleet
+
+HOME = (47.397742, 8.545594, 488.0)
+SPEEDUP = 8.0
+SPACING_M = 6.0
+
+
+def at(north: float, east: float) -> tuple[float, float]:
+    """Lat/lon ``north``/``east`` metres from the first home."""
+    return offset_latlon(HOME[0], HOME[1], north, east)
+
+
+async def wait_for(predicate: Callable[[], object], timeout: float, what: str, poll: float = 0.05) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        await asyncio.sleep(poll)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+@dataclass
+class Rig:
+    daemon: Daemon
+    fleet: SimFleet
+    agents: dict[str, Agent]
+    names: list[str]
+    truth: list[list[tuple[float, ...]]] = field(default_factory=list)  # per sample: per vehicle
+
+    @property
+    def coop(self) -> CooperationService:
+        return next(s for s in self.daemon.services if isinstance(s, CooperationService))
+
+    def events(self, kind: str, agent: str | None = None) -> list[Any]:
+        return self.daemon.events.history(kind=kind, agent=agent)
+
+    def status(self, name: str) -> Any:
+        session = self.daemon.agents.session(name)
+        return session.status if session else None
+
+    def landed(self, name: str) -> bool:
+        s = self.status(name)
+        return bool(s and s.landed and not s.armed)
+
+
+def _sample_truth(fleet: SimFleet, out: list[list[tuple[float, ...]]], stop: threading.Event) -> None:
+    """Ground truth positions (north, east, up) from the simulator, for separation checks."""
+    while not stop.is_set():
+        row = []
+        for v in fleet.vehicles:
+            s = v.state
+            n, e = ned_offset_m(HOME[0], HOME[1], s.lat, s.lon)
+            row.append((n, e, s.alt_amsl, 0.0 if s.landed else 1.0))
+        out.append(tuple(row))  # type: ignore[arg-type]
+        stop.wait(0.02)
+
+
+@contextlib.asynccontextmanager
+async def rig(
+    tmp_path: Path,
+    vehicles: int,
+    cooperation: CooperationConfig | None = None,
+    settings: AgentSettings | None = None,
+    fleet_options: dict[str, Any] | None = None,
+    **daemon_options: Any,
+) -> AsyncIterator[Rig]:
+    key = secrets.token_hex(32)
+    coop = cooperation or CooperationConfig(vehicle_time_scale=SPEEDUP)
+    config = DaemonConfig(
+        listen_port=0,
+        http_host=None,
+        data_dir=tmp_path,
+        fleet_key_hex=key,
+        status_period_s=0.05,
+        lost_after_periods=40.0,
+        cooperation=coop,
+        **daemon_options,
+    )
+    fleet = SimFleet(
+        FleetConfig(
+            vehicles=vehicles,
+            home=HOME,
+            base_port=0,
+            speedup=SPEEDUP,
+            seed=3,
+            spacing_m=SPACING_M,
+            prearm_delay_s=1.0,
+            **(fleet_options or {}),
+        )
+    )
+    fleet.start()
+    daemon = Daemon(config)
+    await daemon.start()
+    names = [f"drone-{i + 1}" for i in range(vehicles)]
+    agents: dict[str, Agent] = {}
+    tasks: list[asyncio.Task[None]] = []
+    stop = threading.Event()
+    truth: list[list[tuple[float, ...]]] = []
+    sampler = threading.Thread(target=_sample_truth, args=(fleet, truth, stop), daemon=True)
+    try:
+        for name, endpoint in zip(names, fleet.endpoints, strict=True):
+            agent = Agent(
+                AgentConfig(
+                    identity=name,
+                    gcs_port=daemon.listen_port,
+                    key_hex=key,
+                    settings=settings or AgentSettings(status_period_s=0.05),
+                    reconnect_min_s=0.05,
+                    reconnect_max_s=0.5,
+                    resend_target_s=0.4,
+                    monitor_period_s=0.05,
+                ),
+                MavlinkAutopilot(endpoint, telemetry_hz=20.0),
+            )
+            agents[name] = agent
+            tasks.append(asyncio.create_task(agent.run(), name=f"agent-{name}"))
+            # One at a time, so CIDs follow the names.
+            await wait_for(lambda n=name: daemon.agents.session(n) is not None, 20, f"{name} joins")  # type: ignore[misc]
+        await wait_for(
+            lambda: all(
+                (s := daemon.agents.session(n)) and s.status and s.status.gps.fix >= 3 for n in names
+            ),
+            20,
+            "GPS fix everywhere",
+        )
+        sampler.start()
+        yield Rig(daemon, fleet, agents, names, truth)
+    finally:
+        stop.set()
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        await daemon.stop()
+        fleet.stop()

@@ -1,0 +1,80 @@
+"""Two drones on a head-on course are kept apart by the daemon, and the mission still completes."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from gcs.cooperation.config import CooperationConfig, EnergyConfig
+from gcs.cooperation.flightlog import summarize
+from protocol.actions import Goto, Land, Takeoff
+from protocol.taskfile import AgentPlan, TaskFile
+from tests.cooperation.rig import SPACING_M, SPEEDUP, at, rig, wait_for
+
+ALT = 10.0
+
+
+def head_on_task() -> TaskFile:
+    """Step 1 lines both up on the same north-south line; step 2 swaps them, head-on, same altitude."""
+    east = SPACING_M / 2
+    south, north = at(-25.0, east), at(25.0, east)
+    plans = [
+        AgentPlan(
+            agent="drone-1",
+            actions=[
+                Takeoff(step=0, alt=ALT, sync=True),
+                Goto(step=1, lat=south[0], lon=south[1], alt=ALT, speed=5.0, sync=True),
+                Goto(step=2, lat=north[0], lon=north[1], alt=ALT, speed=5.0, sync=True),
+                Land(step=3),
+            ],
+        ),
+        AgentPlan(
+            agent="drone-2",
+            actions=[
+                Takeoff(step=0, alt=ALT, sync=True),
+                Goto(step=1, lat=north[0], lon=north[1], alt=ALT, speed=5.0, sync=True),
+                Goto(step=2, lat=south[0], lon=south[1], alt=ALT, speed=5.0, sync=True),
+                Land(step=3),
+            ],
+        ),
+    ]
+    return TaskFile(name="head-on", plans=plans)
+
+
+async def test_head_on_pair_is_held_apart_and_the_mission_completes(tmp_path: Path) -> None:
+    logs = tmp_path / "logs"
+    coop = CooperationConfig(
+        vehicle_time_scale=SPEEDUP, energy=EnergyConfig(record_dir=logs, record_time_scale=SPEEDUP)
+    )
+    async with rig(tmp_path, 2, coop) as r:
+        mission_id = await r.daemon.missions.submit(head_on_task())
+        await wait_for(lambda: mission_id not in r.daemon.missions.active, 60, "mission end")
+        progress = r.daemon.missions.progress(mission_id)
+        assert progress is not None and progress.state == "completed", progress
+        await wait_for(lambda: all(r.landed(n) for n in r.names), 30, "both landed")
+
+        holds = r.events("collision_hold")
+        escapes = r.events("collision_escape")
+        assert escapes and escapes[0].agent == "drone-2", [e.message for e in escapes]  # higher CID yields
+        assert any(e.agent == "drone-1" for e in holds)  # drone-1 waited while drone-2 climbed clear
+        assert any(e.agent == "drone-2" for e in holds)  # then drone-2 held while drone-1 passed
+        assert r.events("collision_release")
+        assert not r.daemon.missions.active and not r.coop.holds  # nobody left paused
+
+        # Ground truth from the simulator: never inside a 2 m x 1 m bubble of each other in the air.
+        closest = math.inf
+        for row in r.truth:
+            (n1, e1, u1, air1), (n2, e2, u2, air2) = row
+            if air1 and air2:
+                h, v = math.hypot(n1 - n2, e1 - e2), abs(u1 - u2)
+                assert not (h < 2.0 and v < 1.0), f"drones within {h:.1f} m / {v:.1f} m"
+                closest = min(closest, math.hypot(h, v))
+        assert closest > 2.0
+
+        # The service recorded each drone-flight as a flight log the energy trainer reads.
+        csvs = sorted(logs.glob("*.csv"))
+        assert len(csvs) == 2
+        for path in csvs:
+            flight = summarize(path)
+            assert flight.time_s > 20.0 and flight.distance_m > 80.0 and flight.energy_wh > 0.5
+            assert path.with_suffix(".plan.json").exists()
