@@ -95,16 +95,12 @@ def config_from_file(args: argparse.Namespace) -> tuple[AgentConfig, Autopilot, 
     return loaded.agent, pilot, loaded.log
 
 
-def run(args: argparse.Namespace) -> int:
+def agent_from_args(args: argparse.Namespace) -> tuple[AgentConfig, Autopilot, LoggingConfig | None]:
+    """The agent's configuration and autopilot, from --config FILE or from the flags alone."""
     if args.config is not None:
-        file_config, file_autopilot, log = config_from_file(args)
-        configure_logging(log, verbose=args.verbose)
-        signal.signal(signal.SIGTERM, signal.default_int_handler)
-        with contextlib.suppress(KeyboardInterrupt):
-            asyncio.run(Agent(file_config, file_autopilot).run())
-        return 0
+        return config_from_file(args)
     if not args.id:
-        raise SystemExit("agent run: give --id (or --config FILE with [agent] identity)")
+        raise SystemExit(f"agent {args.command}: give --id (or --config FILE with [agent] identity)")
     host, port = split_host_port(args.gcs, 4396)
     config = AgentConfig(
         identity=args.id,
@@ -125,7 +121,13 @@ def run(args: argparse.Namespace) -> int:
     autopilot = make_autopilot(
         args.autopilot_backend, args.autopilot, args.speedup, args.tlog, args.mavlink_signing_key_file
     )
+    return config, autopilot, None
 
+
+def run(args: argparse.Namespace) -> int:
+    config, autopilot, log = agent_from_args(args)
+    if log is not None:
+        configure_logging(log, verbose=args.verbose)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops like Ctrl-C
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(Agent(config, autopilot).run())
@@ -202,24 +204,10 @@ def doctor(args: argparse.Namespace) -> int:
     """Run the checks of agent/doctor.py and print what is wrong."""
     from agent.doctor import diagnose
 
+    # doctor checks links, not capabilities or failsafes: the run defaults serve
     args.max_speed, args.endurance = 10.0, 1200.0
-    if args.config is not None:
-        config, autopilot, _ = config_from_file(args)
-    else:
-        if not args.id:
-            raise SystemExit("agent doctor: give --id (or --config FILE)")
-        host, port = split_host_port(args.gcs, 4396)
-        config = AgentConfig(
-            identity=args.id,
-            gcs_host=host,
-            gcs_port=port,
-            key_hex=read_key(args),
-            tls_ca=args.tls_ca,
-            tls_cert=args.tls_cert,
-            tls_key=args.tls_key,
-            tls_server_name=args.tls_server_name,
-        )
-        autopilot = make_autopilot(args.autopilot_backend, args.autopilot, args.speedup, None, None)
+    args.lost_link_timeout, args.lost_link_action = 15.0, "continue"
+    config, autopilot, _ = agent_from_args(args)
     report = asyncio.run(
         diagnose(
             config,

@@ -85,15 +85,7 @@ class ActionExecutor:
             lat, lon = offset_latlon(now.lat, now.lon, action.north, action.east)
             alt = now.alt_rel + action.up
             # If interrupted, what is left is a plain goto to the same fixed target.
-            self.continuation = Goto(
-                step=action.step,
-                sync=action.sync,
-                timeout_s=action.timeout_s,
-                lat=lat,
-                lon=lon,
-                alt=alt,
-                speed=action.speed,
-            )
+            self.continuation = action.as_goto(lat, lon, alt)
             await ap.go_by(action.north, action.east, action.up, action.speed)
             await self._fly_to(lat, lon, alt, action.speed, already_sent=True)
         elif isinstance(action, Waypoints):

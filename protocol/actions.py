@@ -57,6 +57,18 @@ class GoBy(_Action):
     up: Metres = 0.0
     speed: Speed | None = None
 
+    def as_goto(self, lat: float, lon: float, alt: float) -> Goto:
+        """This offset resolved to its fixed target: what is left of it once it has started."""
+        return Goto(
+            step=self.step,
+            sync=self.sync,
+            timeout_s=self.timeout_s,
+            lat=lat,
+            lon=lon,
+            alt=alt,
+            speed=self.speed,
+        )
+
 
 class Land(_Action):
     """Land here, or at ``lat``/``lon`` when both are given; complete when disarmed."""

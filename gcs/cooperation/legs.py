@@ -191,15 +191,7 @@ class AgentPlanState:
         rest = self.actions[self.index + 1 :]
         if isinstance(action, GoBy):
             lat, lon, alt = self._go_by_target(action)
-            head: Action = Goto(
-                step=action.step,
-                sync=action.sync,
-                timeout_s=action.timeout_s,
-                lat=lat,
-                lon=lon,
-                alt=alt,
-                speed=action.speed,
-            )
+            head: Action = action.as_goto(lat, lon, alt)
         elif isinstance(action, Waypoints):
             head = action.model_copy(update={"points": action.points[self.waypoint :]})
         elif isinstance(action, Hold):
