@@ -103,6 +103,7 @@ class Daemon:
         self._liveness: asyncio.Task[None] | None = None
         self.listen_port = config.listen_port
         self.http_port: int | None = None
+        self.geofences: dict[str, Geofence] = {}  # the fence each agent was last sent
         self.telemetry = TelemetryRecorder(config.telemetry)
         self.services: list[Service] = [self.telemetry]
         self.services += load_extensions(config)  # user modules listed in the configuration
@@ -214,6 +215,11 @@ class Daemon:
             if await self.agents.send(identity, body):
                 delivered.append(identity)
         if body.geofence is not None or body.clear_geofence:
+            for identity in delivered:
+                if body.geofence is None:
+                    self.geofences.pop(identity, None)
+                else:
+                    self.geofences[identity] = body.geofence
             self.events.publish("geofence_sent", f"geofence sent to {delivered}", data={"agents": delivered})
         return delivered
 

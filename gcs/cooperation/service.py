@@ -38,7 +38,7 @@ from gcs.cooperation.legs import AgentPlanState, Point
 from gcs.events import Severity
 from gcs.missions import ActiveMission, MissionRejected
 from protocol.actions import Action, Goto, Land, ReturnToLaunch
-from protocol.packets import AgentParameters, Geofence, PerformActions, Resume, SetParameters, StatusReport
+from protocol.packets import AgentParameters, PerformActions, Resume, SetParameters, StatusReport
 from protocol.taskfile import TaskFile
 
 if TYPE_CHECKING:
@@ -80,7 +80,6 @@ class CooperationService:
         self.config = config
         self.avoider = CollisionAvoider(config.collision)
         self.agents: dict[str, _Agent] = {}
-        self.fences: dict[str, Geofence] = {}
         self.holds: dict[str, dict[str, str]] = {}  # ident -> owner -> reason
         self.energy_model: EnergyModel = fallback_model(config.energy.fallback_power_w)
         self.frame: LocalFrame | None = None
@@ -91,7 +90,6 @@ class CooperationService:
         self._last_fleet_check = 0.0
         self._last_link_check = 0.0
         self._recordings = 0
-        self._unwrap: Callable[[], None] | None = None
 
     # --- lifecycle ------------------------------------------------------------------------------
 
@@ -103,7 +101,6 @@ class CooperationService:
         daemon.missions.preflight_checks.append(self._preflight)
         if self.config.energy.model_path is not None:
             self.energy_model = EnergyModel.load(self.config.energy.model_path)
-        self._wrap_set_geofence(daemon)
         self._tasks = [
             asyncio.create_task(self._worker(), name="cooperation-worker"),
             asyncio.create_task(self._ticker(), name="cooperation-ticker"),
@@ -126,32 +123,9 @@ class CooperationService:
             ):
                 with contextlib.suppress(ValueError):
                     hooks.remove(hook)  # type: ignore[arg-type]
-        if self._unwrap is not None:
-            self._unwrap()
         for agent in self.agents.values():
             if agent.recorder is not None:
                 agent.recorder.close()
-
-    def _wrap_set_geofence(self, daemon: Daemon) -> None:
-        """Keep the fence each agent was sent, without changing the daemon: wrap its method."""
-        original = daemon.set_geofence
-
-        async def tracked(geofence: Geofence | None, agents: list[str] | None = None) -> list[str]:
-            delivered = await original(geofence, agents)
-            for ident in delivered:
-                if geofence is None:
-                    self.fences.pop(ident, None)
-                else:
-                    self.fences[ident] = geofence
-            return delivered
-
-        setattr(daemon, "set_geofence", tracked)  # noqa: B010 - instance attribute shadows the method
-
-        def unwrap() -> None:
-            with contextlib.suppress(AttributeError):
-                delattr(daemon, "set_geofence")
-
-        self._unwrap = unwrap
 
     @property
     def daemon(self) -> Daemon:
@@ -568,7 +542,7 @@ class CooperationService:
     def _emergency_checks(self, agent: _Agent, status: StatusReport, now: float) -> None:
         cfg = self.config.emergency
         ident = agent.session.identity
-        fence = self.fences.get(ident)
+        fence = self.daemon.geofences.get(ident)
         why = fence_violation(status, fence) if status.armed else None
         if self._condition(agent, "fence", why is not None, now):
             assert fence is not None and why is not None

@@ -108,7 +108,7 @@ async def test_fence_breach_acted_on_by_agent_and_daemon(tmp_path: Path) -> None
     async with rig(tmp_path, 1) as r:
         fence = Geofence(circle=FenceCircle(lat=HOME[0], lon=HOME[1], radius_m=30.0), breach_action="rtl")
         assert await r.daemon.set_geofence(fence) == ["drone-1"]
-        assert r.coop.fences["drone-1"] == fence
+        assert r.daemon.geofences["drone-1"] == fence
         await wait_for(lambda: r.agents["drone-1"].monitor.geofence == fence, 5, "fence on the agent")
         await r.daemon.missions.submit(task)
         await wait_for(lambda: r.events("emergency_fence_breach", "drone-1"), 40, "daemon-side breach")
