@@ -15,6 +15,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable
 
 from agent.executor import ActionExecutor, ActionFailed
+from agent.tasks import cancel_and_wait
 from protocol.actions import Action
 
 log = logging.getLogger("agent.queue")
@@ -56,11 +57,7 @@ class CommandQueue:
         self._runner = asyncio.create_task(self._run(), name="command-queue")
 
     async def stop(self) -> None:
-        for task in (self._current, self._runner):
-            if task is not None:
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await task
+        await cancel_and_wait([t for t in (self._current, self._runner) if t is not None])
 
     async def submit(self, mission_id: str, actions: list[Action], replace: bool) -> None:
         """Add ``actions`` (type 4). ``replace`` empties the queue and cancels the running action."""

@@ -49,6 +49,11 @@ class AgentConfig(BaseModel):
     reconnect_min_s: float = Field(default=0.2, gt=0.0)
     reconnect_max_s: float = Field(default=5.0, gt=0.0)
     handshake_timeout_s: float = Field(default=5.0, gt=0.0)
+    daemon_silence_s: float = Field(
+        default=5.0,
+        gt=0.0,
+        description="drop and reconnect when nothing arrives for this long (keepalive 1 s)",
+    )
     tls_ca: Path | None = Field(
         default=None, description="PEM CA bundle: connect over TLS, verify the daemon"
     )

@@ -65,7 +65,8 @@ class ActionExecutor:
         limit = default_timeout(action)
         self.continuation = action
         try:
-            await asyncio.wait_for(self._dispatch(action), limit)
+            async with asyncio.timeout(limit):
+                await self._dispatch(action)
         except TimeoutError:
             raise ActionFailed(
                 f"{action.kind} (step {action.step}) did not complete within {limit:.0f} s"

@@ -109,7 +109,8 @@ class DaemonLink:
             self._seq += 1
             try:
                 writer.write(encode(body, self._seq))
-                await asyncio.wait_for(writer.drain(), 5.0)
+                async with asyncio.timeout(5.0):
+                    await writer.drain()
             except (OSError, TimeoutError, ConnectionError):
                 self._drop()
                 return False
@@ -131,17 +132,11 @@ class DaemonLink:
             backoff: float | None = None
             try:
                 tls = client_tls_context(self.config)
-                reader, writer = await asyncio.wait_for(
-                    asyncio.open_connection(
-                        self.config.gcs_host,
-                        self.config.gcs_port,
-                        ssl=tls,
-                        server_hostname=(self.config.tls_server_name or self.config.gcs_host)
-                        if tls
-                        else None,
-                    ),
-                    self.config.handshake_timeout_s,
-                )
+                server_name = (self.config.tls_server_name or self.config.gcs_host) if tls else None
+                async with asyncio.timeout(self.config.handshake_timeout_s):
+                    reader, writer = await asyncio.open_connection(
+                        self.config.gcs_host, self.config.gcs_port, ssl=tls, server_hostname=server_name
+                    )
             except (OSError, TimeoutError) as exc:  # ssl.SSLError is an OSError
                 self.last_error = (
                     f"cannot reach daemon {self.config.gcs_host}:{self.config.gcs_port}: {exc!r}"
@@ -163,6 +158,9 @@ class DaemonLink:
                 ) as exc:
                     self.last_error = f"link error: {exc}"
                     log.warning("daemon link lost: %s", exc)
+                except Exception as exc:  # whatever a peer sends, the agent must live on and reconnect
+                    self.last_error = f"unexpected link failure: {exc!r}"
+                    log.exception("daemon link failed unexpectedly")
                 finally:
                     self._drop()
             if self._stopping:
@@ -182,7 +180,8 @@ class DaemonLink:
         backlog: list[Frame] = []
         self._writer = writer
         self._seq = 0
-        await asyncio.wait_for(self._handshake(reader, decoder, backlog), self.config.handshake_timeout_s)
+        async with asyncio.timeout(self.config.handshake_timeout_s):
+            await self._handshake(reader, decoder, backlog)
         self.connected = True
         self.sessions += 1
         self.last_contact = time.monotonic()
@@ -191,7 +190,13 @@ class DaemonLink:
         for frame in backlog:
             await self._dispatch(frame)
         while self.connected:
-            data = await reader.read(65_536)
+            try:
+                async with asyncio.timeout(self.config.daemon_silence_s):
+                    data = await reader.read(65_536)
+            except TimeoutError:  # a silent partition: TCP open, nothing flowing (the daemon keeps alive)
+                raise ConnectionError(
+                    f"nothing from the daemon for {self.config.daemon_silence_s:g} s"
+                ) from None
             if not data:
                 raise ConnectionError("daemon closed the connection")
             self.last_contact = time.monotonic()

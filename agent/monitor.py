@@ -52,13 +52,13 @@ class ExceptionMonitor:
         self,
         autopilot: Autopilot,
         settings: AgentSettings,
-        link_contact: Callable[[], tuple[bool, float]],
+        last_daemon_contact: Callable[[], float],
         interrupt_queue: Callable[[], Awaitable[None]],
         report: Callable[[str, str], Awaitable[None]],
     ) -> None:
         self._autopilot = autopilot
         self._settings = settings
-        self._link_contact = link_contact
+        self._last_daemon_contact = last_daemon_contact
         self._interrupt_queue = interrupt_queue
         self._report = report
         self.geofence: Geofence | None = None
@@ -80,8 +80,10 @@ class ExceptionMonitor:
             if why is not None:
                 assert self.geofence is not None
                 found.append(Condition("fence_breach", self.geofence.breach_action, why))
-        connected, last_contact = self._link_contact()
-        if not connected and now - last_contact > s.lost_link_timeout_s:
+        last_contact = self._last_daemon_contact()
+        # Timed from the last packet whether or not TCP looks up: the daemon sends at least a
+        # keepalive every second, so silence means a partition even on an open connection.
+        if now - last_contact > s.lost_link_timeout_s:
             found.append(
                 Condition(
                     "link_lost", s.lost_link_action, f"no daemon contact for {now - last_contact:.0f} s"

@@ -20,6 +20,7 @@ from agent.config import AgentConfig
 from agent.executor import ActionExecutor
 from agent.link import DaemonLink
 from agent.monitor import ExceptionMonitor, finite_or_zero
+from agent.tasks import cancel_and_wait
 from protocol.actions import Action
 from protocol.auth import parse_key
 from protocol.packets import (
@@ -109,7 +110,7 @@ class Agent:
         self.monitor = ExceptionMonitor(
             autopilot,
             self.settings,
-            link_contact=lambda: (self.link.connected, self.link.last_contact),
+            last_daemon_contact=lambda: self.link.last_contact,
             interrupt_queue=self.queue.interrupt,
             report=self._on_exception,
         )
@@ -126,16 +127,16 @@ class Agent:
             asyncio.create_task(self._status_loop(), name="status"),
         ]
         try:
-            await asyncio.gather(*self._tasks)
+            # asyncio.wait, not gather: cancelling us must not wait on a child that ignores it;
+            # shutdown() cancels the children with a bound.
+            done, _ = await asyncio.wait(self._tasks, return_when=asyncio.FIRST_EXCEPTION)
+            for task in done:
+                task.result()  # a crashed part of the agent is an error, not a silent stop
         finally:
             await self.shutdown()
 
     async def shutdown(self) -> None:
-        for task in self._tasks:
-            task.cancel()
-        for task in self._tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
+        await cancel_and_wait(self._tasks)
         self._tasks = []
         await self.link.stop()
         await self.queue.stop()
@@ -150,7 +151,8 @@ class Agent:
             await self.link.send_status(build_status(t, self.queue, self.exception_list(), link_ok))
             self._status_wakeup.clear()
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._status_wakeup.wait(), self.settings.status_period_s)
+                async with asyncio.timeout(self.settings.status_period_s):
+                    await self._status_wakeup.wait()
 
     def exception_list(self) -> list[str]:
         """Active conditions plus one-shot exceptions of the last ``RECENT_EXCEPTION_S`` seconds."""

@@ -30,6 +30,7 @@ from protocol.packets import (
     RequestCid,
     ResponseCid,
     Resume,
+    SetParameters,
     StatusReport,
     SyncSignal,
 )
@@ -77,6 +78,7 @@ class AgentSession:
     peer: str
     connected_at: float = field(default_factory=time.time)
     last_rx: float = field(default_factory=time.monotonic)
+    last_tx: float = field(default_factory=time.monotonic)
     status: StatusReport | None = None
     status_count: int = 0
     open: bool = True
@@ -99,7 +101,9 @@ class AgentSession:
                         f"more than {max_pending} bytes waiting for a peer that does not read"
                     )
                 self.writer.write(encode(body, self._seq))
-                await asyncio.wait_for(self.writer.drain(), timeout)
+                self.last_tx = time.monotonic()
+                async with asyncio.timeout(timeout):
+                    await self.writer.drain()
             except (OSError, TimeoutError, ConnectionError) as exc:
                 log.warning("send to %s failed: %s", self.identity, exc)
                 self.close_transport()
@@ -301,8 +305,8 @@ class AgentManager:
             data = await reader.read(READ_CHUNK)
             if not data:
                 return
-            session.last_rx = time.monotonic()
             for frame in decoder.feed(data):
+                session.last_rx = time.monotonic()  # complete packets count as life, stray bytes do not
                 if not bucket.take(session.last_rx):
                     raise RateLimited(
                         f"more than {self.config.max_frames_per_s:g} frames/s "
@@ -363,10 +367,14 @@ class AgentManager:
 
     async def watch_liveness(self) -> None:
         """Mark agents lost when silent (or gone) for longer than ``lost_after_s``; runs until cancelled."""
-        period = max(0.05, self.config.status_period_s / 2)
+        period = max(0.05, min(self.config.status_period_s, self.config.keepalive_s) / 2)
+        keepalive = SetParameters()  # an empty type 3 changes nothing: it only proves we are here
         while True:
             await asyncio.sleep(period)
             now = time.monotonic()
+            for session in self.connected():
+                if now - session.last_tx >= self.config.keepalive_s:
+                    await session.send(keepalive, self.config.send_timeout_s, self.config.max_pending_bytes)
             for identity, session in list(self.sessions.items()):
                 if identity in self.lost or now - session.last_rx <= self.config.lost_after_s:
                     continue

@@ -70,7 +70,7 @@ class SearchPlanRequest(_Request):
         default=None, description="instead of 'area': a GeoJSON or QGroundControl .plan document"
     )
     pattern: Literal["zigzag", "spiral", "segmented", "curved"] = "zigzag"
-    division: Literal["path", "region"] = "region"
+    division: Literal["path", "region", "partition"] = "region"
     swath_m: float = Field(default=20.0, ge=1.0, le=5000.0, description="sensor footprint width")
     side_overlap: float = Field(default=0.0, ge=0.0, le=0.9)
     home: LatLonPoint | None = Field(default=None, description="default: the first drone's home")

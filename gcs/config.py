@@ -62,6 +62,12 @@ class DaemonConfig(BaseModel):
     status_period_s: float = Field(default=0.5, ge=0.02, le=60.0)
     lost_after_periods: float = Field(default=6.0, ge=1.0)
     send_timeout_s: float = Field(default=5.0, gt=0.0)
+    keepalive_s: float = Field(
+        default=1.0,
+        gt=0.0,
+        le=60.0,
+        description="send an empty type 3 to an agent we have not sent to for this long",
+    )
     default_sync_timeout_s: float = Field(default=120.0, gt=0.0)
     lost_agent_policy: Literal["abort", "continue"] = "abort"
     agent_parameters: AgentParameters = AgentParameters()

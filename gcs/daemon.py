@@ -25,6 +25,8 @@ from protocol.packets import AgentParameters, CloseReason, Geofence, PerformActi
 
 log = logging.getLogger("gcs.daemon")
 
+SERVICE_STOP_TIMEOUT_S = 5.0
+
 
 def server_tls_context(config: DaemonConfig) -> ssl.SSLContext | None:
     """TLS for the agent listener when a certificate is configured; mutual TLS with a client CA."""
@@ -165,8 +167,8 @@ class Daemon:
         self.events.publish("daemon_stopping", "shutting down")
         for service in reversed(self.services):
             try:
-                await service.stop()
-            except Exception:  # one faulty service must not keep the others from stopping
+                await asyncio.wait_for(service.stop(), SERVICE_STOP_TIMEOUT_S)
+            except Exception:  # one faulty or stuck service must not keep the others from stopping
                 log.exception("service %s failed to stop", service.name)
         if self._server is not None:
             self._server.close()

@@ -69,7 +69,7 @@ def decode_body(packet_type: int, payload: bytes) -> Body:
         raise ProtocolError(f"unknown packet type {packet_type} (expected 0..6)") from None
     try:
         document = json.loads(payload.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+    except (ValueError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError, int digit limit
         raise ProtocolError(f"type {ptype.value} body is not UTF-8 JSON: {exc}", packet_type=ptype) from None
     if not isinstance(document, dict):
         raise ProtocolError(f"type {ptype.value} body must be a JSON object", packet_type=ptype)

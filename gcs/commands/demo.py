@@ -53,7 +53,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--pattern", default="zigzag", choices=["zigzag", "spiral", "segmented", "curved"])
-    parser.add_argument("--division", default="region", choices=["path", "region"])
+    parser.add_argument("--division", default="region", choices=["path", "region", "partition"])
     parser.add_argument("--alt", type=float, default=12.0, help="survey altitude, m")
     parser.add_argument("--swath", type=float, default=14.0, help="sensor swath, m")
     parser.add_argument("--speed", type=float, default=6.0, help="survey speed, m/s")

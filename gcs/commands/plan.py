@@ -71,7 +71,7 @@ def add_area_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--drones", type=int, help="number of drones (default 1; psa: the target file's)")
     parser.add_argument("--pattern", choices=["zigzag", "spiral", "segmented", "curved"], default="zigzag")
-    parser.add_argument("--division", choices=["path", "region"], default="path")
+    parser.add_argument("--division", choices=["path", "region", "partition"], default="path")
     parser.add_argument("--swath", type=float, help="footprint width across track (m); needs --alt")
     parser.add_argument("--camera", type=_camera, help="res=PX,fov=DEG[,minpx=N] or res=,sensor=MM,focal=MM")
     parser.add_argument("--target-size", type=_floats, default=[0.5], help="pattern W[,H] in m (camera mode)")

@@ -109,9 +109,8 @@ class CooperationService:
     async def stop(self) -> None:
         for task in self._tasks:
             task.cancel()
-        for task in self._tasks:
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        if self._tasks:  # bounded: a cancel swallowed inside a send must not hang the daemon's stop
+            await asyncio.wait(self._tasks, timeout=2.0)
         self._tasks = []
         daemon = self._daemon
         if daemon is not None:

@@ -14,6 +14,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, Field
 from shapely.geometry import Polygon
+from shapely.geometry.base import BaseGeometry
 
 from gcs.planning.areas import SearchArea
 from gcs.planning.camera import Spacing
@@ -27,6 +28,7 @@ from gcs.planning.division import (
 )
 from gcs.planning.geodesy import FloatArray, LocalFrame
 from gcs.planning.mission import mission_from_paths
+from gcs.planning.partition import partition_for_search
 from gcs.planning.patterns import Sweep, curved, path_length, segmented, spiral, zigzag
 from gcs.planning.polygon import PolygonType, classify, convex_hull, min_height_rotation, require_simple
 from protocol.taskfile import TaskFile
@@ -38,7 +40,7 @@ class PlanConfig(BaseModel):
     """How to cover and divide; defaults follow the papers where they are sound."""
 
     pattern: Pattern = "zigzag"
-    division: Literal["path", "region"] = "path"
+    division: Literal["path", "region", "partition"] = "path"
     concave: Literal["decompose", "hull"] = Field(
         default="decompose", description="cover a concave area's cells, or its convex hull as the papers do"
     )
@@ -138,14 +140,21 @@ def plan_search(
             for s in shares
         ]
     else:
-        rshares = region_division(work, drones, angle, home)
+        if cfg.division == "partition":
+            # seed 003's capability-proportional partition (the divide protocol's fixed point),
+            # with a drone's capability its flyable range, as region division uses
+            parts = partition_for_search(Polygon(work), [d.range_m for d in drones])
+            total = sum(p.area for p in parts) or 1.0
+            areas: list[tuple[BaseGeometry, float]] = [(part, part.area / total) for part in parts]
+        else:
+            areas = [(rs.region, rs.fraction) for rs in region_division(work, drones, angle, home)]
         budget = []
         short = 0.0
-        for d, rs in zip(drones, rshares, strict=True):
-            regions.append(rs.region)
+        for d, (region, fraction) in zip(drones, areas, strict=True):
+            regions.append(region)
             pts: list[FloatArray] = []
             cur = home
-            for part in getattr(rs.region, "geoms", [rs.region]):
+            for part in getattr(region, "geoms", [region]):
                 if part.geom_type != "Polygon" or part.area <= 1e-6:
                     continue
                 sw = build_sweep(np.asarray(part.exterior.coords)[:-1], spacing.step, cfg, angle, cur)
@@ -162,13 +171,13 @@ def plan_search(
                     "survey_m": round(survey, 1),
                     "transit_m": round(trip, 1),
                     "range_m": round(d.range_m, 1),
-                    "area_fraction": round(rs.fraction, 5),
+                    "area_fraction": round(fraction, 5),
                 }
             )
             paths.append(p)
         if short > 0 and not cfg.allow_partial:
             raise InsufficientCapabilityError(
-                f"region division: drones would need {short:.0f} m more range than they have; "
+                f"{cfg.division} division: drones would need {short:.0f} m more range than they have; "
                 "add drones, charge batteries or shrink the area",
                 shortfall_m=short,
             )

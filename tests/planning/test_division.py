@@ -95,3 +95,23 @@ def test_cut_by_area_bisection_tolerance():
     q = Polygon(RECT)
     cuts = cut_by_area(q, [1, 1, 2], tol=1e-9)
     assert cuts == pytest.approx([37.5, 75.0], abs=1e-6)
+
+
+def test_partition_division_gives_areas_in_proportion_to_range_and_covers_the_area():
+    from gcs.planning.areas import area_from_latlon
+    from gcs.planning.camera import spacing_from_swath
+    from gcs.planning.geodesy import LocalFrame
+    from gcs.planning.planner import PlanConfig, plan_search
+
+    frame = LocalFrame(47.39, 8.54)
+    lats, lons = frame.to_geodetic(np.array([e for e, _ in RECT]), np.array([n for _, n in RECT]))
+    area = area_from_latlon(list(zip(lats.tolist(), lons.tolist(), strict=True)))
+    drones = [DroneSpec(name=f"d{i}", battery=b, endurance_s=1800) for i, b in enumerate((1.0, 0.5, 0.25))]
+    plan = plan_search(area, drones, spacing_from_swath(20, 30), PlanConfig(division="partition"))
+    areas = np.array([r.area for r in plan.regions_local])
+    ranges = np.array([d.range_m for d in drones])
+    assert areas / areas.sum() == pytest.approx(ranges / ranges.sum(), abs=0.01)
+    union = plan.regions_local[0].union(plan.regions_local[1]).union(plan.regions_local[2])
+    assert union.area == pytest.approx(Polygon(plan.area_local).area, rel=1e-3)
+    assert plan.coverage.covered_pct > 99.0
+    assert plan.summary["division"] == "partition"

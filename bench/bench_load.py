@@ -1,0 +1,801 @@
+"""Load benchmark: how big a fleet one daemon carries on this machine, and what an agent costs.
+
+Run: python bench/bench_load.py [--quick]
+Prints a table; writes bench/results/load.json. About 3-4 minutes on 2 cores.
+
+Set-up, all on loopback: the daemon (an in-process ``gcs.daemon.Daemon``, with its SQLite store
+and telemetry recorder, as ``gcs serve`` runs it) lives in its own process. Synthetic agents are
+lightweight protocol clients (real handshake, then pre-templated status frames; no simulator)
+hosted many per process in worker processes, so client cost does not land on the daemon's core.
+
+Measured:
+
+* **fleet search**: status at 10 Hz from N agents for a few seconds; a size passes with zero loss
+  (every frame sent was ingested, no agent dropped) and p99 ingest latency (agent timestamp to the
+  daemon's status hook) under 50 ms. Doubling, then bisection.
+* **sync barrier**: N agents (streaming status at 10 Hz) all send ``finished`` for a step; latency
+  from the daemon receiving the last arrival to the last agent receiving its release.
+* **memory per agent**: daemon RSS delta over the fleet trial divided by N.
+* **throughput vs bare asyncio**: the same pre-encoded status frames flooded by the same clients
+  into (a) a bare asyncio sink that only splits frames by header, (b) asyncio plus the full
+  ``FrameDecoder`` (CRC, JSON, pydantic), (c) the daemon. Ratio = daemon / bare.
+* **agent footprint**: one ``agent run`` process at 10 Hz status with one vehicle (memory backend;
+  MAVLink backend against ``sitl run`` too): RSS and CPU share.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import multiprocessing as mp
+import os
+import platform
+import random
+import secrets
+import subprocess
+import sys
+import tempfile
+import time
+import zlib
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+RESULTS = Path(__file__).resolve().parent / "results"
+BIN = Path(sys.executable).parent
+P99_LIMIT_MS = 50.0
+STATUS_HZ = 10.0
+DAEMON_OVERRIDES: dict[str, Any] = {}  # DaemonConfig fields from --daemon-config (JSON)
+
+
+# --- /proc helpers --------------------------------------------------------------------------------
+
+
+def rss_kb(pid: int | str = "self") -> int:
+    """Resident set size of a process in KiB (Linux /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def percentile(values: list[float], p: float) -> float:
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(p * len(ordered)))]
+
+
+# --- the server process: daemon, or a bare asyncio sink ------------------------------------------
+
+
+def server_main(kind: str, conn: Connection, key_hex: str, extra: dict[str, Any]) -> None:
+    """Entry point of the server process; answers commands on ``conn`` until 'stop'."""
+    import logging
+
+    logging.disable(logging.CRITICAL)  # per-agent events would flood stderr; the numbers are the output
+    asyncio.run(_server(kind, conn, key_hex, extra))
+
+
+async def _server(kind: str, conn: Connection, key_hex: str, extra: dict[str, Any]) -> None:
+    from gcs.config import DaemonConfig
+    from gcs.daemon import Daemon
+    from protocol.taskfile import TaskFile
+    from protocol.wire import HEADER, HEADER_SIZE, FrameDecoder
+
+    latencies: list[float] = []
+    arrivals: dict[int, float] = {}
+    counter = {"frames": 0}
+    daemon: Daemon | None = None
+    server: asyncio.base_events.Server | None = None
+    data_dir = tempfile.TemporaryDirectory()
+
+    if kind == "daemon":
+        overrides: dict[str, Any] = {}
+        if "max_frames_per_s" in DaemonConfig.model_fields:  # the flood trial must not be rate limited
+            overrides.update(max_frames_per_s=1e9, frame_burst=1_000_000_000)
+        overrides.update(extra)  # --daemon-config, e.g. to switch a service off and see what it costs
+        config = DaemonConfig(
+            listen_port=0,
+            http_host=None,
+            data_dir=Path(data_dir.name),
+            fleet_key_hex=key_hex,
+            max_agents=20_000,
+            status_period_s=1.0 / STATUS_HZ,
+            lost_after_periods=600,
+            handshake_timeout_s=60,
+            **overrides,
+        )
+        daemon = Daemon(config)
+
+        async def on_status(_: object, status: Any) -> None:
+            latencies.append(time.time() - status.time)
+
+        async def on_sync(_: object, signal: Any) -> None:
+            arrivals[signal.step] = time.time()  # the last one wins: the barrier's last arrival
+
+        daemon.agents.on_status.append(on_status)
+        daemon.agents.on_sync.insert(0, on_sync)
+        await daemon.start()
+        port = daemon.listen_port
+    else:
+
+        async def sink(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            decoder = FrameDecoder()
+            buffer = bytearray()
+            for _ in range(100_000_000):
+                data = await reader.read(65_536)
+                if not data:
+                    break
+                if kind == "decode":
+                    counter["frames"] += sum(1 for _ in decoder.feed(data))
+                    continue
+                buffer += data
+                offset = 0
+                while len(buffer) - offset >= HEADER_SIZE:
+                    length = HEADER.unpack_from(buffer, offset)[4]
+                    if len(buffer) - offset < HEADER_SIZE + length:
+                        break
+                    offset += HEADER_SIZE + length
+                    counter["frames"] += 1
+                del buffer[:offset]
+            writer.close()
+
+        server = await asyncio.start_server(sink, "127.0.0.1", 0)
+        port = server.sockets[0].getsockname()[1]
+
+    loop = asyncio.get_running_loop()
+    conn.send(("ready", port, rss_kb()))
+    cpu_mark = time.process_time()
+    for _ in range(1_000_000):
+        command, *args = await loop.run_in_executor(None, conn.recv)
+        if command == "reset":
+            latencies.clear()
+            counter["frames"] = 0
+            cpu_mark = time.process_time()
+            conn.send("ok")
+        elif command == "stats":
+            received = len(latencies) if kind == "daemon" else counter["frames"]
+            connected = len(daemon.agents.connected()) if daemon else 0
+            conn.send(
+                {
+                    "received": received,
+                    "p50_ms": percentile(latencies, 0.50) * 1000,
+                    "p99_ms": percentile(latencies, 0.99) * 1000,
+                    "max_ms": max(latencies, default=float("nan")) * 1000,
+                    "connected": connected,
+                    "rss_kb": rss_kb(),
+                    "cpu_s": time.process_time() - cpu_mark,
+                }
+            )
+        elif command == "submit":
+            assert daemon is not None
+            mission_id = await daemon.missions.submit(TaskFile.model_validate_json(args[0]))
+            conn.send(mission_id)
+        elif command == "arrival":
+            conn.send(arrivals.get(args[0]))
+        elif command == "stop":
+            break
+    stop_note = "clean"
+    if daemon is not None:
+        try:  # bounded: a stuck service must not hang the benchmark (see docs/performance.md)
+            await asyncio.wait_for(daemon.stop(), 10.0)
+        except TimeoutError:
+            stop_note = "daemon.stop() timed out"
+    if server is not None:
+        server.close()
+    data_dir.cleanup()
+    conn.send(stop_note)
+
+
+# --- worker processes: many synthetic agents each -------------------------------------------------
+
+
+GRID_M = 40.0  # synthetic vehicles hover on a grid this far apart (a real fleet is not stacked on one point)
+
+
+class StatusTemplate:
+    """A real type-2 body serialised once; each frame only splices in a fresh timestamp."""
+
+    def __init__(self, index: int = 0) -> None:
+        from protocol.geo import offset_latlon
+        from protocol.packets import Battery, Position, StatusReport
+
+        lat, lon = offset_latlon(47.397742, 8.545594, GRID_M * (index // 50), GRID_M * (index % 50))
+        body = StatusReport(
+            time=0.0,
+            position=Position(lat=lat, lon=lon, alt_rel=12.3, alt_amsl=500.3),
+            battery=Battery(pct=87.5, voltage_v=12.1, current_a=14.2),
+            mode="GUIDED",
+            armed=True,
+            landed=False,
+        ).model_dump_json(exclude_none=True)
+        head, tail = body.split('"time":0.0', 1)
+        self.head, self.tail = (head + '"time":').encode(), tail.encode()
+
+    def frame(self, seq: int, now: float) -> bytes:
+        from protocol.wire import HEADER, MAGIC
+
+        body = self.head + repr(now).encode() + self.tail
+        return HEADER.pack(MAGIC, 1, 2, seq & 0xFFFFFFFF, len(body), zlib.crc32(body)) + body
+
+
+class Client:
+    """One synthetic agent: a socket, a sequence counter and the releases it received."""
+
+    def __init__(self, identity: str, index: int) -> None:
+        self.identity = identity
+        self.template = StatusTemplate(index)
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+        self.seq = 0
+        self.sent = 0
+        self.closed = False
+        self.releases: dict[int, float] = {}
+        self.release_event = asyncio.Event()
+
+    def write(self, frame: bytes) -> None:
+        assert self.writer is not None
+        self.seq += 1
+        self.writer.write(frame)
+
+
+def worker_main(conn: Connection, port: int, key_hex: str, identities: list[str], authenticate: bool) -> None:
+    asyncio.run(_worker(conn, port, key_hex, identities, authenticate))
+
+
+async def _handshake(client: Client, key: bytes) -> None:
+    from protocol import auth
+    from protocol.packets import PROTOCOL_VERSION, RequestCid, ResponseCid
+    from protocol.wire import FrameDecoder, encode
+
+    assert client.reader is not None and client.writer is not None
+    decoder = FrameDecoder()
+    nonce = auth.new_nonce()
+    client.writer.write(
+        encode(RequestCid(identity=client.identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce), 1)
+    )
+    frames: list[Any] = []
+    for _ in range(100):
+        if frames:
+            break
+        frames += list(decoder.feed(await client.reader.read(65_536)))
+    challenge = frames.pop(0).body
+    assert isinstance(challenge, ResponseCid) and challenge.server_nonce, challenge
+    proof = auth.agent_proof(key, client.identity, challenge.server_nonce, nonce)
+    request = RequestCid(
+        identity=client.identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce, proof=proof
+    )
+    client.writer.write(encode(request, 2))
+    for _ in range(100):
+        if frames:
+            break
+        frames += list(decoder.feed(await client.reader.read(65_536)))
+    accepted = frames.pop(0).body
+    assert isinstance(accepted, ResponseCid) and accepted.outcome == "accepted", accepted
+    client.seq = 2
+
+
+async def _client_reader(client: Client) -> None:
+    """Drain what the daemon sends; note releases and closes."""
+    from protocol.packets import Close, SyncSignal
+    from protocol.wire import FrameDecoder, ProtocolError
+
+    assert client.reader is not None
+    decoder = FrameDecoder()
+    with contextlib.suppress(ConnectionError, ProtocolError):
+        for _ in range(100_000_000):
+            data = await client.reader.read(65_536)
+            if not data:
+                break
+            for frame in decoder.feed(data):
+                if isinstance(frame.body, SyncSignal) and frame.body.kind == "release":
+                    client.releases.setdefault(frame.body.step, time.time())
+                    client.release_event.set()
+                elif isinstance(frame.body, Close):
+                    client.closed = True
+    client.closed = True
+
+
+async def _worker(
+    conn: Connection, port: int, key_hex: str, identities: list[str], authenticate: bool
+) -> None:
+    from protocol.packets import SyncSignal
+    from protocol.wire import encode
+
+    key = bytes.fromhex(key_hex)
+    clients = [Client(name, int(name.rsplit("-", 1)[1])) for name in identities]
+    loop = asyncio.get_running_loop()
+    status_task: asyncio.Future[Any] | None = None
+    cpu_mark = time.process_time()
+    readers: list[asyncio.Task[None]] = []
+    gate = asyncio.Semaphore(32)
+
+    async def connect(client: Client) -> bool:
+        async with gate:
+            try:
+                client.reader, client.writer = await asyncio.open_connection("127.0.0.1", port)
+                if authenticate:
+                    await asyncio.wait_for(_handshake(client, key), 60)
+            except (OSError, TimeoutError, AssertionError):
+                client.closed = True
+                return False
+            readers.append(asyncio.create_task(_client_reader(client)))
+            return True
+
+    async def status_loop(client: Client, period: float, stop_at: float) -> None:
+        next_at = time.monotonic() + random.random() * period
+        for _ in range(10_000_000):
+            await asyncio.sleep(max(0.0, next_at - time.monotonic()))
+            if time.monotonic() >= stop_at or client.closed:
+                return
+            client.write(client.template.frame(client.seq + 1, time.time()))
+            client.sent += 1
+            next_at += period
+
+    async def flood(client: Client, stop_at: float) -> None:
+        chunk = b"".join(client.template.frame(i, time.time()) for i in range(20))
+        assert client.writer is not None
+        with contextlib.suppress(ConnectionError, TimeoutError):
+            for _ in range(100_000_000):
+                if time.monotonic() >= stop_at or client.closed:
+                    return
+                client.writer.write(chunk)
+                client.sent += 20
+                await asyncio.wait_for(client.writer.drain(), 10)
+
+    for _ in range(1_000_000):
+        command, *args = await loop.run_in_executor(None, conn.recv)
+        if command == "connect":
+            results = await asyncio.gather(*(connect(c) for c in clients))
+            conn.send(sum(results))
+        elif command == "status":  # (rate_hz, seconds): runs in the background; 'sent' collects
+            rate, seconds = args
+            cpu_mark = time.process_time()
+            for c in clients:
+                c.sent = 0
+            stop_at = time.monotonic() + seconds
+            status_task = asyncio.ensure_future(
+                asyncio.gather(*(status_loop(c, 1.0 / rate, stop_at) for c in clients))
+            )
+            conn.send("started")
+        elif command == "sent":
+            if status_task is not None:
+                await status_task
+            conn.send(
+                {
+                    "sent": sum(c.sent for c in clients),
+                    "closed": sum(c.closed for c in clients),
+                    "cpu_s": time.process_time() - cpu_mark,
+                }
+            )
+        elif command == "flood":
+            for c in clients:
+                c.sent = 0
+            stop_at = time.monotonic() + args[0]
+            await asyncio.gather(*(flood(c, stop_at) for c in clients))
+            conn.send({"sent": sum(c.sent for c in clients), "closed": sum(c.closed for c in clients)})
+        elif command == "finish":  # (mission_id, step, timeout): all send 'finished', wait for releases
+            mission_id, step, timeout = args
+            for c in clients:
+                c.write(encode(SyncSignal(mission_id=mission_id, step=step, kind="finished"), c.seq + 1))
+            deadline = time.monotonic() + timeout
+            for c in clients:
+                while step not in c.releases and time.monotonic() < deadline and not c.closed:
+                    c.release_event.clear()
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(c.release_event.wait(), max(0.01, deadline - time.monotonic()))
+            conn.send([c.releases.get(step) for c in clients])
+        elif command == "close":
+            if status_task is not None:
+                for c in clients:
+                    c.closed = True  # status loops end at their next tick
+                with contextlib.suppress(asyncio.CancelledError, ConnectionError):
+                    await asyncio.wait_for(status_task, 2.0)
+            for c in clients:
+                if c.writer is not None:
+                    c.writer.transport.abort()  # RST: a flood backlog in the server's buffers is discarded
+            for task in readers:
+                task.cancel()
+            conn.send("closed")
+            return
+
+
+# --- orchestration --------------------------------------------------------------------------------
+
+
+class Harness:
+    """One server process and ``workers`` client processes hosting ``agents`` clients between them."""
+
+    def __init__(self, kind: str, agents: int, workers: int = 2, authenticate: bool = True) -> None:
+        self.ctx = mp.get_context("spawn")
+        self.key_hex = secrets.token_hex(32)
+        self.kind, self.agents = kind, agents
+        self.server_conn, child = self.ctx.Pipe()
+        self.server = self.ctx.Process(
+            target=server_main, args=(kind, child, self.key_hex, DAEMON_OVERRIDES), daemon=True
+        )
+        self.server.start()
+        ready, self.port, self.base_rss_kb = self.server_conn.recv()
+        assert ready == "ready"
+        names = [f"load-{i}" for i in range(agents)]
+        self.worker_conns: list[Connection] = []
+        self.workers: list[Any] = []
+        for w in range(workers):
+            share = names[w::workers]
+            if not share:
+                continue
+            parent, child = self.ctx.Pipe()
+            proc = self.ctx.Process(
+                target=worker_main, args=(child, self.port, self.key_hex, share, authenticate), daemon=True
+            )
+            proc.start()
+            self.worker_conns.append(parent)
+            self.workers.append(proc)
+        self.identities = names
+        self.stop_note = "not stopped"
+
+    def server_call(self, *command: Any) -> Any:
+        self.server_conn.send(command)
+        return self.server_conn.recv()
+
+    def workers_call(self, *command: Any) -> list[Any]:
+        for conn in self.worker_conns:
+            conn.send(command)
+        return [conn.recv() for conn in self.worker_conns]
+
+    def connect(self) -> int:
+        return sum(self.workers_call("connect"))
+
+    def close(self) -> None:
+        """Stop workers, then the server; bounded: a stuck process is killed after 20 s."""
+        for conn in self.worker_conns:
+            with contextlib.suppress(Exception):
+                conn.send(("close",))
+                if conn.poll(20):
+                    conn.recv()
+        with contextlib.suppress(Exception):
+            self.server_conn.send(("stop",))
+            if self.server_conn.poll(30):
+                self.stop_note = self.server_conn.recv()
+        for proc in [*self.workers, self.server]:
+            proc.join(timeout=10)
+            if proc.is_alive():
+                proc.kill()
+
+
+def fleet_trial(agents: int, seconds: float) -> dict[str, Any]:
+    """N agents at 10 Hz for ``seconds``: loss, ingest latency, daemon RSS and CPU."""
+    harness = Harness("daemon", agents)
+    try:
+        connected = harness.connect()
+        time.sleep(0.5)
+        harness.server_call("reset")
+        harness.workers_call("status", STATUS_HZ, seconds)
+        sent_rows = harness.workers_call("sent")
+        time.sleep(1.0)  # let the last frames in flight arrive
+        stats = harness.server_call("stats")
+    finally:
+        harness.close()
+    sent = sum(r["sent"] for r in sent_rows)
+    dropped = agents - min(connected, stats["connected"]) + sum(r["closed"] for r in sent_rows)
+    loss = (sent - stats["received"]) / sent if sent else 1.0
+    row = {
+        "agents": agents,
+        "seconds": seconds,
+        "sent": sent,
+        "received": stats["received"],
+        "loss": max(0.0, loss),
+        "dropped_agents": dropped,
+        "ingest_msgs_per_s": stats["received"] / seconds,
+        "latency_p50_ms": stats["p50_ms"],
+        "latency_p99_ms": stats["p99_ms"],
+        "latency_max_ms": stats["max_ms"],
+        "daemon_cpu_share": stats["cpu_s"] / (seconds + 1.0),
+        "client_workers_cpu_share": sum(r["cpu_s"] for r in sent_rows) / seconds,
+        "daemon_rss_mb": stats["rss_kb"] / 1024,
+        "rss_per_agent_kb": (stats["rss_kb"] - harness.base_rss_kb) / agents,
+    }
+    row["passed"] = bool(
+        stats["received"] >= sent and dropped == 0 and stats["p99_ms"] < P99_LIMIT_MS and connected == agents
+    )
+    return row
+
+
+def fleet_search(seconds: float, start: int, budget_s: float) -> tuple[list[dict[str, Any]], int]:
+    """Double from ``start`` until a size fails, then bisect twice; returns (trials, largest passing)."""
+    trials: list[dict[str, Any]] = []
+    began = time.monotonic()
+    size, best, worst = start, 0, 0
+    for _ in range(8):
+        row = fleet_trial(size, seconds)
+        trials.append(row)
+        _print_fleet(row)
+        if row["passed"]:
+            best = size
+            size *= 2
+        else:
+            worst = size
+            break
+        if time.monotonic() - began > budget_s:
+            break
+    for _ in range(2):
+        if not worst or worst - best <= max(50, best // 10) or time.monotonic() - began > budget_s:
+            break
+        size = (best + worst) // 2
+        row = fleet_trial(size, seconds)
+        trials.append(row)
+        _print_fleet(row)
+        if row["passed"]:
+            best = size
+        else:
+            worst = size
+    return trials, best
+
+
+def _print_fleet(row: dict[str, Any]) -> None:
+    print(
+        f"  {row['agents']:>6} agents  {row['ingest_msgs_per_s']:8.0f} msg/s  loss {row['loss']:6.2%}  "
+        f"dropped {row['dropped_agents']:>3}  p50 {row['latency_p50_ms']:7.2f} ms  "
+        f"p99 {row['latency_p99_ms']:8.2f} ms  cpu {row['daemon_cpu_share']:4.0%} "
+        f"(clients {row['client_workers_cpu_share']:4.0%})  rss/agent {row['rss_per_agent_kb']:6.1f} KiB  "
+        f"{'PASS' if row['passed'] else 'fail'}",
+        flush=True,
+    )
+
+
+def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
+    """Release latency of ``steps`` barriers with ``agents`` members streaming status at 10 Hz."""
+    from protocol.actions import Goto, Land, Takeoff
+    from protocol.taskfile import AgentPlan, TaskFile
+
+    harness = Harness("daemon", agents)
+    per_step: list[float] = []
+    per_agent: list[float] = []
+    try:
+        assert harness.connect() == agents
+        actions: list[Any] = [Takeoff(step=0, alt=5.0, sync=True)]
+        actions += [Goto(step=k, lat=47.3978, lon=8.5456, alt=5.0, sync=True) for k in range(1, steps)]
+        actions.append(Land(step=steps))
+        task = TaskFile(
+            name="bench-barrier",
+            sync_timeout_s=600,
+            plans=[AgentPlan(agent=name, actions=list(actions)) for name in harness.identities],
+        )
+        mission_id = harness.server_call("submit", task.model_dump_json())
+        time.sleep(0.5 + agents / 2000)  # the type-4 batches reach everyone
+        harness.workers_call("status", STATUS_HZ, 3600.0)
+        time.sleep(0.3)
+        for step in range(steps):
+            received = [t for row in harness.workers_call("finish", mission_id, step, 30.0) for t in row]
+            last_arrival = harness.server_call("arrival", step)
+            if last_arrival is None or any(t is None for t in received):
+                raise RuntimeError(f"barrier {step} with {agents} agents did not release everyone")
+            per_step.append(max(received) - last_arrival)
+            per_agent += [t - last_arrival for t in received]
+            time.sleep(0.05)
+    finally:
+        harness.close()
+    return {
+        "agents": agents,
+        "steps": steps,
+        "last_release_p50_ms": percentile(per_step, 0.5) * 1000,
+        "last_release_p99_ms": percentile(per_step, 0.99) * 1000,
+        "per_agent_release_p50_ms": percentile(per_agent, 0.5) * 1000,
+        "per_agent_release_p99_ms": percentile(per_agent, 0.99) * 1000,
+    }
+
+
+def throughput_trial(kind: str, clients: int, seconds: float) -> dict[str, Any]:
+    """Clients flood pre-encoded status frames; frames/s the server side absorbed."""
+    harness = Harness(kind, clients, authenticate=kind == "daemon")
+    try:
+        assert harness.connect() == clients
+        harness.server_call("reset")
+        started = time.monotonic()
+        rows = harness.workers_call("flood", seconds)
+        elapsed = time.monotonic() - started
+        time.sleep(0.5)
+        stats = harness.server_call("stats")
+    finally:
+        harness.close()
+    return {
+        "server": kind,
+        "server_stop": harness.stop_note,
+        "clients": clients,
+        "sent": sum(r["sent"] for r in rows),
+        "received": stats["received"],
+        "frames_per_s": stats["received"] / (elapsed + 0.5),
+        "server_cpu_share": stats["cpu_s"] / (elapsed + 0.5),
+    }
+
+
+def agent_footprint(backend: str, seconds: float) -> dict[str, Any]:
+    """RSS and CPU share of one `agent run` at 10 Hz status beside one vehicle."""
+    harness = Harness("daemon", 0, workers=0)
+    sitl: subprocess.Popen[str] | None = None
+    agent: subprocess.Popen[bytes] | None = None
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            key_file = Path(tmp) / "fleet.key"
+            key_file.write_text(harness.key_hex)
+            if backend == "memory":
+                connection = "47.397742,8.545594,488"
+            else:
+                sitl = subprocess.Popen(
+                    [BIN / "sitl", "run", "--vehicles", "1", "--base-port", "0", "--speedup", "1"],
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.DEVNULL,
+                    text=True,
+                )
+                assert sitl.stdout is not None
+                line = sitl.stdout.readline()
+                if not line.startswith("SITL READY"):
+                    raise RuntimeError(f"sitl did not start: {line!r}")
+                connection = line.split()[2]
+            agent = subprocess.Popen(
+                [
+                    BIN / "agent",
+                    "run",
+                    "--gcs",
+                    f"127.0.0.1:{harness.port}",
+                    "--id",
+                    "pi-1",
+                    "--key-file",
+                    key_file,
+                    "--autopilot-backend",
+                    backend,
+                    "--autopilot",
+                    connection,
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+            time.sleep(4.0)  # connect, handshake, settle
+            if agent.poll() is not None:
+                raise RuntimeError(f"agent exited with {agent.returncode}")
+            harness.server_call("reset")
+            cpu0, t0 = cpu_seconds(agent.pid), time.monotonic()
+            time.sleep(seconds)
+            cpu = cpu_seconds(agent.pid) - cpu0
+            elapsed = time.monotonic() - t0
+            stats = harness.server_call("stats")
+            sitl_cpu = cpu_seconds(sitl.pid) if sitl else None
+            return {
+                "backend": backend,
+                "seconds": elapsed,
+                "status_per_s": stats["received"] / elapsed,
+                "rss_mb": rss_kb(agent.pid) / 1024,
+                "cpu_share_of_one_core": cpu / elapsed,
+                "sitl_cpu_s_total": sitl_cpu,
+            }
+    finally:
+        for proc in (agent, sitl):
+            if proc is not None and proc.poll() is None:
+                proc.terminate()
+                try:
+                    proc.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+        harness.close()
+
+
+def machine() -> dict[str, Any]:
+    lscpu = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
+    fields = dict(line.split(":", 1) for line in lscpu.splitlines() if ":" in line)
+    mem_kb = next(
+        int(line.split()[1])
+        for line in Path("/proc/meminfo").read_text().splitlines()
+        if line.startswith("MemTotal")
+    )
+    return {
+        "cpu": fields.get("Model name", "?").strip(),
+        "cpus": os.cpu_count(),
+        "ram_gib": round(mem_kb / 1024 / 1024, 1),
+        "python": platform.python_version(),
+        "kernel": platform.release(),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--quick", action="store_true", help="smaller sizes and shorter windows (smoke run)")
+    parser.add_argument("--seconds", type=float, default=4.0, help="fleet trial window")
+    parser.add_argument("--start", type=int, default=250, help="first fleet size of the search")
+    parser.add_argument(
+        "--daemon-config",
+        default="{}",
+        help='JSON DaemonConfig overrides, e.g. {"telemetry":{"enabled":false}}',
+    )
+    parser.add_argument("--only-fleet", type=int, help="just one fleet trial of this size (diagnosis)")
+    args = parser.parse_args()
+    DAEMON_OVERRIDES.update(json.loads(args.daemon_config))
+    if args.only_fleet:
+        _print_fleet(fleet_trial(args.only_fleet, args.seconds))
+        return 0
+    began = time.monotonic()
+    seconds = 2.0 if args.quick else args.seconds
+    info = machine()
+    print(f"machine: {info}")
+
+    print(
+        f"\nfleet search: status at {STATUS_HZ:g} Hz, pass = zero loss and p99 < {P99_LIMIT_MS:g} ms",
+        flush=True,
+    )
+    trials, best = fleet_search(seconds, 50 if args.quick else args.start, 40 if args.quick else 120)
+
+    print("\nsync barrier release latency (agents streaming status at 10 Hz):", flush=True)
+    barriers = []
+    for n in (10, 100) if args.quick else (10, 100, 1000):
+        row = barrier_trial(n, 10 if args.quick else 20)
+        barriers.append(row)
+        print(
+            f"  {n:>6} agents  last arrival -> last release p50 {row['last_release_p50_ms']:7.2f} ms  "
+            f"p99 {row['last_release_p99_ms']:7.2f} ms  "
+            f"(per agent p50 {row['per_agent_release_p50_ms']:.2f} ms)",
+            flush=True,
+        )
+
+    print("\nthroughput, the same status frames flooded by 20 clients:", flush=True)
+    flood_s = 2.0 if args.quick else 4.0
+    throughput = {kind: throughput_trial(kind, 20, flood_s) for kind in ("bare", "decode", "daemon")}
+    for kind, row in throughput.items():
+        print(
+            f"  {kind:>7}  {row['frames_per_s']:9.0f} frames/s  server cpu {row['server_cpu_share']:4.0%}",
+            flush=True,
+        )
+    ratio = throughput["daemon"]["frames_per_s"] / throughput["bare"]["frames_per_s"]
+    print(f"  daemon / bare asyncio = {ratio:.3f}")
+
+    print("\nagent footprint (one `agent run`, one vehicle, status at 10 Hz):", flush=True)
+    footprint = []
+    for backend in ("memory", "mavlink"):
+        try:
+            row = agent_footprint(backend, 5.0 if args.quick else 10.0)
+        except (RuntimeError, OSError) as exc:
+            print(f"  {backend}: not measured ({exc})")
+            continue
+        footprint.append(row)
+        print(
+            f"  {backend:>8}: RSS {row['rss_mb']:6.1f} MiB  "
+            f"CPU {row['cpu_share_of_one_core']:6.1%} of one core  "
+            f"({row['status_per_s']:.1f} status/s received)",
+            flush=True,
+        )
+
+    best_row = next((t for t in trials if t["agents"] == best), None)
+    summary = {
+        "max_fleet_zero_loss_p99_under_50ms": best,
+        "rss_per_agent_kb_at_max": best_row["rss_per_agent_kb"] if best_row else None,
+        "daemon_over_bare_asyncio_throughput": ratio,
+    }
+    print(
+        f"\nlargest fleet sustained: {best} agents at {STATUS_HZ:g} Hz; wall {time.monotonic() - began:.0f} s"
+    )
+    RESULTS.mkdir(exist_ok=True)
+    out = {
+        "machine": info,
+        "quick": args.quick,
+        "summary": summary,
+        "fleet_trials": trials,
+        "barriers": barriers,
+        "throughput": throughput,
+        "agent_footprint": footprint,
+        "wall_s": time.monotonic() - began,
+    }
+    (RESULTS / ("load_quick.json" if args.quick else "load.json")).write_text(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
