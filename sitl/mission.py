@@ -276,42 +276,15 @@ class MissionProtocol:
             if item_ is None:
                 self._ack(mav.MAV_MISSION_INVALID_SEQUENCE, mtype)
                 return True
+            head = (
+                src_sys, src_comp, msg.seq, item_.frame, item_.command, item_.current, item_.autocontinue,
+                item_.param1, item_.param2, item_.param3, item_.param4,
+            )  # fmt: skip
+            out: mav.MAVLink_message
             if t == "MISSION_REQUEST_INT":
-                out: mav.MAVLink_message = mav.MAVLink_mission_item_int_message(
-                    src_sys,
-                    src_comp,
-                    msg.seq,
-                    item_.frame,
-                    item_.command,
-                    item_.current,
-                    item_.autocontinue,
-                    item_.param1,
-                    item_.param2,
-                    item_.param3,
-                    item_.param4,
-                    item_.x,
-                    item_.y,
-                    item_.z,
-                    mtype,
-                )
-            else:
-                out = mav.MAVLink_mission_item_message(
-                    src_sys,
-                    src_comp,
-                    msg.seq,
-                    item_.frame,
-                    item_.command,
-                    item_.current,
-                    item_.autocontinue,
-                    item_.param1,
-                    item_.param2,
-                    item_.param3,
-                    item_.param4,
-                    item_.x / 1e7,
-                    item_.y / 1e7,
-                    item_.z,
-                    mtype,
-                )
+                out = mav.MAVLink_mission_item_int_message(*head, item_.x, item_.y, item_.z, mtype)
+            else:  # legacy MISSION_ITEM carries degrees as floats
+                out = mav.MAVLink_mission_item_message(*head, item_.x / 1e7, item_.y / 1e7, item_.z, mtype)
             self.send(out)
             return True
         if t == "MISSION_CLEAR_ALL":

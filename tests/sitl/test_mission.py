@@ -58,17 +58,21 @@ def upload(
     raise AssertionError("upload did not finish")
 
 
-def download(g: Gcs, mission_type: int = 0) -> list[Any]:
+def download(g: Gcs, mission_type: int = 0, legacy: bool = False) -> list[Any]:
+    """Read the vehicle's items back; ``legacy`` asks with MISSION_REQUEST (answered by MISSION_ITEM)."""
     g.m.mav.mission_request_list_send(g.sysid, 1, mission_type)
     count = g.wait("MISSION_COUNT").count
     out = []
     for seq in range(count):
-        g.m.mav.mission_request_int_send(g.sysid, 1, seq, mission_type)
+        if legacy:
+            g.m.mav.mission_request_send(g.sysid, 1, seq, mission_type)
+        else:
+            g.m.mav.mission_request_int_send(g.sysid, 1, seq, mission_type)
 
         def is_seq(m: Any, s: int = seq) -> bool:
             return bool(m.seq == s)
 
-        out.append(g.wait("MISSION_ITEM_INT", is_seq))
+        out.append(g.wait("MISSION_ITEM" if legacy else "MISSION_ITEM_INT", is_seq))
     g.m.mav.mission_ack_send(g.sysid, 1, mavlink.MAV_MISSION_ACCEPTED, mission_type)
     return out
 
@@ -101,6 +105,9 @@ def test_mission_upload_then_auto_flies_it(make_fleet, make_gcs, legacy: bool) -
     assert [m.command for m in got[1:]] == [it[2] for it in items[1:]]
     tol = 40 if legacy else 1  # MISSION_ITEM carries float32 degrees (~4e-6 deg resolution here)
     assert abs(got[3].x - items[3][9]) <= tol and abs(got[3].y - items[3][10]) <= tol
+    degrees = download(g, legacy=True)  # the legacy read-back: MISSION_ITEM in float degrees
+    assert [m.command for m in degrees] == [m.command for m in got]
+    assert degrees[3].x == pytest.approx(got[3].x / 1e7, abs=1e-5) and degrees[3].z == got[3].z
     # arm in GUIDED, switch to AUTO on the ground: the takeoff item starts the mission
     g.stream(mavlink.MAVLINK_MSG_ID_MISSION_CURRENT, 2)
     assert g.set_mode("GUIDED") == ACCEPTED
