@@ -84,7 +84,10 @@ async def test_mavsdk_fence_and_mission_upload(sim_fleet: Any, closing: Any) -> 
     await wait_until(
         ap,
         lambda t: (
-            t.mode == "AUTO" and t.mission_current == 1 and distance_m(t.lat, t.lon, last.lat, last.lon) < 3
+            # at the last item, or already past it ("Mission complete") when polled late
+            t.mode == "AUTO"
+            and t.mission_current >= len(points) - 1
+            and distance_m(t.lat, t.lon, last.lat, last.lon) < 3
         ),
         "the last waypoint in AUTO",
         timeout=20.0,
