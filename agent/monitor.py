@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 from agent.autopilot.base import HEARTBEAT_TIMEOUT_S, Autopilot, AutopilotError, Telemetry
 from agent.config import AgentSettings
-from protocol.geo import distance_m, point_in_polygon
 from protocol.packets import Geofence
 
 log = logging.getLogger("agent.monitor")
@@ -34,17 +33,7 @@ def fence_violation(t: Telemetry, fence: Geofence | None) -> str | None:
     """Why the vehicle is outside ``fence``, or None when inside (or no fence/position)."""
     if fence is None or t.gps_fix < 3:
         return None
-    if fence.max_alt_m is not None and t.alt_rel > fence.max_alt_m:
-        return f"altitude {t.alt_rel:.1f} m above the ceiling {fence.max_alt_m:.1f} m"
-    if fence.circle is not None:
-        off = distance_m(t.lat, t.lon, fence.circle.lat, fence.circle.lon)
-        if off > fence.circle.radius_m:
-            return f"{off:.1f} m from the fence centre, radius {fence.circle.radius_m:.1f} m"
-    if fence.polygon is not None:
-        vertices = [(v.lat, v.lon) for v in fence.polygon]
-        if not point_in_polygon(t.lat, t.lon, vertices):
-            return "outside the fence polygon"
-    return None
+    return fence.violation(t.lat, t.lon, t.alt_rel)
 
 
 class ExceptionMonitor:

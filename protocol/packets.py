@@ -13,6 +13,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from protocol.actions import Action, AltitudeRel, Latitude, Longitude
+from protocol.geo import distance_m, point_in_polygon
 
 PROTOCOL_VERSION = 1
 
@@ -198,6 +199,20 @@ class Geofence(_Body):
     polygon: list[FenceVertex] | None = Field(default=None, min_length=3, max_length=500)
     max_alt_m: Annotated[float, Field(gt=0.0, le=10_000.0)] | None = None
     breach_action: Literal["report", "rtl", "land", "hold"] = "rtl"
+
+    def violation(self, lat: float, lon: float, alt_rel: float) -> str | None:
+        """Why a position is outside this fence, or None when inside every part of it."""
+        if self.max_alt_m is not None and alt_rel > self.max_alt_m:
+            return f"altitude {alt_rel:.1f} m above the ceiling {self.max_alt_m:.1f} m"
+        if self.circle is not None:
+            off = distance_m(lat, lon, self.circle.lat, self.circle.lon)
+            if off > self.circle.radius_m:
+                return f"{off:.1f} m from the fence centre, radius {self.circle.radius_m:.1f} m"
+        if self.polygon is not None and not point_in_polygon(
+            lat, lon, [(v.lat, v.lon) for v in self.polygon]
+        ):
+            return "outside the fence polygon"
+        return None
 
 
 class SetParameters(_Body):

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.geo import distance_m, point_in_polygon
+from protocol.geo import distance_m
 from protocol.packets import Geofence, StatusReport
 
 
@@ -23,17 +23,7 @@ def fence_violation(status: StatusReport, fence: Geofence | None) -> str | None:
     if fence is None or status.gps.fix < 3 or status.landed:
         return None
     p = status.position
-    if fence.max_alt_m is not None and p.alt_rel > fence.max_alt_m:
-        return f"altitude {p.alt_rel:.1f} m above the ceiling {fence.max_alt_m:.1f} m"
-    if fence.circle is not None:
-        off = distance_m(p.lat, p.lon, fence.circle.lat, fence.circle.lon)
-        if off > fence.circle.radius_m:
-            return f"{off:.1f} m from the fence centre, radius {fence.circle.radius_m:.1f} m"
-    if fence.polygon is not None and not point_in_polygon(
-        p.lat, p.lon, [(v.lat, v.lon) for v in fence.polygon]
-    ):
-        return "outside the fence polygon"
-    return None
+    return fence.violation(p.lat, p.lon, p.alt_rel)
 
 
 @dataclass
