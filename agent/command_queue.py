@@ -13,6 +13,7 @@ import contextlib
 import logging
 from collections import deque
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 
 from agent.executor import ActionExecutor, ActionFailed
 from agent.tasks import cancel_and_wait
@@ -21,6 +22,16 @@ from protocol.actions import Action
 log = logging.getLogger("agent.queue")
 
 FinishedHook = Callable[[str, int], Awaitable[None]]
+
+
+@dataclass(frozen=True)
+class _BarrierWait:
+    """Queue entry of a barrier the agent finished before it lost its queue (rejoin)."""
+
+    step: int
+    sync: bool = True
+
+
 FailedHook = Callable[[Action, str], Awaitable[None]]
 
 
@@ -29,7 +40,7 @@ class CommandQueue:
         self._executor = executor
         self._on_finished = on_finished
         self._on_failed = on_failed
-        self._pending: deque[Action] = deque()
+        self._pending: deque[Action | _BarrierWait] = deque()
         self._wakeup = asyncio.Event()
         self._releases: set[int] = set()
         self._release_event = asyncio.Event()
@@ -59,13 +70,22 @@ class CommandQueue:
     async def stop(self) -> None:
         await cancel_and_wait([t for t in (self._current, self._runner) if t is not None])
 
-    async def submit(self, mission_id: str, actions: list[Action], replace: bool) -> None:
-        """Add ``actions`` (type 4). ``replace`` empties the queue and cancels the running action."""
+    async def submit(
+        self, mission_id: str, actions: list[Action], replace: bool, await_release: int | None = None
+    ) -> None:
+        """Add ``actions`` (type 4). ``replace`` empties the queue and cancels the running action.
+
+        ``await_release`` (a rejoin at an unreleased barrier): wait for the release of that step
+        before running ``actions``, exactly as if the barrier action had just finished here.
+        """
         if replace or mission_id != self.mission_id:
             await self.interrupt()
             self.mission_id = mission_id
             self.completed_step = -1
             self._releases.clear()
+        if await_release is not None:
+            self.completed_step = max(self.completed_step, await_release)
+            self._pending.append(_BarrierWait(step=await_release))
         self._pending.extend(actions)
         self._wakeup.set()
 
@@ -133,8 +153,11 @@ class CommandQueue:
             self._current = None
             self.current_step = -1
 
-    async def _perform(self, action: Action) -> None:
+    async def _perform(self, action: Action | _BarrierWait) -> None:
         mission_id = self.mission_id or ""
+        if isinstance(action, _BarrierWait):
+            await self._wait_release(mission_id, action.step)
+            return
         try:
             await self._executor.run(action)
         except ActionFailed as exc:
@@ -143,10 +166,13 @@ class CommandQueue:
             return
         self.completed_step = max(self.completed_step, action.step)
         if action.sync:
-            self.waiting_sync = action.step
-            await self._on_finished(mission_id, action.step)
-            while action.step not in self._releases:
-                self._release_event.clear()
-                await self._release_event.wait()
-            self.waiting_sync = None
-            await self._resumed.wait()  # a pause during the barrier wait holds past the release
+            await self._wait_release(mission_id, action.step)
+
+    async def _wait_release(self, mission_id: str, step: int) -> None:
+        self.waiting_sync = step
+        await self._on_finished(mission_id, step)
+        while step not in self._releases:
+            self._release_event.clear()
+            await self._release_event.wait()
+        self.waiting_sync = None
+        await self._resumed.wait()  # a pause during the barrier wait holds past the release

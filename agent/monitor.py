@@ -52,6 +52,14 @@ class ExceptionMonitor:
         self._report = report
         self.geofence: Geofence | None = None
         self.active: dict[str, Condition] = {}
+        self.failsafe: Condition | None = None  # latched vehicle-moving reaction (see latch_failsafe)
+
+    def failsafe_text(self) -> str | None:
+        return f"{self.failsafe.name}: {self.failsafe.reaction}" if self.failsafe else None
+
+    def clear_failsafe(self) -> None:
+        """An operator command takes the vehicle over from the agent's own failsafe."""
+        self.failsafe = None
 
     def conditions(self, t: Telemetry, now: float) -> list[Condition]:
         """Every exception that holds right now (pure function of state)."""
@@ -86,7 +94,11 @@ class ExceptionMonitor:
 
     async def check(self) -> None:
         now = time.monotonic()
-        current = {c.name: c for c in self.conditions(self._autopilot.telemetry(), now)}
+        telemetry = self._autopilot.telemetry()
+        if self.failsafe is not None and telemetry.landed and not telemetry.armed:
+            await self._report("failsafe_ended", f"{self.failsafe.name}: vehicle landed")
+            self.failsafe = None
+        current = {c.name: c for c in self.conditions(telemetry, now)}
         for name, condition in current.items():
             if name not in self.active:
                 await self._react(condition)
@@ -102,6 +114,9 @@ class ExceptionMonitor:
         t = self._autopilot.telemetry()
         if t.landed or not t.armed:
             return
+        # Latched until the vehicle is down or the operator takes over: a daemon pause, resume or
+        # new plan of lower priority must not undo the agent's own failsafe (docs/cooperation.md).
+        self.failsafe = condition
         await self._interrupt_queue()
         try:
             if condition.reaction == "rtl":

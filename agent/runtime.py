@@ -60,7 +60,11 @@ def _clamp_pct(value: float | None) -> float | None:
 
 
 def build_status(
-    t: Telemetry, queue: CommandQueue, exceptions: list[str], autopilot_link: bool
+    t: Telemetry,
+    queue: CommandQueue,
+    exceptions: list[str],
+    autopilot_link: bool,
+    failsafe: str | None = None,
 ) -> StatusReport:
     """A type-2 report from telemetry and queue state."""
     return StatusReport(
@@ -86,6 +90,7 @@ def build_status(
         paused=queue.paused,
         exceptions=exceptions[:32],
         autopilot_link=autopilot_link,
+        failsafe=failsafe,
     )
 
 
@@ -148,7 +153,9 @@ class Agent:
         while True:
             t = self.autopilot.telemetry()
             link_ok = time.monotonic() - t.last_heartbeat_monotonic < HEARTBEAT_TIMEOUT_S
-            await self.link.send_status(build_status(t, self.queue, self.exception_list(), link_ok))
+            await self.link.send_status(
+                build_status(t, self.queue, self.exception_list(), link_ok, self.monitor.failsafe_text())
+            )
             self._status_wakeup.clear()
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(self.settings.status_period_s):
@@ -182,6 +189,17 @@ class Agent:
     # --- handlers -------------------------------------------------------------------------------
 
     async def _on_actions(self, packet: PerformActions) -> None:
+        failsafe = self.monitor.failsafe
+        if failsafe is not None:
+            if packet.source != "operator":
+                await self._on_exception(
+                    "command_refused",
+                    f"{packet.mode} from {packet.source or 'daemon'} refused: in failsafe "
+                    f"{failsafe.name} ({failsafe.reaction}); only an operator command overrides it",
+                )
+                return
+            log.warning("operator %s overrides failsafe %s", packet.mode, failsafe.name)
+            self.monitor.clear_failsafe()
         if packet.mode == "pause":
             log.info("paused: %s", packet.reason or "no reason given")
             try:
@@ -194,7 +212,12 @@ class Agent:
         else:
             actions: list[Action] = list(packet.actions)
             log.info("%s %d actions for mission %s", packet.mode, len(actions), packet.mission_id)
-            await self.queue.submit(packet.mission_id, actions, replace=packet.mode == "replace")
+            await self.queue.submit(
+                packet.mission_id,
+                actions,
+                replace=packet.mode == "replace",
+                await_release=packet.await_release,
+            )
         self._status_wakeup.set()
 
     async def _on_release(self, signal: SyncSignal) -> None:

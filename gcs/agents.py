@@ -138,6 +138,7 @@ class AgentManager:
         self.on_lost: list[LostHook] = []
         self._tasks: set[asyncio.Task[None]] = set()
         self._pending_handshakes = 0
+        self._posts: set[asyncio.Task[bool]] = set()
 
     # --- queries --------------------------------------------------------------------------------
 
@@ -148,11 +149,24 @@ class AgentManager:
     def connected(self) -> list[AgentSession]:
         return [s for s in self.sessions.values() if s.open]
 
-    async def send(self, identity: str, body: Body) -> bool:
+    async def send(self, identity: str, body: Body, *, urgent: bool = False) -> bool:
         session = self.session(identity)
         if session is None:
             return False
         return await session.send(body, self.config.send_timeout_s, self.config.max_pending_bytes)
+
+    def post(self, identity: str, body: Body, *, urgent: bool = False) -> bool:
+        """Queue a packet for one agent without waiting; False if it is not connected.
+
+        Packets to one agent keep their order (the session's send lock is FIFO); a slow agent
+        delays only its own packets.
+        """
+        if self.session(identity) is None:
+            return False
+        task = asyncio.create_task(self.send(identity, body, urgent=urgent), name=f"post-{identity}")
+        self._posts.add(task)
+        task.add_done_callback(self._posts.discard)
+        return True
 
     # --- connections ----------------------------------------------------------------------------
 

@@ -38,12 +38,11 @@ from gcs.api_models import (
     UiConfig,
 )
 from gcs.api_planning import DroneInfo, PlanningError, PlanPreview, PlanRequest, plan, task_paths
+from gcs.authority import VehicleControl
 from gcs.events import Event
 from gcs.live import LiveHub, StatusSample, StreamClient
 from gcs.metrics import CONTENT_TYPE
 from gcs.missions import MissionProgress, MissionRejected
-from protocol.actions import Land, ReturnToLaunch
-from protocol.packets import PerformActions
 from protocol.taskfile import TaskFile, TaskFileError, parse_task_document
 
 if TYPE_CHECKING:
@@ -337,18 +336,15 @@ def create_app(daemon: Daemon) -> FastAPI:
     async def abort(
         mission_id: str,
         then: Annotated[
-            Literal["rtl", "hold"], Query(description="rtl: fly home (default); hold: stop where they are")
+            Literal["rtl", "hold", "land"],
+            Query(description="rtl: fly home, deconflicted (default); hold: stop where they are; land"),
         ] = "rtl",
     ) -> MissionProgress:
-        members = _members(mission_id)
         started = time.perf_counter()
         progress = await _mission_command(
-            mission_id, lambda m: daemon.missions.abort(m, f"aborted by the operator ({then})")
+            mission_id,
+            lambda m: daemon.missions.abort(m, f"aborted by the operator ({then})", "operator", then),
         )
-        if then == "hold":  # the RTL just queued waits behind a pause until the operator decides
-            await _send_all(
-                members, PerformActions(mission_id=mission_id, mode="pause", reason="abort: hold")
-            )
         hub.metrics.command_latency.labels(f"abort_{then}").observe(time.perf_counter() - started)
         return progress
 
@@ -370,17 +366,15 @@ def create_app(daemon: Daemon) -> FastAPI:
         active = daemon.missions.active.get(mission_id)
         return [a for a in active.plans if a not in active.excluded] if active else []
 
-    async def _mission_command(mission_id: str, command: Callable[[str], Awaitable[None]]) -> MissionProgress:
+    async def _mission_command(
+        mission_id: str, command: Callable[[str], Awaitable[object]]
+    ) -> MissionProgress:
         _progress(mission_id)
         try:
             await command(mission_id)
         except MissionRejected as exc:
             raise ApiProblem(409, "mission not running", str(exc)) from None
         return _progress(mission_id)
-
-    async def _send_all(identities: list[str], body: PerformActions) -> list[str]:
-        sent = await asyncio.gather(*(daemon.agents.send(i, body) for i in identities))
-        return [i for i, ok in zip(identities, sent, strict=True) if ok]
 
     # --- fleet commands -------------------------------------------------------------------------------
 
@@ -391,12 +385,19 @@ def create_app(daemon: Daemon) -> FastAPI:
         return [a for a in command.agents if a in connected]
 
     async def _stop_missions(targets: list[str], why: str) -> list[str]:
+        """Take the targets out of their missions; a mission left with nobody is aborted."""
         aborted = []
         for mission_id in list(daemon.missions.active):
-            if set(_members(mission_id)) & set(targets):
+            members = _members(mission_id)
+            if not set(members) & set(targets):
+                continue
+            if set(members) <= set(targets):
                 with contextlib.suppress(MissionRejected):
-                    await daemon.missions.abort(mission_id, why)
+                    await daemon.missions.abort(mission_id, why, "operator", "hold")
                     aborted.append(mission_id)
+            else:
+                for identity in set(members) & set(targets):
+                    await daemon.missions.withdraw(identity, why)
         return aborted
 
     async def _fleet_return(kind: Literal["rtl", "land"], command: FleetCommand | None) -> FleetCommandResult:
@@ -404,25 +405,23 @@ def create_app(daemon: Daemon) -> FastAPI:
         targets = _targets(command)
         reason = command.reason if command else "operator"
         aborted = await _stop_missions(targets, f"fleet {kind} ({reason})")
-        action = ReturnToLaunch(step=0) if kind == "rtl" else Land(step=0)
-        order = PerformActions(
-            mission_id=f"{kind}-{time.strftime('%H%M%S')}", mode="replace", actions=[action], reason=reason
-        )
-        delivered = await _send_all(targets, order)
+        delivered = daemon.returns.start(targets, kind, "operator", f"fleet {kind} ({reason})")
         hub.metrics.command_latency.labels(kind).observe(time.perf_counter() - started)
         daemon.events.publish(
-            f"fleet_{kind}", f"{kind} sent to {len(delivered)} agents ({reason})", data={"agents": delivered}
+            f"fleet_{kind}",
+            f"{kind} sent to {len(delivered)} airborne agents ({reason})",
+            data={"agents": delivered},
         )
         return FleetCommandResult(command=kind, delivered=delivered, aborted_missions=aborted)
 
     @app.post("/api/v1/fleet/rtl", dependencies=token)
     async def fleet_rtl(command: FleetCommand | None = None) -> FleetCommandResult:
-        """Abort the missions involved and send every (or the given) agent home."""
+        """Take the agents out of their missions and bring every airborne one home (deconflicted)."""
         return await _fleet_return("rtl", command)
 
     @app.post("/api/v1/fleet/land", dependencies=token)
     async def fleet_land(command: FleetCommand | None = None) -> FleetCommandResult:
-        """Abort the missions involved and land every (or the given) agent where it is."""
+        """Take the agents out of their missions and land every airborne one where it is (in sequence)."""
         return await _fleet_return("land", command)
 
     async def _fleet_pause(
@@ -431,31 +430,37 @@ def create_app(daemon: Daemon) -> FastAPI:
         started = time.perf_counter()
         targets = _targets(command)
         reason = command.reason if command else "operator"
-        mode: Literal["pause", "resume"] = "pause" if kind == "hold" else "resume"
+        why = f"fleet {kind}: {reason}"
         for mission_id in list(daemon.missions.active):
-            if set(_members(mission_id)) & set(targets):
+            if set(_members(mission_id)) <= set(targets):
                 with contextlib.suppress(MissionRejected):
-                    await (daemon.missions.pause if mode == "pause" else daemon.missions.resume)(
-                        mission_id, f"fleet {kind} ({reason})"
+                    await (daemon.missions.pause if kind == "hold" else daemon.missions.resume)(
+                        mission_id, why
                     )
         delivered = [
             t
             for t in targets
-            if await (daemon.pause_agent if mode == "pause" else daemon.resume_agent)(
-                t, f"fleet {kind}: {reason}"
-            )
+            if await (daemon.pause_agent if kind == "hold" else daemon.resume_agent)(t, why)
         ]
         hub.metrics.command_latency.labels(kind).observe(time.perf_counter() - started)
         return FleetCommandResult(command=kind, delivered=delivered)
 
     @app.post("/api/v1/fleet/hold", dependencies=token)
     async def fleet_hold(command: FleetCommand | None = None) -> FleetCommandResult:
-        """Every (or the given) agent stops where it is and keeps its queue."""
+        """Every (or the given) agent stops where it is and keeps its queue (an operator hold)."""
         return await _fleet_pause("hold", command)
 
     @app.post("/api/v1/fleet/resume", dependencies=token)
     async def fleet_resume(command: FleetCommand | None = None) -> FleetCommandResult:
+        """Drop the operator's hold; lower sources' holds (collision...) still apply until they clear."""
         return await _fleet_pause("resume", command)
+
+    @app.get("/api/v1/agents/{identity}/authority")
+    async def agent_authority(identity: str) -> VehicleControl:
+        """Who controls this drone now, its holds by owner, and the last command decisions and why."""
+        if identity not in daemon.agents.sessions and identity not in daemon.store.known_agents():
+            raise ApiProblem(404, "unknown agent", f"no agent named {identity!r}")
+        return daemon.authority.control(identity)
 
     @app.get("/api/v1/geofence")
     async def get_geofence() -> GeofenceState:

@@ -9,19 +9,23 @@ import secrets
 import ssl
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Literal, Protocol
+from typing import Protocol
 
-from gcs.agents import AgentManager
+from gcs.agents import AgentManager, AgentSession
+from gcs.authority import Owner, VehicleAuthority
 from gcs.config import DaemonConfig
+from gcs.context import ServiceContext
 from gcs.cooperation import cooperation_services
-from gcs.events import EventBus
+from gcs.cooperation.event_throttle import EventThrottle
+from gcs.cooperation.return_coordinator import ReturnCoordinator, ReturnSettings, VehicleView
+from gcs.events import EventBus, Severity
 from gcs.extensions import load_extensions
 from gcs.keys import KeyRing, load_or_create_key_file
 from gcs.missions import MissionRunner
 from gcs.store import Store
 from gcs.telemetry import TelemetryRecorder
 from protocol.auth import parse_key
-from protocol.packets import AgentParameters, CloseReason, Geofence, PerformActions, SetParameters
+from protocol.packets import AgentParameters, CloseReason, Geofence, SetParameters, StatusReport, SyncSignal
 
 log = logging.getLogger("gcs.daemon")
 
@@ -71,14 +75,15 @@ def _quiet_server_class() -> type:
 class Service(Protocol):
     """A fleet service running inside the daemon (collision avoidance, an extension...).
 
-    ``start`` is called after the agent listener is up, ``stop`` before it closes; a service
-    hooks into ``daemon.agents.on_status`` / ``on_join`` / ``on_lost``, ``daemon.events`` and
-    ``daemon.missions.preflight_checks``.
+    ``start`` is called after the agent listener is up, ``stop`` before it closes. A service gets
+    a :class:`gcs.context.ServiceContext` (not the daemon): it hooks into ``ctx.agents.on_status``
+    / ``on_join`` / ``on_lost``, ``ctx.events`` and ``ctx.missions.preflight_checks``, and commands
+    drones only through ``ctx.authority``.
     """
 
     name: str
 
-    async def start(self, daemon: Daemon) -> None: ...
+    async def start(self, ctx: ServiceContext) -> None: ...
 
     async def stop(self) -> None: ...
 
@@ -97,7 +102,22 @@ class Daemon:
         )
         self.keys = KeyRing.from_files(fleet_key, config.agent_keys_file, config.allow_unlisted_agents)
         self.agents = AgentManager(config, self.store, self.events, self.keys)
-        self.missions = MissionRunner(self.agents, self.store, self.events)
+        self._decision_events = EventThrottle(self._publish_decision, window_s=5.0)
+        self.authority = VehicleAuthority(self.agents, self._on_decision, self._persist_hold)
+        self.missions = MissionRunner(self.agents, self.store, self.events, self.authority)
+        collision = config.cooperation.collision
+        self.returns = ReturnCoordinator(
+            self.authority,
+            self._fleet_view,
+            self._release_return,
+            self._publish_return,
+            ReturnSettings(
+                horizontal_margin_m=collision.horizontal_margin_m,
+                layer_step_m=collision.vertical_margin_m + 1.0,
+            ),
+        )
+        self.missions.return_home = self.returns.start
+        self.agents.on_status.insert(0, self._observe_status)
         self.api_token = load_api_token(config)
         self._server: asyncio.base_events.Server | None = None
         self._http_task: asyncio.Task[None] | None = None
@@ -111,8 +131,65 @@ class Daemon:
         self.services += load_extensions(config)  # user modules listed in the configuration
         self.services.extend(cooperation_services(config.cooperation))
 
+    def context(self) -> ServiceContext:
+        """The narrow view of the daemon that services get."""
+        return ServiceContext(
+            config=self.config,
+            store=self.store,
+            agents=self.agents,
+            events=self.events,
+            missions=self.missions,
+            authority=self.authority,
+            returns=self.returns,
+            geofences=self.geofences,
+            services=self.services,
+        )
+
+    # --- vehicle authority plumbing -------------------------------------------------------------
+
+    def _publish_decision(
+        self, kind: str, message: str, severity: str, agent: str | None, data: dict[str, object]
+    ) -> None:
+        level: Severity = "warning" if severity == "warning" else "info"
+        self.events.publish(kind, message, severity=level, agent=agent, data=data)
+
+    def _on_decision(self, agent: str, source: str, command: str, accepted: bool, message: str) -> None:
+        self._decision_events.publish(
+            "command" if accepted else "command_refused",
+            message,
+            "info" if accepted else "warning",
+            agent,
+            {"source": source, "command": command, "accepted": accepted},
+            key=f"{source}/{command}/{accepted}",
+        )
+
+    def _publish_return(self, kind: str, message: str, agent: str | None, data: dict[str, object]) -> None:
+        self.events.publish(kind, message, agent=agent, data=data)
+
+    def _persist_hold(self, agent: str, owner: str, reason: str | None) -> None:
+        if reason is None:
+            self.store.drop_hold(agent, owner)
+        else:
+            self.store.save_hold(agent, owner, reason)
+
+    def _fleet_view(self) -> dict[str, VehicleView]:
+        return {
+            s.identity: VehicleView(s.status, s.home) for s in self.agents.connected() if s.status is not None
+        }
+
+    def _release_return(self, ident: str, mission_id: str, step: int) -> None:
+        self.agents.post(ident, SyncSignal(mission_id=mission_id, step=step, kind="release"), urgent=True)
+
+    async def _observe_status(self, session: AgentSession, status: StatusReport) -> None:
+        if status.buffered:
+            return
+        self.authority.observe(session.identity, status)
+        self.returns.tick()
+
     async def start(self) -> None:
         self.missions.restore()
+        for agent, owner, reason in self.store.holds():
+            self.authority.restore_hold(agent, owner, reason)
         tls = server_tls_context(self.config)
         self._server = await asyncio.start_server(
             self.agents.handle_connection,
@@ -124,8 +201,9 @@ class Daemon:
         )
         self.listen_port = self._server.sockets[0].getsockname()[1]
         self._liveness = asyncio.create_task(self.agents.watch_liveness(), name="liveness")
+        context = self.context()
         for service in self.services:
-            await service.start(self)
+            await service.start(context)
         if self.config.http_host:
             await self._start_http()
         self.events.publish(
@@ -194,21 +272,17 @@ class Daemon:
     async def set_parameters(self, parameters: AgentParameters, agents: list[str] | None = None) -> list[str]:
         return await self._distribute(SetParameters(parameters=parameters), agents)
 
-    async def pause_agent(self, identity: str, reason: str) -> bool:
-        """Hold one agent where it is (its queue is kept); True if the pause was sent."""
-        return await self._pause_or_resume(identity, "pause", reason)
-
-    async def resume_agent(self, identity: str, reason: str) -> bool:
-        return await self._pause_or_resume(identity, "resume", reason)
-
-    async def _pause_or_resume(self, identity: str, mode: Literal["pause", "resume"], reason: str) -> bool:
-        session = self.agents.session(identity)
-        if session is None:
+    async def pause_agent(self, identity: str, reason: str, owner: Owner = "operator") -> bool:
+        """Hold one agent where it is (its queue is kept), through the authority; True if accepted."""
+        if self.agents.session(identity) is None:
             return False
-        mission_id = session.status.mission_id if session.status and session.status.mission_id else "none"
-        return await session.send(
-            PerformActions(mission_id=mission_id, mode=mode, reason=reason), self.config.send_timeout_s
-        )
+        return self.authority.hold(identity, owner, reason)[0]
+
+    async def resume_agent(self, identity: str, reason: str, owner: Owner = "operator") -> bool:
+        """Drop ``owner``'s hold; the agent resumes once nothing else holds it."""
+        if self.agents.session(identity) is None:
+            return False
+        return self.authority.release(identity, owner, reason)[0]
 
     async def _distribute(self, body: SetParameters, agents: list[str] | None) -> list[str]:
         targets = agents if agents is not None else [s.identity for s in self.agents.connected()]

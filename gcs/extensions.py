@@ -28,18 +28,18 @@ import asyncio
 import contextlib
 import importlib
 import logging
-import time
 from collections.abc import Awaitable, Callable
 from typing import TYPE_CHECKING, Any, Literal
 
 from gcs.events import Event, Severity
-from protocol.actions import Hold, Land, ReturnToLaunch
+from protocol.actions import Hold
 from protocol.packets import Body, PerformActions, Resume, StatusReport
 
 if TYPE_CHECKING:
     from gcs.agents import AgentSession
     from gcs.config import DaemonConfig
-    from gcs.daemon import Daemon, Service
+    from gcs.context import ServiceContext
+    from gcs.daemon import Service
 
 log = logging.getLogger("gcs.extensions")
 
@@ -57,7 +57,7 @@ class Extension:
 
     def __init__(self, options: dict[str, Any] | None = None) -> None:
         self.options: dict[str, Any] = dict(options or {})
-        self.daemon: Daemon | None = None
+        self.context: ServiceContext | None = None
         self.hook_errors = 0
         self._tasks: set[asyncio.Task[Any]] = set()
         self._events: asyncio.Queue[Event] | None = None
@@ -84,23 +84,23 @@ class Extension:
 
     # --- Service protocol -----------------------------------------------------------------------------
 
-    async def start(self, daemon: Daemon) -> None:
-        self.daemon = daemon
-        daemon.agents.on_status.append(self._status_hook)
-        daemon.agents.on_join.append(self._join_hook)
-        self._events = daemon.events.subscribe()
+    async def start(self, ctx: ServiceContext) -> None:
+        self.context = ctx
+        ctx.agents.on_status.append(self._status_hook)
+        ctx.agents.on_join.append(self._join_hook)
+        self._events = ctx.events.subscribe()
         self.spawn(self._pump())
         await self._guard("setup", self.setup())
 
     async def stop(self) -> None:
         await self._guard("teardown", self.teardown())
-        if self.daemon is not None:
+        if self.context is not None:
             with contextlib.suppress(ValueError):
-                self.daemon.agents.on_status.remove(self._status_hook)
+                self.context.agents.on_status.remove(self._status_hook)
             with contextlib.suppress(ValueError):
-                self.daemon.agents.on_join.remove(self._join_hook)
+                self.context.agents.on_join.remove(self._join_hook)
             if self._events is not None:
-                self.daemon.events.unsubscribe(self._events)
+                self.context.events.unsubscribe(self._events)
         for task in list(self._tasks):
             task.cancel()
         for task in list(self._tasks):
@@ -112,8 +112,8 @@ class Extension:
     @property
     def statuses(self) -> dict[str, StatusReport]:
         """Latest status of every connected agent."""
-        assert self.daemon is not None, "extension not started"
-        return {s.identity: s.status for s in self.daemon.agents.connected() if s.status is not None}
+        assert self.context is not None, "extension not started"
+        return {s.identity: s.status for s in self.context.agents.connected() if s.status is not None}
 
     def spawn(self, coroutine: Awaitable[Any]) -> asyncio.Task[Any]:
         """Run a coroutine in the background; cancelled when the extension stops."""
@@ -142,30 +142,42 @@ class Extension:
         return self.spawn(once())
 
     async def send(self, agent: str, body: Body) -> bool:
-        """Send one protocol body (type 3, 4 ...) to one agent; False if it is not connected."""
-        assert self.daemon is not None, "extension not started"
-        return await self.daemon.agents.send(agent, body)
+        """Send one protocol body (type 3, 5 ...) to one agent; False if it is not connected.
+
+        Type-4 commands (which move a drone) go through :meth:`command`, i.e. the vehicle
+        authority, at extension priority: a body of type 4 is refused here.
+        """
+        assert self.context is not None, "extension not started"
+        if isinstance(body, PerformActions):
+            raise ExtensionError("type-4 commands go through Extension.command (the vehicle authority)")
+        return await self.context.agents.send(agent, body)
 
     async def send_all(self, body: Body) -> list[str]:
         """Send one body to every connected agent; returns who got it."""
-        assert self.daemon is not None, "extension not started"
-        names = [s.identity for s in self.daemon.agents.connected()]
+        assert self.context is not None, "extension not started"
+        names = [s.identity for s in self.context.agents.connected()]
         sent = await asyncio.gather(*(self.send(n, body) for n in names))
         return [n for n, ok in zip(names, sent, strict=True) if ok]
 
     async def command(self, agent: str, command: Command, reason: str = "") -> bool:
-        """rtl / land (new orders, replacing the queue), hold / resume (keep the queue)."""
-        assert self.daemon is not None, "extension not started"
+        """rtl / land (deconflicted return, out of its mission), hold / resume (keep the queue).
+
+        Goes through the vehicle authority at ``extension`` priority (docs/cooperation.md): True
+        when accepted, False when the drone is not connected or a higher source controls it.
+        """
+        ctx = self.context
+        assert ctx is not None, "extension not started"
+        if ctx.agents.session(agent) is None:
+            return False
         why = f"{self.name}: {reason}" if reason else self.name
         if command == "hold":
-            return await self.daemon.pause_agent(agent, why)
+            return ctx.authority.hold(agent, "extension", why)[0]
         if command == "resume":
-            return await self.daemon.resume_agent(agent, why)
-        action = ReturnToLaunch(step=0) if command == "rtl" else Land(step=0)
-        body = PerformActions(
-            mission_id=f"{self.name[:40]}-{command}-{int(time.time())}", mode="replace", actions=[action]
-        )
-        return await self.send(agent, body)
+            return ctx.authority.release(agent, "extension", why)[0]
+        if not ctx.authority.request(agent, "extension", command, why)[0]:
+            return False
+        await ctx.missions.withdraw(agent, why)
+        return agent in ctx.returns.start([agent], command, "extension", why)
 
     def publish(
         self,
@@ -176,8 +188,8 @@ class Extension:
         agent: str | None = None,
         data: dict[str, Any] | None = None,
     ) -> Event:
-        assert self.daemon is not None, "extension not started"
-        return self.daemon.events.publish(
+        assert self.context is not None, "extension not started"
+        return self.context.events.publish(
             kind, message, severity=severity, agent=agent, data={"extension": self.name, **(data or {})}
         )
 

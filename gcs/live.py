@@ -27,6 +27,7 @@ from protocol.packets import Geofence, StatusReport
 
 if TYPE_CHECKING:
     from gcs.agents import AgentSession
+    from gcs.context import ServiceContext
     from gcs.daemon import Daemon
 
 log = logging.getLogger("gcs.live")
@@ -100,7 +101,7 @@ class LiveHub:
 
     # --- lifecycle (a Service: the daemon stops it with its other services) ------------------------
 
-    async def start(self, daemon: Daemon | None = None) -> None:
+    async def start(self, ctx: ServiceContext | None = None) -> None:
         if self._pump is None:
             self._events_queue = self.daemon.events.subscribe()
             self._pump = asyncio.create_task(self._pump_events(), name="live-hub-events")

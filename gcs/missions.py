@@ -20,17 +20,28 @@ from typing import Literal
 from pydantic import BaseModel
 
 from gcs.agents import AgentManager, AgentSession
+from gcs.authority import Owner, VehicleAuthority
+from gcs.cooperation.geo import LocalFrame
+from gcs.cooperation.returns import Returner, assign_layers
 from gcs.events import EventBus
 from gcs.store import Store
 from gcs.sync import BarrierSet
 from protocol.actions import Action, ReturnToLaunch
-from protocol.packets import PerformActions, Resume, StatusReport, SyncSignal
+from protocol.packets import Resume, StatusReport, SyncSignal
 from protocol.taskfile import TaskFile
 
 log = logging.getLogger("gcs.missions")
 
 PreflightCheck = Callable[[TaskFile, dict[str, list[Action]]], Awaitable[None]]
 """Runs before a mission is accepted; raises MissionRejected (with the numbers) to refuse it."""
+
+ReturnHome = Callable[[list[str], Literal["rtl", "land"], Owner, str], list[str]]
+"""Starts a deconflicted return (``gcs.cooperation.return_coordinator``); returns who got it."""
+
+RETURN_PREFIX = "return-"
+RETURN_BASE_ALT_M = 15.0
+RETURN_LAYER_STEP_M = 3.0
+RETURN_SPACING_M = 6.0
 
 MissionState = Literal["running", "completed", "aborted"]
 
@@ -79,13 +90,17 @@ class ActiveMission:
 class MissionRunner:
     """Runs missions over the agent manager; one mission per agent at a time."""
 
-    def __init__(self, agents: AgentManager, store: Store, events: EventBus) -> None:
+    def __init__(
+        self, agents: AgentManager, store: Store, events: EventBus, authority: VehicleAuthority
+    ) -> None:
         self._agents = agents
         self._store = store
         self._events = events
+        self._authority = authority
         self.active: dict[str, ActiveMission] = {}
         self.preflight_checks: list[PreflightCheck] = []
         self.paused: set[str] = set()
+        self.return_home: ReturnHome | None = None  # set by the daemon once the coordinator exists
         agents.on_join.append(self._on_join)
         agents.on_status.append(self._on_status)
         agents.on_sync.append(self._on_sync)
@@ -109,6 +124,7 @@ class MissionRunner:
             self._events.publish(
                 "mission_restored", f"mission {task.name} resumed after restart", mission_id=stored.id
             )
+        self.paused = self._store.paused_missions() & set(self.active)
 
     async def submit(self, task: TaskFile) -> str:
         """Validate against the live fleet, persist, and send every agent its actions."""
@@ -119,8 +135,16 @@ class MissionRunner:
                 raise MissionRejected(f"agent {identity} is not connected")
             if identity in busy:
                 raise MissionRejected(f"agent {identity} is already flying another mission")
+            verdict = self._authority.control(identity)
+            if not self._authority.may_command(identity, "mission"):
+                raise MissionRejected(
+                    f"agent {identity} is under {verdict.level} control "
+                    f"({verdict.order or ', '.join(verdict.holds) or verdict.failsafe}); "
+                    "it takes a mission once that ends (landed) or the operator releases it"
+                )
         for check in self.preflight_checks:
             await check(task, plans)
+        task, plans = self._layered_returns(task, plans)
         mission_id = f"m-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
         mission = self._build(mission_id, task, plans)
         self._store.add_mission(mission_id, task.name, task.model_dump_json(), list(plans))
@@ -131,10 +155,57 @@ class MissionRunner:
             mission_id=mission_id,
         )
         for identity, actions in plans.items():
-            await self._agents.send(
-                identity, PerformActions(mission_id=mission_id, mode="replace", actions=actions)
-            )
+            self._authority.replace(identity, "mission", mission_id, actions, f"mission {task.name}")
         return mission_id
+
+    def _layered_returns(
+        self, task: TaskFile, plans: dict[str, list[Action]]
+    ) -> tuple[TaskFile, dict[str, list[Action]]]:
+        """Plans that end with RTL return at distinct altitudes when their ways home could meet.
+
+        An RTL without an altitude flies home at the autopilot's RTL_ALT, the same for every
+        drone; each final RTL gets the layer :func:`assign_layers` gives it (lowest for the drone
+        nearest home), from its last planned position to its home.
+        """
+        from gcs.cooperation.legs import planned_targets
+
+        returners: list[Returner] = []
+        frame: LocalFrame | None = None
+        for identity, actions in plans.items():
+            session = self._agents.session(identity)
+            if not actions or not isinstance(actions[-1], ReturnToLaunch) or actions[-1].alt is not None:
+                continue
+            if session is None or session.home is None:
+                continue
+            home = session.home
+            frame = frame or LocalFrame(home.lat, home.lon)
+            targets = [t for t in planned_targets(actions, (home.lat, home.lon, 0.0)) if t is not None]
+            last = targets[-1] if targets else (home.lat, home.lon, 0.0)
+            returners.append(
+                Returner(identity, frame.point(last[0], last[1]), last[2], frame.point(home.lat, home.lon))
+            )
+        if len(returners) < 2:
+            return task, plans
+        layers = assign_layers(returners, RETURN_SPACING_M, RETURN_BASE_ALT_M, RETURN_LAYER_STEP_M)
+        alt = {p.ident: max(p.alt, r.alt) for p, r in zip(layers, returners, strict=True)}
+        new_plans = {
+            identity: [*actions[:-1], actions[-1].model_copy(update={"alt": round(alt[identity], 1)})]
+            if identity in alt
+            else actions
+            for identity, actions in plans.items()
+        }
+        # _resolve keeps the task's plan order, so plans and task.plans line up one to one.
+        updated = [
+            plan.model_copy(update={"actions": new_plans[identity]})
+            for plan, identity in zip(task.plans, new_plans, strict=True)
+        ]
+        task = task.model_copy(update={"plans": updated})
+        self._events.publish(
+            "returns_layered",
+            "final RTL altitudes: " + ", ".join(f"{i} {a:.0f} m" for i, a in sorted(alt.items())),
+            data={"alt": alt},
+        )
+        return task, new_plans
 
     def _resolve(self, task: TaskFile) -> dict[str, list[Action]]:
         """Map each plan to an agent identity (CoUAS files address agents by CID)."""
@@ -161,49 +232,60 @@ class MissionRunner:
             completed=dict.fromkeys(plans, -1),
         )
 
-    async def abort(self, mission_id: str, reason: str) -> None:
-        """Stop a mission: every agent still in it returns to launch."""
+    async def abort(
+        self,
+        mission_id: str,
+        reason: str,
+        owner: Owner = "mission",
+        then: Literal["rtl", "land", "hold"] = "rtl",
+    ) -> list[str]:
+        """Stop a mission: every agent still in it returns (deconflicted), lands, or holds.
+
+        ``owner`` is who asked (``operator`` from the API): the returns run at that priority.
+        Returns the agents that were given the new orders.
+        """
         mission = self._require(mission_id)
-        rtl_step = max(m[-1].step for m in mission.plans.values()) + 1
-        for identity in mission.plans:
-            if identity not in mission.excluded:
-                await self._agents.send(
-                    identity,
-                    PerformActions(
-                        mission_id=mission_id, mode="replace", actions=[ReturnToLaunch(step=rtl_step)]
-                    ),
-                )
+        members = self.members(mission)
         self._finish(mission, "aborted", reason)
+        if then == "hold":
+            return [m for m in members if self._authority.hold(m, owner, f"abort: {reason}", mission_id)[0]]
+        if self.return_home is None:
+            return []
+        return self.return_home(members, then, owner, f"abort: {reason}")
 
-    async def withdraw(self, identity: str, reason: str, actions: list[Action]) -> bool:
-        """Take one agent out of its mission (emergency): exclude it, then send it ``actions``.
+    async def withdraw(self, identity: str, reason: str) -> bool:
+        """Take one agent out of its mission (emergency): the others go on without it.
 
-        The others go on without it (barriers it blocked are released). Its new orders carry the
-        mission id but no longer count towards completion. False if it flies no active mission.
+        Barriers it blocked are released; what it does next is for the caller to order through
+        the authority. False if it flies no active mission.
         """
         mission = self._mission_of(identity)
         if mission is None or identity in mission.excluded:
             return False
         await self._exclude(mission, identity, f"withdrawn: {reason}")
-        orders = PerformActions(mission_id=mission.id, mode="replace", actions=actions)
-        await self._agents.send(identity, orders)
         return True
 
+    def members(self, mission: ActiveMission) -> list[str]:
+        return [a for a in mission.plans if a not in mission.excluded]
+
     async def pause(self, mission_id: str, reason: str = "paused by the operator") -> None:
-        """Every agent of the mission stops where it is and keeps its queue."""
+        """Every agent of the mission stops where it is and keeps its queue (an operator hold).
+
+        The pause is stored: agents that rejoin, and a restarted daemon, keep it.
+        """
         mission = self._require(mission_id)
-        await self._send_to_members(
-            mission, PerformActions(mission_id=mission_id, mode="pause", reason=reason)
-        )
+        for identity in self.members(mission):
+            self._authority.hold(identity, "operator", reason, mission_id)
         self.paused.add(mission_id)
+        self._store.set_paused(mission_id, True)
         self._events.publish("mission_paused", reason, mission_id=mission_id)
 
     async def resume(self, mission_id: str, reason: str = "resumed by the operator") -> None:
         mission = self._require(mission_id)
-        await self._send_to_members(
-            mission, PerformActions(mission_id=mission_id, mode="resume", reason=reason)
-        )
+        for identity in self.members(mission):
+            self._authority.release(identity, "operator", reason, mission_id)
         self.paused.discard(mission_id)
+        self._store.set_paused(mission_id, False)
         self._events.publish("mission_resumed", reason, mission_id=mission_id)
 
     def _require(self, mission_id: str) -> ActiveMission:
@@ -212,13 +294,11 @@ class MissionRunner:
             raise MissionRejected(f"mission {mission_id} is not running")
         return mission
 
-    async def _send_to_members(self, mission: ActiveMission, body: PerformActions) -> None:
-        targets = [a for a in mission.plans if a not in mission.excluded]
-        await asyncio.gather(*(self._agents.send(identity, body) for identity in targets))
-
     def _finish(self, mission: ActiveMission, state: MissionState, result: str) -> None:
         mission.state = state
-        self.paused.discard(mission.id)
+        if mission.id in self.paused:
+            self.paused.discard(mission.id)
+            self._store.set_paused(mission.id, False)
         for timer in mission.timers.values():
             timer.cancel()
         self._store.finish_mission(mission.id, state, result)
@@ -239,29 +319,43 @@ class MissionRunner:
         return None
 
     async def _on_join(self, session: AgentSession, resume: Resume | None) -> None:
-        mission = self._mission_of(session.identity)
-        if mission is None or session.identity in mission.excluded:
+        identity = session.identity
+        mission = self._mission_of(identity)
+        if mission is None or identity in mission.excluded:
+            self._authority.reassert(identity)
             return
         if resume is not None and resume.mission_id == mission.id:
             # It still holds its queue. A sync wait it reports counts as a (repeated) arrival:
             # the 'finished' it sent before may have died with the previous daemon process.
+            self._authority.reassert(identity)
             if resume.waiting_step is not None:
                 await self._on_sync(
                     session, SyncSignal(mission_id=mission.id, step=resume.waiting_step, kind="finished")
                 )
             return
-        completed = max(mission.completed.get(session.identity, -1), resume.completed_step if resume else -1)
-        remaining = [a for a in mission.plans[session.identity] if a.step > completed]
+        completed = max(mission.completed.get(identity, -1), resume.completed_step if resume else -1)
+        actions = mission.plans[identity]
+        remaining = [a for a in actions if a.step > completed]
+        # Finished a barrier step that is not released yet: it must wait there again, not run on.
+        barrier = next((a.step for a in actions if a.sync and a.step == completed), None)
+        wait = barrier if barrier is not None and barrier not in mission.barriers.released else None
         self._events.publish(
             "mission_resent",
-            f"agent lost its queue; re-sending {len(remaining)} actions after step {completed}",
-            agent=session.identity,
+            f"agent lost its queue; re-sending {len(remaining)} actions after step {completed}"
+            + (f", waiting at barrier {wait} first" if wait is not None else "")
+            + (" (mission paused)" if mission.id in self.paused else ""),
+            agent=identity,
             mission_id=mission.id,
         )
-        if remaining:
-            await session.send(
-                PerformActions(mission_id=mission.id, mode="replace", actions=remaining),
-                self._agents.config.send_timeout_s,
+        if remaining or wait is not None:
+            self._authority.replace(
+                identity,
+                "mission",
+                mission.id,
+                remaining,
+                "re-sent after rejoin",
+                await_release=wait,
+                keep_holds=True,
             )
 
     async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
@@ -286,6 +380,8 @@ class MissionRunner:
             self._finish(mission, "completed", f"all {len(flying)} agents finished{note}")
 
     async def _on_sync(self, session: AgentSession, signal: SyncSignal) -> None:
+        if signal.mission_id.startswith(RETURN_PREFIX):
+            return  # a return's wait point: the return coordinator releases it
         mission = self._mission_of(session.identity, signal.mission_id)
         if mission is None:
             self._events.publish(

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -75,6 +75,16 @@ _MIGRATIONS: dict[int, str] = {
     );
     CREATE INDEX telemetry_agent_time ON telemetry(agent, time);
     CREATE INDEX telemetry_received ON telemetry(received);
+    """,
+    3: """
+    CREATE TABLE vehicle_holds (
+        agent TEXT NOT NULL,
+        owner TEXT NOT NULL,
+        reason TEXT NOT NULL,
+        since REAL NOT NULL,
+        PRIMARY KEY (agent, owner)
+    );
+    ALTER TABLE missions ADD COLUMN paused INTEGER NOT NULL DEFAULT 0;
     """,
 }
 
@@ -210,6 +220,32 @@ class Store:
             else self._db.execute(sql + " ORDER BY created")
         )
         return [StoredMission(*r) for r in rows]
+
+    def set_paused(self, mission_id: str, paused: bool) -> None:
+        with self._tx():
+            self._db.execute("UPDATE missions SET paused = ? WHERE id = ?", (int(paused), mission_id))
+
+    def paused_missions(self) -> set[str]:
+        rows = self._db.execute("SELECT id FROM missions WHERE paused = 1 AND state = 'running'").fetchall()
+        return {row[0] for row in rows}
+
+    def save_hold(self, agent: str, owner: str, reason: str) -> None:
+        """An operator-level hold, kept across daemon restarts (the lower ones are recomputed)."""
+        with self._tx():
+            self._db.execute(
+                "INSERT OR REPLACE INTO vehicle_holds (agent, owner, reason, since) VALUES (?, ?, ?, ?)",
+                (agent, owner, reason, time.time()),
+            )
+
+    def drop_hold(self, agent: str, owner: str) -> None:
+        with self._tx():
+            self._db.execute("DELETE FROM vehicle_holds WHERE agent = ? AND owner = ?", (agent, owner))
+
+    def holds(self) -> list[tuple[str, str, str]]:
+        """(agent, owner, reason) of every persisted hold."""
+        return [
+            (r[0], r[1], r[2]) for r in self._db.execute("SELECT agent, owner, reason FROM vehicle_holds")
+        ]
 
     def set_completed_step(self, mission_id: str, agent: str, step: int) -> None:
         self._db.execute(

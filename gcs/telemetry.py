@@ -27,7 +27,7 @@ from gcs.store import Store
 from protocol.packets import StatusReport
 
 if TYPE_CHECKING:
-    from gcs.daemon import Daemon
+    from gcs.context import ServiceContext
 
 log = logging.getLogger("gcs.telemetry")
 
@@ -61,11 +61,11 @@ class TelemetryRecorder:
         self._task: asyncio.Task[None] | None = None
         self.written = 0
 
-    async def start(self, daemon: Daemon) -> None:
+    async def start(self, ctx: ServiceContext) -> None:
         if not self.config.enabled:
             return
-        self._store = daemon.store
-        daemon.agents.on_status.append(self._on_status)
+        self._store = ctx.store
+        ctx.agents.on_status.append(self._on_status)
         self._task = asyncio.create_task(self._run(), name="telemetry-writer")
 
     async def stop(self) -> None:

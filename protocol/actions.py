@@ -79,9 +79,14 @@ class Land(_Action):
 
 
 class ReturnToLaunch(_Action):
-    """Return to the launch point and land; complete when disarmed."""
+    """Return to the launch point and land; complete when disarmed.
+
+    ``alt`` (metres above home, optional) is the altitude to return at (ArduPilot: RTL_ALT); the
+    daemon gives drones returning together distinct altitudes so their paths home cannot meet.
+    """
 
     kind: Literal["rtl"] = "rtl"
+    alt: Annotated[float, Field(gt=0.0, le=10_000.0, allow_inf_nan=False)] | None = None
 
 
 class Hold(_Action):

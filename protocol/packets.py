@@ -176,6 +176,12 @@ class StatusReport(_Body):
     exceptions: list[Annotated[str, Field(max_length=200)]] = Field(default_factory=list, max_length=32)
     autopilot_link: bool = True
     buffered: bool = Field(default=False, description="recorded while the daemon link was down")
+    failsafe: str | None = Field(
+        default=None,
+        max_length=200,
+        description="the agent's own failsafe in force ('name: reaction'), latched until landed or an "
+        "operator command; while set the agent refuses lower-priority type-4 orders",
+    )
 
 
 # --- type 3: set geofence (and the other parameter settings) -----------------------------------
@@ -226,18 +232,36 @@ class SetParameters(_Body):
 # --- type 4: perform action(s) -----------------------------------------------------------------
 
 
+CommandSource = Literal[
+    "operator",
+    "daemon_emergency",
+    "collision",
+    "connectivity",
+    "divergence",
+    "extension",
+    "mission",
+    "returns",
+]
+"""Who in the daemon issued a type-4 packet (docs/cooperation.md gives the priority order)."""
+
+
 class PerformActions(_Body):
     """Type 4. ``append`` adds to the agent's FIFO queue; ``replace`` empties it first.
 
     ``pause`` stops the vehicle where it is and keeps the queue (the interrupted action resumes
     where it left off); ``resume`` continues. Both carry no actions. ``reason`` says who paused
-    (operator, collision avoidance...), for the agent's log and status.
+    (operator, collision avoidance...), for the agent's log and status. ``source`` says which
+    daemon authority level sent it: an agent in its own failsafe obeys only ``operator``.
+    ``await_release`` makes the agent wait at that (already finished) sync step until the
+    daemon releases it before it runs ``actions``: a rejoining agent never runs ahead.
     """
 
     mission_id: MissionId
     mode: Literal["append", "replace", "pause", "resume"] = "append"
     actions: list[Action] = Field(default_factory=list, max_length=10_000)
     reason: str | None = Field(default=None, max_length=200)
+    source: CommandSource | None = None
+    await_release: int | None = Field(default=None, ge=0)
 
     @model_validator(mode="after")
     def _no_actions_with_pause(self) -> PerformActions:
@@ -308,6 +332,7 @@ __all__ = [
     "Capabilities",
     "Close",
     "CloseReason",
+    "CommandSource",
     "FenceCircle",
     "FenceVertex",
     "GeoPoint",

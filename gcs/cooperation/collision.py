@@ -167,6 +167,7 @@ class DroneState:
     velocity: tuple[float, float, float]  # north, east, up m/s (vehicle time)
     desired: tuple[float, float, float] | None  # where it wants to go when not held
     yieldable: bool
+    grounded: bool = False  # landed or disarmed: an obstacle, never a partner to wait for
 
 
 @dataclass(frozen=True)
@@ -200,6 +201,7 @@ class CollisionAvoider:
         self.holds: dict[str, set[str]] = {}  # held drone -> drones it waits for
         self.escaping: dict[str, _Escaping] = {}
         self._last_conflict: dict[str, float] = {}
+        self._held_since: dict[str, float] = {}
         self._reported: set[tuple[str, str]] = set()
 
     @property
@@ -211,6 +213,7 @@ class CollisionAvoider:
         self.holds.pop(ident, None)
         self.escaping.pop(ident, None)
         self._last_conflict.pop(ident, None)
+        self._held_since.pop(ident, None)
         for blockers in self.holds.values():
             blockers.discard(ident)
 
@@ -241,8 +244,53 @@ class CollisionAvoider:
                 f"in {t_cpa:.1f} s"
             )
             self._resolve(a, b, pos[i], pos[j], vel[i], vel[j], detail, wanted, decision, now)
+        self._expire_long_holds(wanted, drones, index, now, decision)
         self._apply(wanted, now, decision)
         return decision
+
+    def _expire_long_holds(
+        self,
+        wanted: dict[str, set[str]],
+        drones: list[DroneState],
+        index: dict[str, int],
+        now: float,
+        decision: Decision,
+    ) -> None:
+        """A hold never traps a drone: past ``max_hold_s`` the held drone climbs out of the way.
+
+        A conflict that a hold has not resolved in that time is one with a partner that does not
+        move away (hovering, waiting at a barrier, held itself), so waiting longer cannot help.
+        """
+        for ident in [i for i in wanted if i in self.holds and i not in self.escaping]:
+            since = self._held_since.get(ident)
+            if since is None or now - since < self.config.max_hold_s:
+                continue
+            me = drones[index[ident]]
+            blockers = [drones[index[b]] for b in wanted[ident] if b in index]
+            top = max([me.position[2]] + [b.position[2] for b in blockers])
+            others = ", ".join(sorted(wanted[ident]))
+            del wanted[ident]
+            self.holds.pop(ident, None)
+            self._held_since.pop(ident, None)
+            if self.config.escape == "none" or not me.yieldable:
+                decision.resume.append(ident)
+                decision.events.append(
+                    (
+                        "collision_hold_expired",
+                        f"{ident} held {self.config.max_hold_s:.0f} s for {others}; released",
+                        {"agent": ident},
+                    )
+                )
+                continue
+            target = top + self.config.vertical_margin_m + self.config.escape_buffer_m
+            escape = Escape(
+                ident,
+                others,
+                float(target),
+                f"collision avoidance: held {self.config.max_hold_s:.0f} s for {others}; climbing clear",
+            )
+            self.escaping[ident] = _Escaping(escape, now)
+            decision.escapes.append(escape)
 
     # --- internals ------------------------------------------------------------------------------
 
@@ -292,6 +340,14 @@ class CollisionAvoider:
         decision: Decision,
         now: float,
     ) -> None:
+        if a.grounded and b.grounded:
+            return  # two parked drones
+        if a.grounded or b.grounded:
+            _parked, flying = (a, b) if a.grounded else (b, a)
+            offset = (pb - pa) if flying is b else (pa - pb)
+            v_flying = vb if flying is b else va
+            if float(np.dot(offset[:2], v_flying[:2])) >= 0.0:
+                return  # climbing, descending or moving away beside a parked drone: no conflict
         escaping = self.escaping.get(a.ident) or self.escaping.get(b.ident)
         if escaping is not None:  # the other waits until the escaping drone has climbed clear
             waiting = b if escaping.escape.ident == a.ident else a
@@ -334,6 +390,7 @@ class CollisionAvoider:
         )
         self.escaping[escaper.ident] = _Escaping(escape, now)
         self.holds.pop(escaper.ident, None)  # the escape's replace overrides its pause
+        self._held_since.pop(escaper.ident, None)
         decision.escapes.append(escape)
 
     def _finish_escapes(
@@ -364,6 +421,7 @@ class CollisionAvoider:
             if ident not in self.holds:
                 decision.pause[ident] = "collision avoidance: yield to " + ", ".join(sorted(blockers))
                 self.holds[ident] = set(blockers)
+                self._held_since[ident] = now
             else:
                 self.holds[ident] |= blockers
         self._release(set(wanted), now, decision)
@@ -374,6 +432,7 @@ class CollisionAvoider:
                 continue
             if now - self._last_conflict.get(ident, -1e18) >= self.config.release_after_s:
                 del self.holds[ident]
+                self._held_since.pop(ident, None)
                 decision.resume.append(ident)
 
     def _report(self, a: DroneState, b: DroneState, kind: str, message: str, decision: Decision) -> None:

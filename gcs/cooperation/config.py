@@ -56,6 +56,12 @@ class CollisionConfig(_Section):
         default=2.0, ge=0.0, description="vertical separation beyond the vertical margin an escape aims for"
     )
     min_escape_alt_m: float = Field(default=3.0, ge=0.0, description="an escape never descends below this")
+    max_hold_s: float = Field(
+        default=15.0,
+        gt=0.0,
+        description="a collision hold that has not resolved in this time (wall s) becomes an escape "
+        "(or, with escape 'none', is released): holds never trap a drone",
+    )
     default_speed_mps: float = Field(
         default=5.0, gt=0.0, description="assumed leg speed of a held drone whose plan gives none"
     )

@@ -64,10 +64,8 @@ class GeofenceProximityAlarm(Extension):
         """The configured fence, else the one the operator last set through the API."""
         if self.fixed_fence is not None:
             return self.fixed_fence
-        for service in self.daemon.services if self.daemon else []:
-            if getattr(service, "name", "") == "live-hub":
-                return getattr(service, "geofence", None)
-        return None
+        hub = self.context.service("live-hub") if self.context else None
+        return getattr(hub, "geofence", None)
 
     async def on_status(self, agent: str, status: StatusReport) -> None:
         fence = self.fence()

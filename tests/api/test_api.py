@@ -219,9 +219,11 @@ async def test_fleet_commands_geofence_and_metrics(tmp_path: Path) -> None:
         assert (await gcs.resume_all()).command == "resume"
         result = await gcs.rtl_all(["drone-1", "drone-2"])
         assert result.aborted_missions == [mission_id] and sorted(result.delivered) == ["drone-1", "drone-2"]
-        await wait_for(
-            lambda: all((s.status and s.status.mode == "RTL") or s.status.landed for s in sessions), 10, "rtl"
-        )  # type: ignore[union-attr]
+        await wait_for(  # each drone flies its deconflicted return program
+            lambda: all(s.status and (s.status.mission_id or "").startswith("return-rtl") for s in sessions),
+            10,
+            "rtl",
+        )
         landed = await gcs.land_all()
         assert landed.command == "land"
         fence = Geofence(circle=FenceCircle(lat=HOME[0], lon=HOME[1], radius_m=300), breach_action="report")

@@ -77,7 +77,7 @@ async def test_extension_hooks_schedules_and_commands(tmp_path: Path) -> None:
         assert await ext.command("drone-1", "resume")
         await fleet.agents[1].kill()
         await wait_for(lambda: "drone-2" in ext.left, 5, "on_leave")
-    assert ext.daemon is not None and ext._tasks == set()
+    assert ext.context is not None and ext._tasks == set()
 
 
 def test_extension_loading_errors() -> None:

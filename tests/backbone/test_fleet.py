@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from gcs.missions import MissionRejected
-from protocol.actions import ReturnToLaunch
+from protocol.geo import distance_m
 from protocol.packets import FenceCircle, Geofence
 from tests.backbone.helpers import (
     HOME,
@@ -131,7 +131,9 @@ async def test_barrier_timeout_aborts_with_abort_policy(tmp_path: Path) -> None:
             await wait_for(
                 lambda: agents[0].autopilot.telemetry().landed, 30, "agent a back on the ground (RTL)"
             )
-            assert agents[0].autopilot.telemetry().mode == "RTL"
+            t = agents[0].autopilot.telemetry()  # the deconflicted return lands it at its home
+            assert t.home_lat is not None and t.home_lon is not None
+            assert distance_m(t.lat, t.lon, t.home_lat, t.home_lon) < 3.0
         finally:
             await stop_agents(agents)
 
@@ -306,7 +308,8 @@ async def test_withdrawn_agent_no_longer_counts_towards_completion(tmp_path: Pat
             await wait_for(lambda: len(daemon.agents.connected()) == 2, 10, "two agents")
             mission_id = await daemon.missions.submit(survey_mission(names, sync_legs=3))
             await wait_for(lambda: 0 in daemon.missions.active[mission_id].barriers.released, 20, "airborne")
-            assert await daemon.missions.withdraw("leaves", "battery critical", [ReturnToLaunch(step=99)])
+            assert await daemon.missions.withdraw("leaves", "battery critical")
+            daemon.returns.start(["leaves"], "rtl", "daemon_emergency", "battery critical")
             await wait_for(lambda: agents[1].autopilot.telemetry().landed, 30, "withdrawn agent back home")
             await wait_for(lambda: mission_id not in daemon.missions.active, 60, "mission completes")
             progress = daemon.missions.progress(mission_id)

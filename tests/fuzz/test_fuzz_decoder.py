@@ -7,6 +7,7 @@ here each part is capped (2000 mutated cases, at most ~10 s) so it can run on ev
 from __future__ import annotations
 
 import importlib.util
+import re
 import shutil
 import subprocess
 import sys
@@ -62,5 +63,8 @@ def test_coverage_guided_run_is_clean(tmp_path: Path) -> None:
         timeout=60,
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "Done 2000 runs" in result.stderr or "max_total_time" in result.stderr, result.stderr[-1000:]
+    # libFuzzer counts the corpus replay too, so the total can pass -runs by a few.
+    assert re.search(r"Done \d+ runs", result.stderr) or "max_total_time" in result.stderr, result.stderr[
+        -1000:
+    ]
     assert not list(tmp_path.glob("crash-*"))

@@ -1,0 +1,120 @@
+"""Collision monitor: the fleet picture -> :class:`CollisionAvoider` -> intents (pure, clock passed in).
+
+Who may be held: a drone flying (or waiting in) its plan, not in RTL/LAND, not in an emergency,
+and not under the order of a source that outranks collision avoidance (operator, vehicle
+failsafe, daemon emergency). Parked drones (landed or disarmed) are obstacles: never held,
+never waited for. Escapes are detours (climb, then the rest of the plan) at collision priority.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+
+from gcs.cooperation.collision import CollisionAvoider, Decision, DroneState
+from gcs.cooperation.config import CollisionConfig
+from gcs.cooperation.geo import LocalFrame
+from gcs.cooperation.intents import (
+    EndOrderIntent,
+    EventIntent,
+    HoldIntent,
+    Intent,
+    ReleaseIntent,
+    ReplaceIntent,
+)
+from gcs.cooperation.tracking import TrackedAgent, leg_target_velocity
+
+
+class CollisionMonitor:
+    def __init__(self, config: CollisionConfig) -> None:
+        self.config = config
+        self.avoider = CollisionAvoider(config)
+        self.last: Decision = Decision()
+
+    def forget(self, ident: str) -> None:
+        self.avoider.forget(ident)
+
+    def check(
+        self,
+        agents: Iterable[TrackedAgent],
+        frame: LocalFrame,
+        outranked: Callable[[str], bool],
+        now: float,
+    ) -> list[Intent]:
+        """One fleet-wide pass (``agents``: connected, fresh); returns holds, releases, escapes."""
+        drones = []
+        tracked = {}
+        for a in agents:
+            s = a.status
+            n, e = frame.point(s.position.lat, s.position.lon)
+            grounded = not a.airborne
+            yieldable = (
+                not grounded
+                and a.emergency is None
+                and s.mode not in ("RTL", "LAND")
+                and (s.step >= 0 or s.waiting_sync is not None or s.paused)
+                and not outranked(a.ident)
+            )
+            tracked[a.ident] = a
+            drones.append(
+                DroneState(
+                    ident=a.ident,
+                    cid=a.cid,
+                    position=(n, e, s.position.alt_amsl),
+                    velocity=(0.0, 0.0, 0.0) if grounded else (s.velocity.vn, s.velocity.ve, -s.velocity.vd),
+                    desired=None
+                    if grounded
+                    else leg_target_velocity(a, frame, self.config.default_speed_mps),
+                    yieldable=yieldable,
+                    grounded=grounded,
+                )
+            )
+        decision = self.avoider.update(drones, now)
+        self.last = decision
+        intents: list[Intent] = []
+        for ident, reason in decision.pause.items():
+            intents.append(HoldIntent(ident, "collision", reason))
+            blockers = sorted(self.avoider.holds.get(ident, ()))
+            intents.append(EventIntent("collision_hold", reason, ident, "warning", {"blockers": blockers}))
+        for ident in decision.resume:
+            intents.append(ReleaseIntent(ident, "collision", "collision avoidance: clear"))
+            intents.append(EventIntent("collision_release", "clear of other drones; resumed", ident))
+        for escape in decision.escapes:
+            intents += self._escape(tracked[escape.ident], escape.target_up, escape.reason)
+        for kind, message, data in decision.events:
+            who = data.get("agent")
+            agent = who if isinstance(who, str) else None
+            if kind in ("collision_escaped", "collision_escape_timeout") and agent is not None:
+                intents.append(EndOrderIntent(agent, "collision", message))
+            intents.append(EventIntent(kind, message, agent, "warning", dict(data)))
+        return intents
+
+    def _escape(self, agent: TrackedAgent, target_amsl: float, reason: str) -> list[Intent]:
+        s = agent.status
+        alt_rel = max(target_amsl - (s.position.alt_amsl - s.position.alt_rel), self.config.min_escape_alt_m)
+        detour = (
+            agent.plan.detour(s, (s.position.lat, s.position.lon, alt_rel), agent.completed)
+            if agent.plan
+            else None
+        )
+        if detour is None:
+            self.avoider.escaping.pop(agent.ident, None)
+            return [
+                HoldIntent(agent.ident, "collision", reason),
+                EventIntent(
+                    "collision_escape_impossible",
+                    f"cannot re-plan {agent.ident} now; holding it: {reason}",
+                    agent.ident,
+                    "error",
+                ),
+            ]
+        agent.detour_step = detour[0].step
+        return [
+            ReplaceIntent(agent.ident, "collision", detour, reason, "escape"),
+            EventIntent(
+                "collision_escape",
+                f"{reason}; climbing to {alt_rel:.1f} m",
+                agent.ident,
+                "warning",
+                {"alt_rel": alt_rel},
+            ),
+        ]

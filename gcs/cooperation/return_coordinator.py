@@ -1,0 +1,164 @@
+"""Runs deconflicted RTL-all / land-all (the plan comes from :mod:`gcs.cooperation.returns`).
+
+Each drone gets a small program through the vehicle authority, at the priority of whoever asked
+(the operator, the daemon's emergency monitor, a mission abort):
+
+* RTL: climb or descend in place to its layer, fly home in the layer, **wait** (a sync point of
+  its own), land.
+* land: **wait** where it is, land.
+* A drone that returns alone gets the autopilot's own RTL (at its layer altitude) or LAND, which
+  carries on even if the daemon link drops.
+
+The wait is released per drone, on the status tick, as soon as it is cleared to descend. The
+programs carry their own mission id (``return-...``), so they never count as mission progress.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+from gcs.authority import Owner, VehicleAuthority
+from gcs.cooperation.geo import LocalFrame
+from gcs.cooperation.returns import Airborne, Returner, assign_layers, cleared_to_descend
+from protocol.actions import Action, Goto, Hold, Land, ReturnToLaunch
+from protocol.packets import GeoPoint, StatusReport
+
+RETURN_PREFIX = "return-"
+ReturnKind = Literal["rtl", "land"]
+Publish = Callable[[str, str, str | None, dict[str, object]], None]
+
+
+@dataclass(frozen=True)
+class ReturnSettings:
+    horizontal_margin_m: float = 4.0
+    base_alt_m: float = 15.0
+    layer_step_m: float = 3.0
+    max_alt_m: float = 120.0
+
+
+@dataclass
+class _Return:
+    mission_id: str
+    kind: ReturnKind
+    column: tuple[float, float]  # local north/east of where it descends
+    alt: float
+    released: bool = False
+
+
+@dataclass
+class VehicleView:
+    """What the coordinator reads of one agent."""
+
+    status: StatusReport
+    home: GeoPoint | None
+
+
+@dataclass
+class ReturnCoordinator:
+    authority: VehicleAuthority
+    fleet: Callable[[], dict[str, VehicleView]]
+    release: Callable[[str, str, int], None]  # ident, mission id, step
+    publish: Publish
+    settings: ReturnSettings = field(default_factory=ReturnSettings)
+    active: dict[str, _Return] = field(default_factory=dict)
+
+    def start(self, idents: list[str], kind: ReturnKind, owner: Owner, reason: str) -> list[str]:
+        """Send each airborne drone its return program; grounded ones need nothing. Returns who got one."""
+        fleet = self.fleet()
+        views = {i: fleet[i] for i in idents if i in fleet}
+        airborne = {i: v for i, v in views.items() if v.status.armed and not v.status.landed}
+        if not airborne:
+            return []
+        first = next(iter(airborne.values())).status
+        frame = LocalFrame(first.position.lat, first.position.lon)
+        stamp = time.strftime("%H%M%S")
+        mission_id = f"{RETURN_PREFIX}{kind}-{stamp}"
+        returners = []
+        for ident, view in airborne.items():
+            s = view.status
+            here = frame.point(s.position.lat, s.position.lon)
+            home = frame.point(view.home.lat, view.home.lon) if kind == "rtl" and view.home else here
+            returners.append(Returner(ident, here, s.position.alt_rel, home))
+        cfg = self.settings
+        base = cfg.base_alt_m if kind == "rtl" else 0.0
+        plans = assign_layers(returners, cfg.horizontal_margin_m * 1.5, base, cfg.layer_step_m)
+        delivered = []
+        for returner, plan in zip(returners, plans, strict=True):
+            view = airborne[returner.ident]
+            s = view.status
+            alt = min(cfg.max_alt_m, max(plan.alt, s.position.alt_rel if kind == "rtl" else 0.0))
+            if len(returners) == 1:
+                # Alone: the autopilot's own RTL / land, which goes on even if the link drops.
+                actions = [ReturnToLaunch(step=0, alt=max(alt, 1.0)) if kind == "rtl" else Land(step=0)]
+                column = returner.home
+                alt_at_column = max(alt, 1.0)
+            elif kind == "rtl" and view.home is not None:
+                actions: list[Action] = [
+                    Goto(step=0, lat=s.position.lat, lon=s.position.lon, alt=max(alt, 1.0)),
+                    Goto(step=1, lat=view.home.lat, lon=view.home.lon, alt=max(alt, 1.0), sync=True),
+                    Land(step=2),
+                ]
+                column = returner.home
+                alt_at_column = max(alt, 1.0)
+            else:
+                actions = [Hold(step=0, seconds=0.0, sync=True), Land(step=1)]
+                column = returner.position
+                alt_at_column = s.position.alt_rel
+            ok, why = self.authority.replace(returner.ident, owner, mission_id, actions, reason, order=kind)
+            if ok:
+                delivered.append(returner.ident)
+                self.active[returner.ident] = _Return(
+                    mission_id, kind, column, alt_at_column, released=len(returners) == 1
+                )
+            self.publish(
+                "return_planned" if ok else "return_refused",
+                f"{kind} layer {plan.layer} at {alt_at_column:.1f} m" if ok else f"{kind} refused: {why}",
+                returner.ident,
+                {"layer": plan.layer, "alt": round(alt_at_column, 1), "mission_id": mission_id},
+            )
+        self._frame = frame
+        return delivered
+
+    def tick(self) -> None:
+        """Release the wait of every returning drone that is cleared to descend."""
+        if not self.active:
+            return
+        fleet = self.fleet()
+        frame = getattr(self, "_frame", None)
+        if frame is None:
+            return
+        others = []
+        for ident, view in fleet.items():
+            s = view.status
+            if not s.armed or s.landed:
+                continue
+            here = frame.point(s.position.lat, s.position.lon)
+            job = self.active.get(ident)
+            target = job.column if job is not None and not job.released else here
+            others.append(Airborne(ident, here, s.position.alt_rel, target))
+        for ident, job in list(self.active.items()):
+            current = fleet.get(ident)
+            if current is None:
+                continue
+            s = current.status
+            if s.mission_id != job.mission_id:
+                if (s.landed and not s.armed) or s.mission_id is not None:
+                    self.active.pop(ident, None)  # landed, or somebody gave it other orders
+                continue
+            if job.released:
+                if s.landed and not s.armed:
+                    self.active.pop(ident, None)
+                continue
+            if s.waiting_sync is None:
+                continue
+            if cleared_to_descend(
+                ident, job.column, s.position.alt_rel, others, self.settings.horizontal_margin_m
+            ):
+                job.released = True
+                self.release(ident, job.mission_id, s.waiting_sync)
+                self.publish(
+                    "return_cleared", f"cleared to {job.kind}", ident, {"mission_id": job.mission_id}
+                )

@@ -1,0 +1,123 @@
+"""Deconflicted returns and landings (pure): altitude layers and a landing order.
+
+RTL-all on an autopilot flies every drone home at one altitude (ArduCopter: RTL_ALT), so drones
+whose homes are a few metres apart cross and meet. Here each drone gets a *layer*: two drones
+whose return legs (position -> home, horizontally) come within ``spacing`` of each other fly at
+altitudes at least ``layer_step`` apart (greedy colouring of the conflict graph, nearest-home
+drones lowest). At home a drone waits in its layer until it is *cleared to descend*: no other
+airborne drone below it is within the horizontal margin of its descent column. The lowest waiting
+drone is always cleared (nobody is below it), so the sequence always drains.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+Point2 = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Returner:
+    """One drone at the moment the return starts (local metres, altitude above its home)."""
+
+    ident: str
+    position: Point2
+    alt: float
+    home: Point2
+
+
+@dataclass(frozen=True)
+class ReturnPlan:
+    ident: str
+    layer: int
+    alt: float  # transit altitude above home, metres
+
+
+def segment_distance(a0: Point2, a1: Point2, b0: Point2, b1: Point2) -> float:
+    """Smallest horizontal distance between segments a0-a1 and b0-b1."""
+    if _segments_cross(a0, a1, b0, b1):
+        return 0.0
+    return min(
+        _point_segment(a0, b0, b1),
+        _point_segment(a1, b0, b1),
+        _point_segment(b0, a0, a1),
+        _point_segment(b1, a0, a1),
+    )
+
+
+def _point_segment(p: Point2, s0: Point2, s1: Point2) -> float:
+    sx, sy = s1[0] - s0[0], s1[1] - s0[1]
+    length2 = sx * sx + sy * sy
+    t = 0.0 if length2 == 0 else max(0.0, min(1.0, ((p[0] - s0[0]) * sx + (p[1] - s0[1]) * sy) / length2))
+    return math.hypot(p[0] - (s0[0] + t * sx), p[1] - (s0[1] + t * sy))
+
+
+def _segments_cross(a0: Point2, a1: Point2, b0: Point2, b1: Point2) -> bool:
+    def orient(p: Point2, q: Point2, r: Point2) -> float:
+        return (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])
+
+    d1, d2 = orient(b0, b1, a0), orient(b0, b1, a1)
+    d3, d4 = orient(a0, a1, b0), orient(a0, a1, b1)
+    return (d1 * d2 < 0) and (d3 * d4 < 0)
+
+
+def assign_layers(
+    drones: list[Returner], spacing: float, base_alt: float, layer_step: float
+) -> list[ReturnPlan]:
+    """Transit altitudes: conflicting return legs get distinct layers (greedy graph colouring).
+
+    The base layer is ``base_alt`` (or higher, so a drone never descends to return); drones
+    nearest their home are coloured first and so get the lowest layers: they land first.
+    """
+    order = sorted(drones, key=lambda d: math.dist(d.position, d.home))
+    layers: dict[str, int] = {}
+    for drone in order:
+        taken = {
+            layers[other.ident]
+            for other in order
+            if other.ident in layers
+            and segment_distance(drone.position, drone.home, other.position, other.home) < spacing
+        }
+        layers[drone.ident] = next(k for k in range(len(drones) + 1) if k not in taken)
+    floor = max([base_alt, 0.0])
+    return [ReturnPlan(d.ident, layers[d.ident], floor + layers[d.ident] * layer_step) for d in drones]
+
+
+@dataclass(frozen=True)
+class Airborne:
+    """A drone in the air during the return: where it is and where it is going (local metres)."""
+
+    ident: str
+    position: Point2
+    alt: float  # above its home (homes are taken as one ground level)
+    target: Point2
+
+
+def cleared_to_descend(ident: str, column: Point2, alt: float, others: list[Airborne], margin: float) -> bool:
+    """May the drone waiting at ``column`` (altitude ``alt``) descend now?
+
+    Yes when no other airborne drone lower than it is, or will be on its way, within ``margin``
+    of the column; drones above it do not matter (it moves away from them).
+    """
+    for other in others:
+        if other.ident == ident or other.alt >= alt:
+            continue
+        if _point_segment(column, other.position, other.target) < margin:
+            return False
+    return True
+
+
+def min_pairwise_distance(points: np.ndarray) -> float:
+    """Smallest 3-D distance between any two rows of ``points`` (inf for fewer than two)."""
+    if len(points) < 2:
+        return math.inf
+    diff = points[:, None, :] - points[None, :, :]
+    dist = np.sqrt((diff**2).sum(axis=-1))
+    dist[np.diag_indices(len(points))] = np.inf
+    return float(dist.min())
+
+
+__all__ = ["Airborne", "ReturnPlan", "Returner", "assign_layers", "cleared_to_descend", "segment_distance"]
