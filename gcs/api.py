@@ -378,40 +378,13 @@ def create_app(daemon: Daemon) -> FastAPI:
 
     # --- fleet commands -------------------------------------------------------------------------------
 
-    def _targets(command: FleetCommand | None) -> list[str]:
-        connected = [s.identity for s in daemon.agents.connected()]
-        if command is None or command.agents is None:
-            return connected
-        return [a for a in command.agents if a in connected]
-
-    async def _stop_missions(targets: list[str], why: str) -> list[str]:
-        """Take the targets out of their missions; a mission left with nobody is aborted."""
-        aborted = []
-        for mission_id in list(daemon.missions.active):
-            members = _members(mission_id)
-            if not set(members) & set(targets):
-                continue
-            if set(members) <= set(targets):
-                with contextlib.suppress(MissionRejected):
-                    await daemon.missions.abort(mission_id, why, "operator", "hold")
-                    aborted.append(mission_id)
-            else:
-                for identity in set(members) & set(targets):
-                    await daemon.missions.withdraw(identity, why)
-        return aborted
-
     async def _fleet_return(kind: Literal["rtl", "land"], command: FleetCommand | None) -> FleetCommandResult:
         started = time.perf_counter()
-        targets = _targets(command)
         reason = command.reason if command else "operator"
-        aborted = await _stop_missions(targets, f"fleet {kind} ({reason})")
-        delivered = daemon.returns.start(targets, kind, "operator", f"fleet {kind} ({reason})")
-        hub.metrics.command_latency.labels(kind).observe(time.perf_counter() - started)
-        daemon.events.publish(
-            f"fleet_{kind}",
-            f"{kind} sent to {len(delivered)} airborne agents ({reason})",
-            data={"agents": delivered},
+        delivered, aborted = await daemon.operator.bring_down(
+            kind, command.agents if command else None, reason
         )
+        hub.metrics.command_latency.labels(kind).observe(time.perf_counter() - started)
         return FleetCommandResult(command=kind, delivered=delivered, aborted_missions=aborted)
 
     @app.post("/api/v1/fleet/rtl", dependencies=token)
@@ -428,20 +401,9 @@ def create_app(daemon: Daemon) -> FastAPI:
         kind: Literal["hold", "resume"], command: FleetCommand | None
     ) -> FleetCommandResult:
         started = time.perf_counter()
-        targets = _targets(command)
-        reason = command.reason if command else "operator"
-        why = f"fleet {kind}: {reason}"
-        for mission_id in list(daemon.missions.active):
-            if set(_members(mission_id)) <= set(targets):
-                with contextlib.suppress(MissionRejected):
-                    await (daemon.missions.pause if kind == "hold" else daemon.missions.resume)(
-                        mission_id, why
-                    )
-        delivered = [
-            t
-            for t in targets
-            if await (daemon.pause_agent if kind == "hold" else daemon.resume_agent)(t, why)
-        ]
+        agents, reason = (command.agents, command.reason) if command else (None, "operator")
+        operate = daemon.operator.hold if kind == "hold" else daemon.operator.resume
+        delivered = await operate(agents, reason)
         hub.metrics.command_latency.labels(kind).observe(time.perf_counter() - started)
         return FleetCommandResult(command=kind, delivered=delivered)
 

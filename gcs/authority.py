@@ -50,6 +50,8 @@ PRIORITY: dict[str, int] = {
 }
 HISTORY = 50
 PERSISTED_OWNERS = frozenset({"operator"})
+AUTOMATIC_HOLDS = ("collision", "connectivity", "divergence")
+"""Holds that exist for an airborne conflict: they end when the drone is down."""
 
 
 class Link(Protocol):
@@ -95,6 +97,7 @@ class _Vehicle:
     failsafe: str | None = None
     mission_id: str | None = None
     history: deque[Decision] = field(default_factory=lambda: deque(maxlen=HISTORY))
+    held_since: dict[str, float] = field(default_factory=dict)  # owner -> monotonic start
 
 
 Verdict = tuple[bool, str]
@@ -115,6 +118,24 @@ class VehicleAuthority:
         self._on_decision = on_decision
         self._persist = persist
         self._vehicles: dict[str, _Vehicle] = {}
+        self.hold_durations: deque[tuple[str, str, float]] = deque(maxlen=10_000)  # agent, owner, s
+
+    def longest_hold(self, owner: str | None = None, now: float | None = None) -> float:
+        """Longest hold (seconds) so far, ended or still running, of ``owner`` (default: any)."""
+        now = time.monotonic() if now is None else now
+        ended = [d for _, o, d in self.hold_durations if owner is None or o == owner]
+        running = [
+            now - since
+            for v in self._vehicles.values()
+            for o, since in v.held_since.items()
+            if owner is None or o == owner
+        ]
+        return max(ended + running, default=0.0)
+
+    def _hold_ended(self, ident: str, vehicle: _Vehicle, owner: str) -> None:
+        since = vehicle.held_since.pop(owner, None)
+        if since is not None:
+            self.hold_durations.append((ident, owner, time.monotonic() - since))
 
     # --- queries --------------------------------------------------------------------------------
 
@@ -187,6 +208,7 @@ class VehicleAuthority:
         first = not vehicle.holds
         fresh = owner not in vehicle.holds
         vehicle.holds[owner] = reason
+        vehicle.held_since.setdefault(owner, time.monotonic())
         if owner in PERSISTED_OWNERS and self._persist is not None and fresh:
             self._persist(ident, owner, reason)
         if not first:
@@ -203,6 +225,7 @@ class VehicleAuthority:
         if vehicle is None or owner not in vehicle.holds:
             return False, f"{owner} holds nothing on {ident}"
         del vehicle.holds[owner]
+        self._hold_ended(ident, vehicle, owner)
         if owner in PERSISTED_OWNERS and self._persist is not None:
             self._persist(ident, owner, None)
         if vehicle.holds:
@@ -246,6 +269,7 @@ class VehicleAuthority:
         if not keep_holds:
             for other in [o for o in vehicle.holds if PRIORITY[o] <= rank]:
                 del vehicle.holds[other]
+                self._hold_ended(ident, vehicle, other)
                 if other in PERSISTED_OWNERS and self._persist is not None:
                     self._persist(ident, other, None)
         if order is not None and rank > PRIORITY["mission"]:
@@ -277,7 +301,19 @@ class VehicleAuthority:
 
     def restore_hold(self, ident: str, owner: str, reason: str) -> None:
         """A persisted hold found at daemon start: in force again, sent when the agent joins."""
-        self._vehicle(ident).holds[owner] = reason
+        vehicle = self._vehicle(ident)
+        vehicle.holds[owner] = reason
+        vehicle.held_since.setdefault(owner, time.monotonic())
+
+    def drop_holds(self, ident: str, owners: tuple[str, ...], reason: str) -> None:
+        """Forget ``owners``' holds without a resume (the drone landed or left the picture)."""
+        vehicle = self._vehicles.get(ident)
+        if vehicle is None:
+            return
+        for owner in [o for o in owners if o in vehicle.holds]:
+            del vehicle.holds[owner]
+            self._hold_ended(ident, vehicle, owner)
+            self._record(ident, owner, "drop hold", reason, True)
 
     def reassert(self, ident: str) -> None:
         """Re-send the pause of a held drone (a rejoin, or the periodic safety re-send)."""
@@ -299,9 +335,11 @@ class VehicleAuthority:
                     ident, "vehicle_failsafe", "failsafe", status.failsafe, True, "reported by agent"
                 )
             vehicle.failsafe = status.failsafe
-        if status.landed and not status.armed and vehicle.order is not None:
-            self._record(ident, vehicle.order.owner, f"end {vehicle.order.kind}", "vehicle landed", True)
-            vehicle.order = None
+        if status.landed and not status.armed:
+            if vehicle.order is not None:
+                self._record(ident, vehicle.order.owner, f"end {vehicle.order.kind}", "vehicle landed", True)
+                vehicle.order = None
+            self.drop_holds(ident, AUTOMATIC_HOLDS, "vehicle landed")
 
     # --- internals ------------------------------------------------------------------------------
 

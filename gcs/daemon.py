@@ -22,6 +22,7 @@ from gcs.events import EventBus, Severity
 from gcs.extensions import load_extensions
 from gcs.keys import KeyRing, load_or_create_key_file
 from gcs.missions import MissionRunner
+from gcs.operator import OperatorCommands
 from gcs.store import Store
 from gcs.telemetry import TelemetryRecorder
 from protocol.auth import parse_key
@@ -117,6 +118,9 @@ class Daemon:
             ),
         )
         self.missions.return_home = self.returns.start
+        self.operator = OperatorCommands(
+            self.agents, self.missions, self.authority, self.returns, self.events
+        )
         self.agents.on_status.insert(0, self._observe_status)
         self.api_token = load_api_token(config)
         self._server: asyncio.base_events.Server | None = None

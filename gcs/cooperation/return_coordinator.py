@@ -90,13 +90,14 @@ class ReturnCoordinator:
             view = airborne[returner.ident]
             s = view.status
             alt = min(cfg.max_alt_m, max(plan.alt, s.position.alt_rel if kind == "rtl" else 0.0))
+            actions: list[Action]
             if len(returners) == 1:
                 # Alone: the autopilot's own RTL / land, which goes on even if the link drops.
                 actions = [ReturnToLaunch(step=0, alt=max(alt, 1.0)) if kind == "rtl" else Land(step=0)]
                 column = returner.home
                 alt_at_column = max(alt, 1.0)
             elif kind == "rtl" and view.home is not None:
-                actions: list[Action] = [
+                actions = [
                     Goto(step=0, lat=s.position.lat, lon=s.position.lon, alt=max(alt, 1.0)),
                     Goto(step=1, lat=view.home.lat, lon=view.home.lon, alt=max(alt, 1.0), sync=True),
                     Land(step=2),

@@ -195,7 +195,7 @@ class CooperationService:
         if agent is not None and agent.recorder is not None:
             agent.recorder.close()
         self.collision.forget(identity)
-        self.ctx.authority.release(identity, "collision", "agent lost")
+        self.ctx.authority.drop_holds(identity, ("collision",), "agent lost")
 
     async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
         if status.buffered:
