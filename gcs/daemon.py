@@ -26,7 +26,15 @@ from gcs.operator import OperatorCommands
 from gcs.store import Store
 from gcs.telemetry import TelemetryRecorder
 from protocol.auth import parse_key
-from protocol.packets import AgentParameters, CloseReason, Geofence, SetParameters, StatusReport, SyncSignal
+from protocol.packets import (
+    AgentParameters,
+    CloseReason,
+    Geofence,
+    GeoPoint,
+    SetParameters,
+    StatusReport,
+    SyncSignal,
+)
 
 log = logging.getLogger("gcs.daemon")
 
@@ -188,6 +196,10 @@ class Daemon:
         if status.buffered:
             return
         self.authority.observe(session.identity, status)
+        if session.home is None and status.landed and not status.armed and status.gps.fix >= 3:
+            # An agent that joined before its autopilot had a home: where it stands is its home.
+            p = status.position
+            session.home = GeoPoint(lat=p.lat, lon=p.lon, alt_amsl=p.alt_amsl)
         self.returns.tick()
 
     async def start(self) -> None:

@@ -186,8 +186,9 @@ class MissionRunner:
             )
         if len(returners) < 2:
             return task, plans
-        layers = assign_layers(returners, RETURN_SPACING_M, RETURN_BASE_ALT_M, RETURN_LAYER_STEP_M)
-        alt = {p.ident: max(p.alt, r.alt) for p, r in zip(layers, returners, strict=True)}
+        base = max([RETURN_BASE_ALT_M] + [r.alt for r in returners])  # nobody descends to return
+        layers = assign_layers(returners, RETURN_SPACING_M, base, RETURN_LAYER_STEP_M)
+        alt = {p.ident: p.alt for p in layers}
         new_plans = {
             identity: [*actions[:-1], actions[-1].model_copy(update={"alt": round(alt[identity], 1)})]
             if identity in alt
@@ -363,6 +364,10 @@ class MissionRunner:
             return
         mission = self._mission_of(session.identity, status.mission_id)
         if mission is None:
+            return
+        if status.failsafe is not None and session.identity not in mission.excluded:
+            # The vehicle flies its own failsafe now (RTL, land, hold): the others go on without it.
+            await self._exclude(mission, session.identity, f"vehicle failsafe {status.failsafe}")
             return
         previous = mission.completed.get(session.identity, -1)
         if status.completed_step > previous:

@@ -15,6 +15,7 @@ programs carry their own mission id (``return-...``), so they never count as mis
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,7 +23,14 @@ from typing import Literal
 
 from gcs.authority import Owner, VehicleAuthority
 from gcs.cooperation.geo import LocalFrame
-from gcs.cooperation.returns import Airborne, Returner, assign_layers, cleared_to_descend
+from gcs.cooperation.returns import (
+    Airborne,
+    Returner,
+    ReturnPlan,
+    assign_layers,
+    cleared_to_descend,
+    spread_landing_spots,
+)
 from protocol.actions import Action, Goto, Hold, Land, ReturnToLaunch
 from protocol.packets import GeoPoint, StatusReport
 
@@ -46,6 +54,7 @@ class _Return:
     column: tuple[float, float]  # local north/east of where it descends
     alt: float
     released: bool = False
+    seen: bool = False  # a status of the drone has shown this return's mission id
 
 
 @dataclass
@@ -83,13 +92,17 @@ class ReturnCoordinator:
             home = frame.point(view.home.lat, view.home.lon) if kind == "rtl" and view.home else here
             returners.append(Returner(ident, here, s.position.alt_rel, home))
         cfg = self.settings
-        base = cfg.base_alt_m if kind == "rtl" else 0.0
+        # Layers start above the highest returner, so nobody descends into another's layer.
+        base = max([cfg.base_alt_m] + [r.alt for r in returners]) if kind == "rtl" else 0.0
         plans = assign_layers(returners, cfg.horizontal_margin_m * 1.5, base, cfg.layer_step_m)
+        if kind == "land":  # layers keep today's altitudes; only the spots and the order matter
+            plans = [ReturnPlan(p.ident, p.layer, r.alt) for p, r in zip(plans, returners, strict=True)]
+        spots = spread_landing_spots(returners, plans, cfg.horizontal_margin_m)
         delivered = []
         for returner, plan in zip(returners, plans, strict=True):
             view = airborne[returner.ident]
             s = view.status
-            alt = min(cfg.max_alt_m, max(plan.alt, s.position.alt_rel if kind == "rtl" else 0.0))
+            alt = min(cfg.max_alt_m, plan.alt)
             actions: list[Action]
             if len(returners) == 1:
                 # Alone: the autopilot's own RTL / land, which goes on even if the link drops.
@@ -105,8 +118,16 @@ class ReturnCoordinator:
                 column = returner.home
                 alt_at_column = max(alt, 1.0)
             else:
-                actions = [Hold(step=0, seconds=0.0, sync=True), Land(step=1)]
-                column = returner.position
+                spot = spots[returner.ident]
+                lat, lon = frame.to_latlon(*spot)
+                moved = math.dist(spot, returner.position) > 0.5
+                wait_point: Action = (
+                    Goto(step=0, lat=lat, lon=lon, alt=max(s.position.alt_rel, 1.0), sync=True)
+                    if moved
+                    else Hold(step=0, seconds=0.0, sync=True)
+                )
+                actions = [wait_point, Land(step=1)]
+                column = spot
                 alt_at_column = s.position.alt_rel
             ok, why = self.authority.replace(returner.ident, owner, mission_id, actions, reason, order=kind)
             if ok:
@@ -146,9 +167,10 @@ class ReturnCoordinator:
                 continue
             s = current.status
             if s.mission_id != job.mission_id:
-                if (s.landed and not s.armed) or s.mission_id is not None:
-                    self.active.pop(ident, None)  # landed, or somebody gave it other orders
+                if (s.landed and not s.armed) or job.seen:
+                    self.active.pop(ident, None)  # landed, or somebody gave it other orders since
                 continue
+            job.seen = True
             if job.released:
                 if s.landed and not s.armed:
                     self.active.pop(ident, None)

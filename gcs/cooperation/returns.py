@@ -86,6 +86,30 @@ def assign_layers(
     return [ReturnPlan(d.ident, layers[d.ident], floor + layers[d.ident] * layer_step) for d in drones]
 
 
+def spread_landing_spots(drones: list[Returner], plans: list[ReturnPlan], margin: float) -> dict[str, Point2]:
+    """Where each drone lands when it lands where it is: no two spots within ``margin``.
+
+    Lowest layer first keeps its spot; a later drone whose spot is too close to one already
+    taken moves straight away from it (east if exactly above) until clear: a drone stacked above
+    another does not land on top of it.
+    """
+    by_layer = sorted(zip(drones, plans, strict=True), key=lambda dp: (dp[1].alt, dp[0].ident))
+    spots: dict[str, Point2] = {}
+    for drone, _ in by_layer:
+        spot = drone.position
+        for _ in range(len(drones) * 4):  # bounded: each move clears one neighbour by the margin
+            near = [s for s in spots.values() if math.dist(s, spot) < margin]
+            if not near:
+                break
+            other = near[0]
+            dx, dy = spot[0] - other[0], spot[1] - other[1]
+            norm = math.hypot(dx, dy)
+            ux, uy = (dx / norm, dy / norm) if norm > 1e-6 else (0.0, 1.0)
+            spot = (other[0] + ux * margin * 1.25, other[1] + uy * margin * 1.25)
+        spots[drone.ident] = spot
+    return spots
+
+
 @dataclass(frozen=True)
 class Airborne:
     """A drone in the air during the return: where it is and where it is going (local metres)."""

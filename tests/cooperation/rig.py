@@ -52,6 +52,26 @@ class Rig:
     agents: dict[str, Agent]
     names: list[str]
     truth: list[list[tuple[float, ...]]] = field(default_factory=list)  # per sample: per vehicle
+    make_agent: Callable[[str, int], Agent] | None = None
+    tasks: dict[str, asyncio.Task[None]] = field(default_factory=dict)
+
+    async def restart_agent(self, name: str) -> None:
+        """Kill the agent process stand-in (its queue is lost) and start a fresh one on the same vehicle."""
+        assert self.make_agent is not None
+        task = self.tasks[name]
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await task
+        agent = self.make_agent(name, self.daemon.listen_port)
+        self.agents[name] = agent
+        self.tasks[name] = asyncio.create_task(agent.run(), name=f"agent-{name}")
+
+    async def restart_daemon(self) -> None:
+        """Stop the daemon and start a new one on the same port and data directory."""
+        port, config = self.daemon.listen_port, self.daemon.config
+        await self.daemon.stop()
+        self.daemon = Daemon(config.model_copy(update={"listen_port": port}))
+        await self.daemon.start()
 
     @property
     def coop(self) -> CooperationService:
@@ -88,6 +108,7 @@ async def rig(
     cooperation: CooperationConfig | None = None,
     settings: AgentSettings | None = None,
     fleet_options: dict[str, Any] | None = None,
+    spacing_m: float = SPACING_M,
     **daemon_options: Any,
 ) -> AsyncIterator[Rig]:
     key = secrets.token_hex(32)
@@ -109,7 +130,7 @@ async def rig(
             base_port=0,
             speedup=SPEEDUP,
             seed=3,
-            spacing_m=SPACING_M,
+            spacing_m=spacing_m,
             prearm_delay_s=1.0,
             **(fleet_options or {}),
         )
@@ -118,28 +139,34 @@ async def rig(
     daemon = Daemon(config)
     await daemon.start()
     names = [f"drone-{i + 1}" for i in range(vehicles)]
+    endpoints = dict(zip(names, fleet.endpoints, strict=True))
     agents: dict[str, Agent] = {}
-    tasks: list[asyncio.Task[None]] = []
     stop = threading.Event()
     truth: list[list[tuple[float, ...]]] = []
     sampler = threading.Thread(target=_sample_truth, args=(fleet, truth, stop), daemon=True)
+
+    def make_agent(name: str, port: int) -> Agent:
+        return Agent(
+            AgentConfig(
+                identity=name,
+                gcs_port=port,
+                key_hex=key,
+                settings=(settings or AgentSettings(status_period_s=0.05)).model_copy(),
+                reconnect_min_s=0.05,
+                reconnect_max_s=0.5,
+                resend_target_s=0.4,
+                monitor_period_s=0.05,
+            ),
+            MavlinkAutopilot(endpoints[name], telemetry_hz=20.0),
+        )
+
+    the_rig = Rig(daemon, fleet, agents, names, truth, make_agent)
+    tasks = the_rig.tasks
     try:
-        for name, endpoint in zip(names, fleet.endpoints, strict=True):
-            agent = Agent(
-                AgentConfig(
-                    identity=name,
-                    gcs_port=daemon.listen_port,
-                    key_hex=key,
-                    settings=settings or AgentSettings(status_period_s=0.05),
-                    reconnect_min_s=0.05,
-                    reconnect_max_s=0.5,
-                    resend_target_s=0.4,
-                    monitor_period_s=0.05,
-                ),
-                MavlinkAutopilot(endpoint, telemetry_hz=20.0),
-            )
+        for name in names:
+            agent = make_agent(name, daemon.listen_port)
             agents[name] = agent
-            tasks.append(asyncio.create_task(agent.run(), name=f"agent-{name}"))
+            tasks[name] = asyncio.create_task(agent.run(), name=f"agent-{name}")
             # One at a time, so CIDs follow the names.
             await wait_for(lambda n=name: daemon.agents.session(n) is not None, 20, f"{name} joins")  # type: ignore[misc]
         await wait_for(
@@ -150,13 +177,13 @@ async def rig(
             "GPS fix everywhere",
         )
         sampler.start()
-        yield Rig(daemon, fleet, agents, names, truth)
+        yield the_rig
     finally:
         stop.set()
-        for task in tasks:
+        for task in tasks.values():
             task.cancel()
-        for task in tasks:
+        for task in tasks.values():
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
-        await daemon.stop()
+        await the_rig.daemon.stop()
         fleet.stop()
