@@ -1,8 +1,13 @@
 """Agent manager: TCP sessions, the authenticated handshake, CIDs, liveness, frame routing.
 
-One asyncio task per connection. A connection must complete the type-0/1 handshake within
+One read task per connection and one writer task per session (gcs/outbox.py: a bounded
+outbound queue with an urgent lane). A connection must complete the type-0/1 handshake within
 ``handshake_timeout_s``; until then no other packet is accepted. Any protocol error closes
 only that connection (type 6 ``protocol_error`` first), never the daemon or other agents.
+
+Nothing is awaited on the read path: the frame loop decodes, records (``session.status``...)
+and publishes to the hook consumers (gcs/dispatch.py), which run ``on_join`` / ``on_status`` /
+``on_sync`` / ``on_lost`` hooks in one task per hook owner, outside the handshake budget.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 from gcs.config import DaemonConfig
+from gcs.dispatch import ConsumerStats, HookDispatcher
 from gcs.events import EventBus
 from gcs.keys import KeyRing
 from gcs.outbox import Outbox
@@ -154,6 +160,9 @@ class AgentManager:
         self.on_status: list[StatusHook] = []
         self.on_sync: list[SyncHook] = []
         self.on_lost: list[LostHook] = []
+        self._hooks = HookDispatcher(
+            {"join": self.on_join, "status": self.on_status, "sync": self.on_sync, "lost": self.on_lost}
+        )
         self._tasks: set[asyncio.Task[None]] = set()
         self._pending_handshakes = 0
 
@@ -325,11 +334,11 @@ class AgentManager:
             agent=request.identity,
             data={"cid": cid, "resume": proof_request.resume.model_dump() if proof_request.resume else None},
         )
-        for hook in self.on_join:
-            await hook(session, proof_request.resume)
-        # Frames that arrived right behind the proof are handled by the frame loop.
+        # Join hooks run in their services' consumers, outside this handshake's time budget.
+        self._hooks.publish("join", session.identity, session, proof_request.resume)
+        # Frames that arrived right behind the proof are handled as the frame loop would.
         for frame in backlog:
-            await self._dispatch(session, frame)
+            self._handle(session, frame)
         return session
 
     async def _frame_loop(
@@ -347,23 +356,22 @@ class AgentManager:
                         f"more than {self.config.max_frames_per_s:g} frames/s "
                         f"(burst {self.config.frame_burst}); cut off"
                     )
-                await self._dispatch(session, frame)
+                self._handle(session, frame)
                 if not session.open:
                     return
 
-    async def _dispatch(self, session: AgentSession, frame: Frame) -> None:
+    def _handle(self, session: AgentSession, frame: Frame) -> None:
+        """Record what the frame says and hand it to the hook consumers; nothing is awaited here."""
         body = frame.body
         if isinstance(body, StatusReport):
             self._exception_events(session, body)
             session.status = body
             session.status_count += 1
-            for status_hook in self.on_status:
-                await status_hook(session, body)
+            self._hooks.publish("status", session.identity, session, body)
         elif isinstance(body, SyncSignal):
             if body.kind != "finished":
                 raise ProtocolError("agents may only send 'finished' sync signals")
-            for sync_hook in self.on_sync:
-                await sync_hook(session, body)
+            self._hooks.publish("sync", session.identity, session, body)
         elif isinstance(body, Close):
             self._events.publish(
                 "agent_closed",
@@ -428,14 +436,28 @@ class AgentManager:
                     severity="warning",
                     agent=identity,
                 )
-                for hook in self.on_lost:
-                    await hook(identity)
+                self._hooks.publish("lost", identity, identity)
+            await self._hooks.prune()
 
     async def close_all(self, reason: CloseReason, message: str) -> None:
         sessions = self.connected()
         await asyncio.gather(*(s.close(reason, message) for s in sessions))
         if self._tasks:  # closed transports end every frame loop; give them a moment to clean up
             await asyncio.wait(list(self._tasks), timeout=2.0)
+        await self._hooks.close()
+
+    # --- hook consumers -------------------------------------------------------------------------
+
+    async def drain_hooks(self, timeout: float = 10.0) -> bool:
+        """Wait until every hook consumer has handled everything queued; False after ``timeout``.
+
+        For tests and services that need "everything received so far has been seen by the hooks".
+        """
+        return await self._hooks.drain(timeout)
+
+    def hook_stats(self) -> list[ConsumerStats]:
+        """Per consumer: queued, delivered, coalesced, dropped, overflow, failed (for metrics)."""
+        return self._hooks.stats()
 
 
 def _peer_name(writer: asyncio.StreamWriter) -> str:
