@@ -220,10 +220,10 @@ class HookDispatcher:
     async def prune(self) -> None:
         """Stop idle consumers whose owner has no hook registered any more."""
         live = {id(_owner(hook)) for hooks in self._hooks.values() for hook in hooks}
-        for key, consumer in list(self._consumers.items()):
-            if key not in live and consumer._idle.is_set():
-                del self._consumers[key]
-                await consumer.stop()
+        idle = [k for k, c in self._consumers.items() if k not in live and c._idle.is_set()]
+        stopped = [c for c in (self._consumers.pop(k, None) for k in idle) if c is not None]
+        for consumer in stopped:
+            await consumer.stop()
 
     async def close(self) -> None:
         consumers, self._consumers = list(self._consumers.values()), {}
