@@ -1,8 +1,13 @@
 """Agent manager: TCP sessions, the authenticated handshake, CIDs, liveness, frame routing.
 
-One asyncio task per connection. A connection must complete the type-0/1 handshake within
+One read task per connection and one writer task per session (gcs/outbox.py: a bounded
+outbound queue with an urgent lane). A connection must complete the type-0/1 handshake within
 ``handshake_timeout_s``; until then no other packet is accepted. Any protocol error closes
 only that connection (type 6 ``protocol_error`` first), never the daemon or other agents.
+
+Nothing is awaited on the read path: the frame loop decodes, records (``session.status``...)
+and publishes to the hook consumers (gcs/dispatch.py), which run ``on_join`` / ``on_status`` /
+``on_sync`` / ``on_lost`` hooks in one task per hook owner, outside the handshake budget.
 """
 
 from __future__ import annotations
@@ -15,8 +20,10 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 from gcs.config import DaemonConfig
+from gcs.dispatch import ConsumerStats, HookDispatcher
 from gcs.events import EventBus
 from gcs.keys import KeyRing
+from gcs.outbox import Outbox
 from gcs.store import Store
 from protocol import auth
 from protocol.packets import (
@@ -68,7 +75,11 @@ class TokenBucket:
 
 @dataclass(eq=False)
 class AgentSession:
-    """One authenticated connection of one agent identity."""
+    """One authenticated connection of one agent identity.
+
+    Outbound frames go through the session's :class:`~gcs.outbox.Outbox` (its own bounded queue
+    and writer task), so a peer that does not read stalls only itself.
+    """
 
     identity: str
     cid: int
@@ -76,42 +87,55 @@ class AgentSession:
     home: GeoPoint | None
     writer: asyncio.StreamWriter
     peer: str
+    outbox: Outbox
     connected_at: float = field(default_factory=time.time)
     last_rx: float = field(default_factory=time.monotonic)
-    last_tx: float = field(default_factory=time.monotonic)
     status: StatusReport | None = None
     status_count: int = 0
     open: bool = True
-    _seq: int = 0
-    _send_lock: asyncio.Lock = field(default_factory=asyncio.Lock)
 
-    async def send(self, body: Body, timeout: float, max_pending: int = 1 << 62) -> bool:
-        """Send one packet; False (and the session closed) if the peer is gone or too slow.
+    @property
+    def last_tx(self) -> float:
+        """When a frame was last handed to the socket (monotonic)."""
+        return self.outbox.last_tx
 
-        A peer that does not read (its socket buffer full and ``max_pending`` bytes queued here)
-        is cut off rather than letting the daemon's memory grow.
+    def post(self, body: Body, *, urgent: bool | None = None) -> bool:
+        """Queue one packet without waiting; False if the session is closed or its queue overflowed.
+
+        ``urgent=None`` picks the lane from the packet (:func:`gcs.outbox.is_urgent`).
         """
         if not self.open:
             return False
-        async with self._send_lock:
-            self._seq += 1
-            try:
-                if self.writer.transport.get_write_buffer_size() > max_pending:
-                    raise ConnectionError(
-                        f"more than {max_pending} bytes waiting for a peer that does not read"
-                    )
-                self.writer.write(encode(body, self._seq))
-                self.last_tx = time.monotonic()
-                async with asyncio.timeout(timeout):
-                    await self.writer.drain()
-            except (OSError, TimeoutError, ConnectionError) as exc:
-                log.warning("send to %s failed: %s", self.identity, exc)
-                self.close_transport()
-                return False
-        return True
+        return self.outbox.post(body, urgent)
+
+    async def send(
+        self,
+        body: Body,
+        timeout: float | None = None,
+        max_pending: int | None = None,
+        *,
+        urgent: bool | None = None,
+    ) -> bool:
+        """Send one packet and wait until it is written and drained; False (session cut off) if not.
+
+        ``timeout`` bounds the whole wait (queue included); ``max_pending`` is kept for callers
+        of the old signature, the session's outbox has its own byte bound.
+        """
+        del max_pending
+        if not self.open:
+            return False
+        return await self.outbox.send(body, urgent, timeout)
+
+    async def close(self, reason: CloseReason, message: str, timeout: float = 1.0) -> None:
+        """Tell the peer why (urgent, bounded wait), then close the transport."""
+        if self.outbox.open:
+            self.open = False  # no new frames from here on; the close itself still goes out
+            await self.outbox.send(Close(reason=reason, message=message[:500]), True, timeout)
+        self.close_transport()
 
     def close_transport(self) -> None:
         self.open = False
+        self.outbox.close()
         with contextlib.suppress(Exception):
             self.writer.close()
 
@@ -136,9 +160,11 @@ class AgentManager:
         self.on_status: list[StatusHook] = []
         self.on_sync: list[SyncHook] = []
         self.on_lost: list[LostHook] = []
+        self._hooks = HookDispatcher(
+            {"join": self.on_join, "status": self.on_status, "sync": self.on_sync, "lost": self.on_lost}
+        )
         self._tasks: set[asyncio.Task[None]] = set()
         self._pending_handshakes = 0
-        self._posts: set[asyncio.Task[bool]] = set()
 
     # --- queries --------------------------------------------------------------------------------
 
@@ -149,24 +175,24 @@ class AgentManager:
     def connected(self) -> list[AgentSession]:
         return [s for s in self.sessions.values() if s.open]
 
-    async def send(self, identity: str, body: Body, *, urgent: bool = False) -> bool:
+    async def send(self, identity: str, body: Body, *, urgent: bool | None = None) -> bool:
+        """Queue ``body`` for ``identity`` and wait until it is written and drained.
+
+        True once the frame is on its way; False if the agent is not connected or was cut off
+        (it overflowed its queue or did not drain within ``send_timeout_s``). ``urgent`` puts the
+        frame ahead of queued mission traffic; ``None`` picks the lane from the packet.
+        """
         session = self.session(identity)
         if session is None:
             return False
-        return await session.send(body, self.config.send_timeout_s, self.config.max_pending_bytes)
+        return await session.send(body, urgent=urgent)
 
-    def post(self, identity: str, body: Body, *, urgent: bool = False) -> bool:
-        """Queue a packet for one agent without waiting; False if it is not connected.
-
-        Packets to one agent keep their order (the session's send lock is FIFO); a slow agent
-        delays only its own packets.
-        """
-        if self.session(identity) is None:
+    def post(self, identity: str, body: Body, *, urgent: bool | None = None) -> bool:
+        """Queue ``body`` for ``identity`` without waiting; False if it is not connected (or overflowed)."""
+        session = self.session(identity)
+        if session is None:
             return False
-        task = asyncio.create_task(self.send(identity, body, urgent=urgent), name=f"post-{identity}")
-        self._posts.add(task)
-        task.add_done_callback(self._posts.discard)
-        return True
+        return session.post(body, urgent=urgent)
 
     # --- connections ----------------------------------------------------------------------------
 
@@ -194,8 +220,7 @@ class AgentManager:
         except RateLimited as exc:
             assert session is not None
             self._events.publish("agent_cut_off", str(exc), severity="error", agent=session.identity)
-            await session.send(Close(reason=CloseReason.PROTOCOL_ERROR, message=str(exc)), 1.0)
-            session.close_transport()
+            await session.close(CloseReason.PROTOCOL_ERROR, str(exc))
         except ProtocolError as exc:
             who = session.identity if session else peer
             self._events.publish(
@@ -205,8 +230,7 @@ class AgentManager:
                 agent=session.identity if session else None,
             )
             if session is not None:
-                await session.send(Close(reason=CloseReason.PROTOCOL_ERROR, message=str(exc)[:500]), 1.0)
-                session.close_transport()
+                await session.close(CloseReason.PROTOCOL_ERROR, str(exc))
             else:
                 await _close_raw(writer, CloseReason.PROTOCOL_ERROR, str(exc)[:500])
         except (ConnectionError, OSError, asyncio.IncompleteReadError):
@@ -264,6 +288,13 @@ class AgentManager:
         if not auth.proofs_equal(proof_request.proof, expected):
             raise HandshakeRefused(f"authentication failed for {request.identity!r}: wrong key")
         cid = self._store.cid_for(request.identity, proof_request.capabilities.model_dump())
+        outbox = Outbox(
+            writer,
+            request.identity,
+            self.config.send_timeout_s,
+            self.config.max_pending_bytes,
+            first_seq=1,  # the challenge was frame 1
+        )
         session = AgentSession(
             identity=request.identity,
             cid=cid,
@@ -271,8 +302,10 @@ class AgentManager:
             home=proof_request.home,
             writer=writer,
             peer=peer,
+            outbox=outbox,
         )
-        session._seq = 1
+        outbox.on_cut_off = lambda reason: self._cut_off(session, reason)
+        outbox.start()
         parameters = self.config.agent_parameters.model_copy(
             update={"status_period_s": self.config.status_period_s}
         )
@@ -286,10 +319,7 @@ class AgentManager:
         )
         previous = self.sessions.get(request.identity)
         if previous is not None and previous.open:
-            await previous.send(
-                Close(reason=CloseReason.REPLACED, message=f"replaced by a new session from {peer}"), 1.0
-            )
-            previous.close_transport()
+            await previous.close(CloseReason.REPLACED, f"replaced by a new session from {peer}")
             self._events.publish(
                 "agent_replaced", f"session from {previous.peer} replaced by {peer}", agent=request.identity
             )
@@ -304,11 +334,11 @@ class AgentManager:
             agent=request.identity,
             data={"cid": cid, "resume": proof_request.resume.model_dump() if proof_request.resume else None},
         )
-        for hook in self.on_join:
-            await hook(session, proof_request.resume)
-        # Frames that arrived right behind the proof are handled by the frame loop.
+        # Join hooks run in their services' consumers, outside this handshake's time budget.
+        self._hooks.publish("join", session.identity, session, proof_request.resume)
+        # Frames that arrived right behind the proof are handled as the frame loop would.
         for frame in backlog:
-            await self._dispatch(session, frame)
+            self._handle(session, frame)
         return session
 
     async def _frame_loop(
@@ -326,23 +356,22 @@ class AgentManager:
                         f"more than {self.config.max_frames_per_s:g} frames/s "
                         f"(burst {self.config.frame_burst}); cut off"
                     )
-                await self._dispatch(session, frame)
+                self._handle(session, frame)
                 if not session.open:
                     return
 
-    async def _dispatch(self, session: AgentSession, frame: Frame) -> None:
+    def _handle(self, session: AgentSession, frame: Frame) -> None:
+        """Record what the frame says and hand it to the hook consumers; nothing is awaited here."""
         body = frame.body
         if isinstance(body, StatusReport):
             self._exception_events(session, body)
             session.status = body
             session.status_count += 1
-            for status_hook in self.on_status:
-                await status_hook(session, body)
+            self._hooks.publish("status", session.identity, session, body)
         elif isinstance(body, SyncSignal):
             if body.kind != "finished":
                 raise ProtocolError("agents may only send 'finished' sync signals")
-            for sync_hook in self.on_sync:
-                await sync_hook(session, body)
+            self._hooks.publish("sync", session.identity, session, body)
         elif isinstance(body, Close):
             self._events.publish(
                 "agent_closed",
@@ -370,8 +399,15 @@ class AgentManager:
                     data={"exception": name},
                 )
 
-    async def _disconnected(self, session: AgentSession) -> None:
+    def _cut_off(self, session: AgentSession, reason: str) -> None:
+        """The session's outbox gave up on the peer (overflow or no drain): the session ends."""
+        if not session.open:
+            return
         session.open = False
+        self._events.publish("agent_cut_off", f"{reason}; cut off", severity="error", agent=session.identity)
+
+    async def _disconnected(self, session: AgentSession) -> None:
+        session.close_transport()
         if self.sessions.get(session.identity) is session:
             self._events.publish(
                 "agent_disconnected", f"connection from {session.peer} ended", agent=session.identity
@@ -386,9 +422,9 @@ class AgentManager:
         while True:
             await asyncio.sleep(period)
             now = time.monotonic()
-            for session in self.connected():
-                if now - session.last_tx >= self.config.keepalive_s:
-                    await session.send(keepalive, self.config.send_timeout_s, self.config.max_pending_bytes)
+            for session in self.connected():  # only posts: a stuck peer never delays this loop
+                if session.outbox.idle and now - session.last_tx >= self.config.keepalive_s:
+                    session.post(keepalive, urgent=False)
             for identity, session in list(self.sessions.items()):
                 if identity in self.lost or now - session.last_rx <= self.config.lost_after_s:
                     continue
@@ -400,15 +436,28 @@ class AgentManager:
                     severity="warning",
                     agent=identity,
                 )
-                for hook in self.on_lost:
-                    await hook(identity)
+                self._hooks.publish("lost", identity, identity)
+            await self._hooks.prune()
 
     async def close_all(self, reason: CloseReason, message: str) -> None:
-        for session in self.connected():
-            await session.send(Close(reason=reason, message=message), 1.0)
-            session.close_transport()
+        sessions = self.connected()
+        await asyncio.gather(*(s.close(reason, message) for s in sessions))
         if self._tasks:  # closed transports end every frame loop; give them a moment to clean up
             await asyncio.wait(list(self._tasks), timeout=2.0)
+        await self._hooks.close()
+
+    # --- hook consumers -------------------------------------------------------------------------
+
+    async def drain_hooks(self, timeout: float = 10.0) -> bool:
+        """Wait until every hook consumer has handled everything queued; False after ``timeout``.
+
+        For tests and services that need "everything received so far has been seen by the hooks".
+        """
+        return await self._hooks.drain(timeout)
+
+    def hook_stats(self) -> list[ConsumerStats]:
+        """Per consumer: queued, delivered, coalesced, dropped, overflow, failed (for metrics)."""
+        return self._hooks.stats()
 
 
 def _peer_name(writer: asyncio.StreamWriter) -> str:

@@ -52,6 +52,10 @@ if TYPE_CHECKING:
 WEB_DIR = Path(__file__).parent / "web"
 PLAN_TIMEOUT_S = 60.0
 MAX_ID = 2**62
+MAX_HISTORY_LIMIT = 10_000
+"""Samples one history page may return."""
+MAX_HISTORY_SCAN = 1_000_000
+"""Samples one history request may scan (``limit * every``): bounds its time and memory."""
 TASK_DOCUMENT_SCHEMA: dict[str, Any] = {
     "description": "a fleetgcs task file (object) or a CoUAS task file (array of action rows)",
     "oneOf": [{"$ref": "#/components/schemas/TaskFile"}, {"type": "array", "items": {"type": "object"}}],
@@ -156,17 +160,28 @@ def create_app(daemon: Daemon) -> FastAPI:
             raise ApiProblem(404, "no such agent", f"agent {identity!r} has never connected")
         return _agent_view(daemon, session)
 
-    @app.get("/api/v1/agents/{identity}/history")
+    @app.get("/api/v1/agents/{identity}/history", response_model=list[StatusSample])
     async def history(
         identity: str,
         since: Annotated[float, Query(ge=0, le=1e12, description="UNIX time; samples after it")] = 0.0,
-        limit: Annotated[int, Query(ge=1, le=100_000)] = 1000,
+        until: Annotated[float | None, Query(ge=0, le=1e12, description="UNIX time; up to it")] = None,
+        limit: Annotated[
+            int, Query(ge=1, le=MAX_HISTORY_LIMIT, description="the newest n samples of the range")
+        ] = 1000,
         every: Annotated[int, Query(ge=1, le=10_000, description="keep every n-th sample")] = 1,
-    ) -> list[StatusSample]:
+    ) -> Response:
+        """The newest ``limit`` samples in (since, until], oldest first; bounded and read off the loop."""
+        if limit * every > MAX_HISTORY_SCAN:
+            raise ApiProblem(
+                422,
+                "history request too large",
+                f"limit x every = {limit * every} samples to scan; at most {MAX_HISTORY_SCAN} per request "
+                "(lower limit or every, or page back with until)",
+            )
         if identity not in daemon.agents.sessions and identity not in hub.history:
             raise ApiProblem(404, "no such agent", f"agent {identity!r} has never connected")
-        samples = hub.agent_history(identity, since, limit * every)
-        return samples[::-1][::every][::-1][-limit:] if every > 1 else samples
+        body = await hub.history_json(identity, since, until, limit, every)
+        return Response(body, media_type="application/json")
 
     @app.get("/api/v1/events")
     async def events(

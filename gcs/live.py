@@ -15,11 +15,10 @@ import contextlib
 import json
 import logging
 import time
-from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from pydantic import BaseModel
+from pydantic import BaseModel, TypeAdapter
 
 from gcs.events import Event
 from gcs.metrics import DaemonMetrics
@@ -38,6 +37,9 @@ class StatusSample(BaseModel):
 
     received: float
     status: StatusReport
+
+
+_SAMPLES = TypeAdapter(list[StatusSample])
 
 
 @dataclass(eq=False)
@@ -156,19 +158,29 @@ class LiveHub:
 
     # --- reads ------------------------------------------------------------------------------------
 
-    def agent_history(self, identity: str, since: float = 0.0, limit: int = 1000) -> list[StatusSample]:
-        """Statuses of one agent after ``since``, oldest first, at most the newest ``limit``.
+    async def history_json(
+        self, identity: str, since: float = 0.0, until: float | None = None, limit: int = 1000, every: int = 1
+    ) -> bytes:
+        """The newest ``limit`` samples after ``since`` (every ``every``-th), oldest first, as JSON.
 
-        The in-memory ring answers for recent history; older history comes from the daemon's
-        telemetry storage (``daemon.telemetry.history``) when it has one.
+        Recent history comes from the in-memory ring (``since`` and ``until`` compare with the
+        daemon's receive time); a ``since`` older than the ring reads the telemetry log (agent
+        time) in a worker thread. Building and serialising the page also runs off the loop: the
+        caller bounds ``limit`` and ``limit * every`` (see gcs/api.py).
         """
         ring = self.history.get(identity, ())
         telemetry = getattr(self.daemon, "telemetry", None)
         older = since > 0 and (not ring or since < ring[0].received)
-        if older and telemetry is not None and hasattr(telemetry, "history"):
-            with contextlib.suppress(Exception):  # fall back to the ring if storage misbehaves
-                return _samples(telemetry.history(identity, since, limit))[:limit]
-        return [s for s in ring if s.received > since][-limit:]
+        if older and telemetry is not None and hasattr(telemetry, "history_json"):
+            encoded: bytes = await telemetry.history_json(
+                identity, since, until if until is not None else float("inf"), limit, every
+            )
+            return encoded
+        end = until if until is not None else float("inf")
+        recent = [s for s in ring if since < s.received <= end]
+        if every > 1:
+            recent = recent[::-1][::every][::-1]
+        return await asyncio.to_thread(_encode_samples, recent[-limit:])
 
     def track(self, identity: str, mission_id: str | None = None) -> list[tuple[float, float]]:
         return [
@@ -186,52 +198,14 @@ class LiveHub:
         self.metrics.ws_clients.set(len(self.clients))
 
 
-def _samples(items: Iterable[Any]) -> list[StatusSample]:
-    """Accept what a telemetry store may return: samples, (time, status) pairs, statuses or dicts."""
-    out = []
-    for item in items:
-        if isinstance(item, StatusSample):
-            out.append(item)
-        elif isinstance(item, StatusReport):
-            out.append(StatusSample(received=item.time, status=item))
-        elif isinstance(item, tuple) and len(item) == 2:
-            status = item[1] if isinstance(item[1], StatusReport) else StatusReport.model_validate(item[1])
-            out.append(StatusSample(received=float(item[0]), status=status))
-        elif isinstance(item, dict) and "status" in item:
-            out.append(StatusSample.model_validate(item))
-        elif isinstance(item, dict) and "lat" in item:
-            out.append(_from_row(item))
-        elif isinstance(item, dict):
-            status = StatusReport.model_validate(item)
-            out.append(StatusSample(received=status.time, status=status))
-        elif hasattr(item, "status"):
-            status = item.status
-            if not isinstance(status, StatusReport):
-                status = StatusReport.model_validate(status)
-            out.append(StatusSample(received=float(getattr(item, "received", status.time)), status=status))
-    return out
+ENCODE_CHUNK = 500
+"""Samples serialised per call: pydantic's Rust core keeps the GIL for a whole call, so a long
+page is encoded in slices that each hold it for a few milliseconds (the event loop thread gets
+its turn in between)."""
 
 
-def _from_row(row: dict[str, Any]) -> StatusSample:
-    """A flat telemetry row (gcs.store.TELEMETRY_COLUMNS) back into a status sample."""
-    status = StatusReport.model_validate(
-        {
-            "time": row["time"],
-            "position": {k: row[k] for k in ("lat", "lon", "alt_rel", "alt_amsl")},
-            "velocity": {k: row.get(k) or 0.0 for k in ("vn", "ve", "vd")},
-            "heading_deg": row.get("heading_deg") or 0.0,
-            "battery": {
-                "pct": row.get("battery_pct"),
-                "voltage_v": row.get("voltage_v"),
-                "current_a": row.get("current_a"),
-            },
-            "mode": row.get("mode") or "UNKNOWN",
-            "armed": bool(row.get("armed")),
-            "landed": bool(row.get("landed")),
-            "gps": {"fix": row.get("gps_fix") or 0, "satellites": row.get("satellites") or 0},
-            "mission_id": row.get("mission_id"),
-            "step": row.get("step", -1),
-            "buffered": bool(row.get("buffered")),
-        }
-    )
-    return StatusSample(received=float(row.get("received") or row["time"]), status=status)
+def _encode_samples(samples: list[StatusSample]) -> bytes:
+    parts = [
+        _SAMPLES.dump_json(samples[i : i + ENCODE_CHUNK])[1:-1] for i in range(0, len(samples), ENCODE_CHUNK)
+    ]
+    return b"[" + b",".join(p for p in parts if p) + b"]"

@@ -11,7 +11,11 @@ benchmarks) never share counters. Fed from the agent manager's hooks and the eve
 * ``fleetgcs_command_latency_seconds`` (per command): time to deliver an operator command to
   every target agent (write + drain on each TCP connection);
 * ``fleetgcs_agents_held`` / ``fleetgcs_holds_total``: agents reporting ``paused`` and how often
-  an agent entered a hold (operator pause, collision-avoidance hold...).
+  an agent entered a hold (operator pause, collision-avoidance hold...);
+* ``fleetgcs_hook_events_total`` (per consumer and outcome: delivered, coalesced, dropped,
+  overflow, failed) and ``fleetgcs_hook_queue_depth`` (per consumer): the hook consumers of
+  gcs/dispatch.py, so a slow or failing service shows;
+* ``fleetgcs_outbox_frames_queued``: frames waiting in all agents' outbound queues.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import time
 from typing import TYPE_CHECKING
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
 from gcs.events import Event
 from protocol.packets import StatusReport, SyncSignal
@@ -77,6 +82,11 @@ class DaemonMetrics:
         self.holds = Counter("fleetgcs_holds", "times an agent entered a hold", ["agent"], registry=r)
         self.events = Counter("fleetgcs_events", "events published", ["kind", "severity"], registry=r)
         self.ws_clients = Gauge("fleetgcs_stream_clients", "WebSocket stream clients", registry=r)
+        self.outbox = Gauge(
+            "fleetgcs_outbox_frames_queued", "frames waiting in the agents' outbound queues", registry=r
+        )
+        self.outbox.set_function(lambda: sum(s.outbox.queued for s in daemon.agents.connected()))
+        r.register(_HookCollector(daemon))
         self._recent: collections.deque[float] = collections.deque(maxlen=200_000)
         self._arrivals: dict[tuple[str, int, str], float] = {}
         self._paused: dict[str, bool] = {}
@@ -119,3 +129,26 @@ class DaemonMetrics:
 
     def render(self) -> bytes:
         return generate_latest(self.registry)
+
+
+class _HookCollector:
+    """Reads the hook consumers' counters at scrape time (gcs/dispatch.py keeps them)."""
+
+    def __init__(self, daemon: Daemon) -> None:
+        self._daemon = daemon
+
+    def describe(self) -> list[Metric]:
+        return []
+
+    def collect(self) -> list[Metric]:
+        events = CounterMetricFamily(
+            "fleetgcs_hook_events", "hook events per consumer and outcome", labels=["consumer", "outcome"]
+        )
+        depth = GaugeMetricFamily(
+            "fleetgcs_hook_queue_depth", "events waiting for a hook consumer", labels=["consumer"]
+        )
+        for s in self._daemon.agents.hook_stats():
+            for outcome in ("delivered", "coalesced", "dropped", "overflow", "failed"):
+                events.add_metric([s.name, outcome], getattr(s, outcome))
+            depth.add_metric([s.name], s.queued)
+        return [events, depth]

@@ -402,10 +402,7 @@ class MissionRunner:
             self._events.publish("sync_ignored", str(exc), severity="warning", agent=session.identity)
             return
         if signal.step in mission.barriers.released:
-            await session.send(
-                SyncSignal(mission_id=mission.id, step=signal.step, kind="release"),
-                self._agents.config.send_timeout_s,
-            )
+            session.post(SyncSignal(mission_id=mission.id, step=signal.step, kind="release"))
             return
         if complete:
             await self._release(mission, signal.step)
@@ -429,7 +426,8 @@ class MissionRunner:
             data={"step": step, "agents": members},
         )
         signal = SyncSignal(mission_id=mission.id, step=step, kind="release")
-        await asyncio.gather(*(self._agents.send(identity, signal) for identity in members))
+        for identity in members:  # each agent's own outbox; nobody waits for the slowest
+            self._agents.post(identity, signal)
 
     async def _barrier_timeout(self, mission: ActiveMission, step: int) -> None:
         if mission.state != "running" or step in mission.barriers.released:

@@ -2,8 +2,11 @@
 
 Why SQLite: a daemon killed mid-mission must come back with the same connection IDs, the
 accepted missions, the released sync steps and the event log; one file, no server, crash-safe.
-Writes are small and synchronous (WAL, synchronous=NORMAL: well under a millisecond each), so
-they run on the event loop; telemetry bulk storage is a later, separate table.
+State writes are small and synchronous (WAL, synchronous=NORMAL: tens of microseconds each), so
+they run on the event loop. Bulk telemetry is not: its inserts and pruning run in the telemetry
+writer thread on its own connection (gcs/telemetry.py), and history reads run in worker threads
+on read-only connections (:meth:`Store.reader`, :func:`telemetry_page`); WAL lets readers run
+beside the writer. Bulk statements are chunked so no transaction holds the write lock for long.
 """
 
 from __future__ import annotations
@@ -317,15 +320,25 @@ class Store:
 
     # --- telemetry ------------------------------------------------------------------------------
 
+    def reader(self) -> sqlite3.Connection:
+        """A new read-only connection to the same file, for a query run in another thread."""
+        if self.path == ":memory:":
+            raise ValueError("an in-memory store has no second connection")
+        db = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True, check_same_thread=False)
+        db.execute("PRAGMA query_only=ON")
+        return db
+
+    def writer(self) -> sqlite3.Connection:
+        """A new read-write connection to the same file, for the telemetry writer thread."""
+        if self.path == ":memory:":
+            raise ValueError("an in-memory store has no second connection")
+        db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=30.0)
+        db.execute("PRAGMA synchronous=NORMAL")
+        return db
+
     def add_telemetry(self, rows: list[tuple[Any, ...]]) -> None:
-        """Insert rows in ``TELEMETRY_COLUMNS`` order, in one transaction."""
-        if not rows:
-            return
-        placeholders = ",".join("?" * len(TELEMETRY_COLUMNS))
-        with self._tx():
-            self._db.executemany(
-                f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) VALUES ({placeholders})", rows
-            )
+        """Insert rows in ``TELEMETRY_COLUMNS`` order (chunked transactions)."""
+        insert_telemetry(self._db, rows)
 
     def telemetry(
         self,
@@ -345,15 +358,125 @@ class Store:
         args.append(limit)
         return [dict(zip(TELEMETRY_COLUMNS, row, strict=True)) for row in self._db.execute(sql, args)]
 
+    def telemetry_page(
+        self, agent: str, since: float = 0.0, until: float = float("inf"), limit: int = 1000, every: int = 1
+    ) -> list[dict[str, Any]]:
+        """:func:`telemetry_page` on this store's own connection (small pages, tests)."""
+        return telemetry_page(self._db, agent, since, until, limit, every)
+
     def telemetry_agents(self) -> list[str]:
         return [str(r[0]) for r in self._db.execute("SELECT DISTINCT agent FROM telemetry ORDER BY agent")]
 
     def prune_telemetry(self, older_than: float) -> int:
         """Delete samples received before ``older_than`` (UNIX time); returns how many."""
-        return int(self._db.execute("DELETE FROM telemetry WHERE received < ?", (older_than,)).rowcount)
+        return prune_telemetry(self._db, older_than)
 
     def _tx(self) -> _Transaction:
         return _Transaction(self._db)
+
+
+TELEMETRY_CHUNK = 2000
+"""Rows per write transaction: bounds how long a bulk write holds SQLite's single write lock
+(a few milliseconds), so the event loop's small state writes never wait long for it."""
+
+
+def insert_telemetry(db: sqlite3.Connection, rows: list[tuple[Any, ...]]) -> None:
+    """Insert rows in ``TELEMETRY_COLUMNS`` order, ``TELEMETRY_CHUNK`` rows per transaction."""
+    placeholders = ",".join("?" * len(TELEMETRY_COLUMNS))
+    sql = f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) VALUES ({placeholders})"
+    for start in range(0, len(rows), TELEMETRY_CHUNK):
+        with _Transaction(db):
+            db.executemany(sql, rows[start : start + TELEMETRY_CHUNK])
+
+
+def prune_telemetry(db: sqlite3.Connection, older_than: float, max_rows: int = 10_000_000) -> int:
+    """Delete samples received before ``older_than`` in chunks; returns how many (at most ``max_rows``)."""
+    removed = 0
+    while removed < max_rows:
+        count = db.execute(
+            "DELETE FROM telemetry WHERE id IN (SELECT id FROM telemetry WHERE received < ? LIMIT ?)",
+            (older_than, TELEMETRY_CHUNK),
+        ).rowcount
+        removed += int(count)
+        if count < TELEMETRY_CHUNK:
+            break
+    return removed
+
+
+def _newest_ids_sql() -> str:
+    """The ids of the newest ``limit`` samples in range, every ``every``-th (covering index only)."""
+    return (
+        "SELECT id FROM ("
+        " SELECT id, ROW_NUMBER() OVER (ORDER BY time DESC, id DESC) AS rn FROM telemetry"
+        " WHERE agent=? AND time>=? AND time<=? ORDER BY time DESC, id DESC LIMIT ?"
+        ") WHERE (rn - 1) % ? = 0"
+    )
+
+
+def _page_args(
+    agent: str, since: float, until: float, limit: int, every: int
+) -> tuple[str, float, float, int, int]:
+    return (agent, since, until if until != float("inf") else 1e18, limit * every, every)
+
+
+def telemetry_page(
+    db: sqlite3.Connection,
+    agent: str,
+    since: float = 0.0,
+    until: float = float("inf"),
+    limit: int = 1000,
+    every: int = 1,
+) -> list[dict[str, Any]]:
+    """The newest ``limit`` samples of ``agent`` with agent time in [since, until], every ``every``-th.
+
+    Returned oldest first. Scans at most ``limit * every`` entries of the covering index
+    ``(agent, time)``, then reads only the rows it returns, so the cost is bounded by the
+    caller's caps, not by the size of the log.
+    """
+    sql = (
+        f"SELECT {','.join(TELEMETRY_COLUMNS)} FROM telemetry WHERE id IN ({_newest_ids_sql()})"
+        " ORDER BY time, id"
+    )
+    rows = db.execute(sql, _page_args(agent, since, until, limit, every))
+    return [dict(zip(TELEMETRY_COLUMNS, row, strict=True)) for row in rows]
+
+
+_SAMPLE_JSON = """json_object(
+ 'received', received,
+ 'status', json_object(
+  'time', time,
+  'position', json_object('lat', lat, 'lon', lon, 'alt_rel', alt_rel, 'alt_amsl', alt_amsl),
+  'velocity', json_object('vn', vn, 've', ve, 'vd', vd),
+  'heading_deg', heading_deg,
+  'battery', json_object('pct', battery_pct, 'voltage_v', voltage_v, 'current_a', current_a),
+  'mode', mode,
+  'armed', json(CASE WHEN armed THEN 'true' ELSE 'false' END),
+  'landed', json(CASE WHEN landed THEN 'true' ELSE 'false' END),
+  'gps', json_object('fix', gps_fix, 'satellites', satellites),
+  'mission_id', mission_id,
+  'step', step,
+  'completed_step', -1, 'queue_depth', 0, 'waiting_sync', NULL, 'paused', json('false'),
+  'exceptions', json('[]'), 'autopilot_link', json('true'),
+  'buffered', json(CASE WHEN buffered THEN 'true' ELSE 'false' END), 'failsafe', json('null')))"""
+
+
+def telemetry_page_json(
+    db: sqlite3.Connection,
+    agent: str,
+    since: float = 0.0,
+    until: float = float("inf"),
+    limit: int = 1000,
+    every: int = 1,
+) -> bytes:
+    """:func:`telemetry_page` as a JSON array of status samples (``gcs.live.StatusSample``).
+
+    SQLite builds each sample's JSON (in C, without Python's GIL), so a 10 000-sample page costs
+    the calling thread one string per row: the event loop thread is not starved while it runs.
+    Fields the log does not keep get the status report's defaults.
+    """
+    sql = f"SELECT {_SAMPLE_JSON} FROM telemetry WHERE id IN ({_newest_ids_sql()}) ORDER BY time, id"
+    rows = db.execute(sql, _page_args(agent, since, until, limit, every))
+    return ("[" + ",".join(row[0] for row in rows) + "]").encode()
 
 
 class _Transaction:

@@ -1,9 +1,14 @@
 """Telemetry logging: every agent's status reports into the daemon's SQLite file, and flight logs out.
 
-Samples are batched and written every ``flush_s`` (one transaction per batch, not one per
-report), optionally downsampled to one per ``period_s`` per agent, and pruned after
-``retention_s``. A daemon killed with ``kill -9`` loses at most the last ``flush_s`` of
-samples. Steps, sync releases, missions and events are written at once, not batched.
+Samples are batched and written every ``flush_s`` by a writer thread on its own SQLite
+connection (transactions of at most ``gcs.store.TELEMETRY_CHUNK`` rows), optionally downsampled
+to one per ``period_s`` per agent, and pruned after ``retention_s`` (in chunks, in the same
+thread). The event loop only appends a row to the writer's bounded buffer: when the thread
+falls ``max_queued_rows`` behind, the oldest waiting rows are dropped and counted
+(``dropped``), the loop never waits. A daemon killed with ``kill -9`` loses at most the last
+``flush_s`` of samples. Steps, sync releases, missions and events are written at once, not
+batched. History pages are read in a worker thread on a read-only connection
+(:meth:`TelemetryRecorder.history_page`).
 
 Flight logs: CSV (one row per sample, the columns of :data:`CSV_COLUMNS`) and GeoJSON (one
 LineString per flight), with flights split at each arm...landed-and-disarmed cycle.
@@ -12,18 +17,20 @@ LineString per flight), with flights split at each arm...landed-and-disarmed cyc
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import collections
 import csv
 import io
 import json
 import logging
+import sqlite3
+import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
 
 from gcs.agents import AgentSession
 from gcs.config import TelemetryConfig
-from gcs.store import Store
+from gcs.store import Store, insert_telemetry, prune_telemetry, telemetry_page_json
 from protocol.packets import StatusReport
 
 if TYPE_CHECKING:
@@ -48,68 +55,194 @@ def status_row(agent: str, status: StatusReport, received: float) -> tuple[Any, 
     )  # fmt: skip
 
 
+MAX_QUEUED_ROWS = 500_000
+"""Rows waiting for the writer thread before the oldest are dropped (about 100 s at 500 agents x 10 Hz)."""
+HISTORY_QUERIES = 1
+"""History pages read at once; more requests wait their turn (off the loop, not blocking it).
+One: each is CPU-bound, and every extra thread competes with the event loop for the GIL."""
+
+
+class TelemetryWriter:
+    """One thread that owns the telemetry inserts and pruning, fed through a bounded row buffer."""
+
+    def __init__(self, store: Store, config: TelemetryConfig, max_rows: int = MAX_QUEUED_ROWS) -> None:
+        self._store = store
+        self.config = config
+        self._rows: collections.deque[tuple[Any, ...]] = collections.deque()
+        self._max_rows = max_rows
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._done = threading.Condition()
+        self._requested = 0  # flush requests made / completed (under _done)
+        self._completed = 0
+        self._stopping = False
+        self.written = 0
+        self.dropped = 0
+        self.failed_batches = 0
+        self._thread = threading.Thread(target=self._run, name="telemetry-writer", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def add(self, row: tuple[Any, ...]) -> None:
+        """Queue one row; O(1), never blocks on SQLite."""
+        with self._lock:
+            if len(self._rows) >= self._max_rows:
+                self._rows.popleft()
+                self.dropped += 1
+            self._rows.append(row)
+
+    @property
+    def pending(self) -> int:
+        return len(self._rows)
+
+    def flush(self, timeout: float = 30.0) -> bool:
+        """Write everything queued so far and wait for it (blocking: tests, shutdown, CLI)."""
+        if not self._thread.is_alive():  # not started (in-memory store) or stopped: write here
+            self._write(self._store.add_telemetry)
+            return True
+        with self._done:
+            self._requested += 1
+            target = self._requested
+        self._wake.set()
+        with self._done:
+            return self._done.wait_for(lambda: self._completed >= target, timeout)
+
+    def stop(self, timeout: float = 30.0) -> None:
+        """Write what is left and end the thread (blocking; call it off the loop)."""
+        self._stopping = True
+        self._wake.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def _run(self) -> None:
+        db = self._store.writer()
+        last_prune = 0.0
+        try:
+            while True:
+                self._wake.wait(self.config.flush_s)
+                self._wake.clear()
+                with self._done:
+                    target = self._requested
+                self._write(lambda rows: insert_telemetry(db, rows))
+                with self._done:
+                    self._completed = max(self._completed, target)
+                    self._done.notify_all()
+                if self._stopping:
+                    return
+                now = time.monotonic()
+                if now - last_prune >= self.config.prune_every_s:
+                    last_prune = now
+                    self._prune(db)
+        finally:
+            db.close()
+
+    def _write(self, insert: Callable[[list[tuple[Any, ...]]], None]) -> None:
+        with self._lock:
+            batch = list(self._rows)
+            self._rows.clear()
+        if not batch:
+            return
+        try:
+            insert(batch)
+            self.written += len(batch)
+        except sqlite3.Error:  # a full disk or a locked file costs this batch, not the daemon
+            self.failed_batches += 1
+            log.exception("telemetry: could not write %d samples", len(batch))
+
+    def _prune(self, db: sqlite3.Connection) -> None:
+        try:
+            removed = prune_telemetry(db, time.time() - self.config.retention_s)
+        except sqlite3.Error:
+            log.exception("telemetry: pruning failed")
+            return
+        if removed:
+            log.info("pruned %d telemetry samples older than %.0f s", removed, self.config.retention_s)
+
+
 class TelemetryRecorder:
-    """A daemon service: logs status reports to the store in batches."""
+    """A daemon service: logs status reports through the writer thread; serves history pages."""
 
     name = "telemetry"
 
     def __init__(self, config: TelemetryConfig) -> None:
         self.config = config
         self._store: Store | None = None
-        self._batch: list[tuple[Any, ...]] = []
+        self._writer: TelemetryWriter | None = None
         self._last_kept: dict[str, float] = {}
-        self._task: asyncio.Task[None] | None = None
-        self.written = 0
+        self._queries = asyncio.Semaphore(HISTORY_QUERIES)
 
     async def start(self, ctx: ServiceContext) -> None:
         if not self.config.enabled:
             return
         self._store = ctx.store
+        self._writer = TelemetryWriter(ctx.store, self.config)
+        if ctx.store.path != ":memory:":
+            self._writer.start()  # an in-memory store is written on flush, on its one connection
         ctx.agents.on_status.append(self._on_status)
-        self._task = asyncio.create_task(self._run(), name="telemetry-writer")
 
     async def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
-        self.flush()
+        if self._writer is not None:
+            await asyncio.to_thread(self._writer.stop)
+            self._writer.flush()  # the thread has ended: writes what a late hook added
+
+    @property
+    def written(self) -> int:
+        return self._writer.written if self._writer else 0
+
+    @property
+    def dropped(self) -> int:
+        return self._writer.dropped if self._writer else 0
 
     async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
+        if self._writer is None:
+            return
         if self.config.period_s > 0:
             last = self._last_kept.get(session.identity)
             if last is not None and 0 <= status.time - last < self.config.period_s:
                 return
             self._last_kept[session.identity] = status.time
-        self._batch.append(status_row(session.identity, status, time.time()))
+        self._writer.add(status_row(session.identity, status, time.time()))
 
     def flush(self) -> None:
-        if self._store is None or not self._batch:
-            return
-        batch, self._batch = self._batch, []
-        self._store.add_telemetry(batch)
-        self.written += len(batch)
+        """Write every queued sample now (blocks until written: tests and tools, not the loop)."""
+        if self._writer is not None:
+            self._writer.flush()
 
     def history(self, identity: str, since: float = 0.0, limit: int = 1000) -> list[dict[str, Any]]:
-        """Logged samples of ``identity`` since ``since`` (agent time), pending batch included."""
+        """Logged samples of ``identity`` since ``since`` (agent time), oldest first, queue flushed.
+
+        Blocking (flush and query on the calling thread): for tests and tools. The API uses
+        :meth:`history_page`.
+        """
         self.flush()
         if self._store is None:
             return []
         return self._store.telemetry(identity, since, limit=limit)
 
-    async def _run(self) -> None:
-        last_prune = 0.0
-        while True:
-            await asyncio.sleep(self.config.flush_s)
-            self.flush()
-            now = time.monotonic()
-            if now - last_prune >= self.config.prune_every_s and self._store is not None:
-                last_prune = now
-                removed = self._store.prune_telemetry(time.time() - self.config.retention_s)
-                if removed:
-                    log.info(
-                        "pruned %d telemetry samples older than %.0f s", removed, self.config.retention_s
-                    )
+    async def history_json(self, identity: str, since: float, until: float, limit: int, every: int) -> bytes:
+        """The newest ``limit`` logged samples in [since, until], every ``every``-th, oldest first.
+
+        A JSON array of ``gcs.live.StatusSample``, built by SQLite in a worker thread on its own
+        read-only connection (at most ``HISTORY_QUERIES`` at once), so the event loop keeps
+        serving agents while it runs. Samples still waiting for the writer (the last
+        ``flush_s``) are not included.
+        """
+        store = self._store
+        if store is None:
+            return b"[]"
+        if store.path == ":memory:":
+            return telemetry_page_json(store._db, identity, since, until, limit, every)
+        async with self._queries:
+            return await asyncio.to_thread(_read_page, store, identity, since, until, limit, every)
+
+
+def _read_page(store: Store, identity: str, since: float, until: float, limit: int, every: int) -> bytes:
+    db = store.reader()
+    try:
+        return telemetry_page_json(db, identity, since, until, limit, every)
+    finally:
+        db.close()
 
 
 def split_flights(samples: list[dict[str, Any]]) -> list[list[dict[str, Any]]]:

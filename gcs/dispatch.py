@@ -1,0 +1,239 @@
+"""Hook dispatch: the frame loop hands reports off; one consumer task per hook owner runs the hooks.
+
+Why: a hook awaited on the read path lets one slow service stall every agent's link (and a slow
+``on_join`` inside the handshake budget put agents into a reconnect loop). Here the frame loop
+and the liveness watch only *publish* (no await); every registered hook is served by the
+consumer of its owner (the object a bound-method hook belongs to, or the function itself), so
+the hooks of one service (say ``MissionRunner._on_join`` / ``_on_status`` / ``_on_sync`` /
+``_on_lost``) see one agent's events in the order they happened, as they did when they ran in
+the frame loop, and a slow or failing service delays only itself.
+
+Each consumer's queue is bounded (``capacity`` events). When it is full, a status report is
+coalesced with the same agent's status still waiting (a status carries full state), or else the
+oldest waiting status is dropped; joins, syncs and losts are never dropped (their rate is bound
+by the agent count and the per-agent frame limit), they are counted as ``overflow`` instead.
+Everything is counted per consumer (``stats()``, exported by gcs/metrics.py).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import time
+from collections.abc import Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+log = logging.getLogger("gcs.dispatch")
+
+HookKind = Literal["join", "status", "sync", "lost"]
+Hook = Callable[..., Awaitable[None]]
+
+DEFAULT_CAPACITY = 10_000
+YIELD_EVERY = 64  # a long backlog of quick hooks still lets the loop breathe
+SLOW_HOOK_S = 0.5  # a hook call longer than this is logged (once per consumer per minute)
+
+
+@dataclass(eq=False, slots=True)
+class _Item:
+    kind: HookKind
+    hook: Hook
+    agent: str
+    args: tuple[Any, ...]
+    live: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class ConsumerStats:
+    name: str
+    queued: int
+    delivered: int
+    coalesced: int
+    dropped: int
+    overflow: int
+    failed: int
+
+
+@dataclass(eq=False)
+class Consumer:
+    """One owner's hooks: a bounded queue and the task that runs them in order."""
+
+    name: str
+    owner: object
+    registered: Callable[[HookKind, Hook], bool]
+    capacity: int = DEFAULT_CAPACITY
+    delivered: int = 0
+    coalesced: int = 0
+    dropped: int = 0
+    overflow: int = 0
+    failed: int = 0
+    _queue: collections.deque[_Item] = field(default_factory=collections.deque)
+    _size: int = 0  # live items in the queue
+    _latest: dict[str, _Item] = field(default_factory=dict)  # agent -> its newest queued item
+    _wakeup: asyncio.Event = field(default_factory=asyncio.Event)
+    _idle: asyncio.Event = field(default_factory=asyncio.Event)
+    _task: asyncio.Task[None] | None = None
+    _last_slow_log: float = 0.0
+
+    def __post_init__(self) -> None:
+        self._idle.set()
+        self._task = asyncio.create_task(self._run(), name=f"hooks-{self.name}")
+
+    @property
+    def queued(self) -> int:
+        return self._size
+
+    def offer(self, item: _Item) -> None:
+        if self._size >= self.capacity:
+            if item.kind == "status":
+                latest = self._latest.get(item.agent)
+                if latest is not None and latest.kind == "status" and latest.hook == item.hook:
+                    latest.args = item.args  # the newer report replaces the one still waiting
+                    self.coalesced += 1
+                    return
+                if self._drop_oldest_status():
+                    self.dropped += 1
+            else:
+                self.overflow += 1
+        self._queue.append(item)
+        self._size += 1
+        self._latest[item.agent] = item
+        self._idle.clear()
+        self._wakeup.set()
+
+    def _drop_oldest_status(self) -> bool:
+        for queued in self._queue:
+            if queued.live and queued.kind == "status":
+                queued.live = False
+                self._size -= 1
+                if self._latest.get(queued.agent) is queued:
+                    del self._latest[queued.agent]
+                return True
+        return False
+
+    async def _run(self) -> None:
+        since_yield = 0
+        while True:
+            if not self._queue:
+                self._idle.set()
+                self._wakeup.clear()
+                await self._wakeup.wait()
+                continue
+            item = self._queue.popleft()
+            if not item.live:
+                continue
+            self._size -= 1
+            if self._latest.get(item.agent) is item:
+                del self._latest[item.agent]
+            if not self.registered(item.kind, item.hook):
+                continue  # the service removed its hook (stopped) after the event was queued
+            started = time.monotonic()
+            try:
+                await item.hook(*item.args)
+                self.delivered += 1
+            except asyncio.CancelledError:
+                raise
+            except Exception:  # a failing hook costs its own event, never the consumer
+                self.failed += 1
+                if self.failed <= 10 or self.failed % 1000 == 0:
+                    log.exception("%s hook of %s failed (%d failures)", item.kind, self.name, self.failed)
+            elapsed = time.monotonic() - started
+            if elapsed > SLOW_HOOK_S and started - self._last_slow_log > 60.0:
+                self._last_slow_log = started
+                log.warning(
+                    "%s hook of %s took %.2f s (%d queued)", item.kind, self.name, elapsed, self._size
+                )
+            since_yield += 1
+            if since_yield >= YIELD_EVERY:
+                since_yield = 0
+                await asyncio.sleep(0)
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.wait([self._task], timeout=2.0)
+
+    def stats(self) -> ConsumerStats:
+        return ConsumerStats(
+            self.name, self._size, self.delivered, self.coalesced, self.dropped, self.overflow, self.failed
+        )
+
+
+class HookDispatcher:
+    """Publishes agent events to the consumer of every hook registered for their kind."""
+
+    def __init__(self, hooks: Mapping[HookKind, Sequence[Hook]], capacity: int = DEFAULT_CAPACITY) -> None:
+        self._hooks = hooks  # the manager's own lists: services append/remove hooks at any time
+        self.capacity = capacity
+        self._consumers: dict[int, Consumer] = {}
+        self._names: collections.Counter[str] = collections.Counter()
+
+    def publish(self, kind: HookKind, agent: str, *args: Any) -> None:
+        """Queue ``hook(*args)`` for every hook of ``kind``; never blocks, never raises for a hook."""
+        for hook in self._hooks[kind]:
+            self._consumer(hook).offer(_Item(kind, hook, agent, args))
+
+    def _registered(self, kind: HookKind, hook: Hook) -> bool:
+        return hook in self._hooks[kind]
+
+    def _consumer(self, hook: Hook) -> Consumer:
+        owner = _owner(hook)
+        consumer = self._consumers.get(id(owner))
+        if consumer is None or consumer.owner is not owner:
+            bound = hasattr(hook, "__self__")
+            base = type(owner).__name__ if bound else str(getattr(hook, "__name__", "hook"))
+            self._names[base] += 1
+            name = base if self._names[base] == 1 else f"{base}#{self._names[base]}"
+            consumer = Consumer(name, owner, self._registered, self.capacity)
+            self._consumers[id(owner)] = consumer
+        return consumer
+
+    def consumers(self) -> list[Consumer]:
+        return list(self._consumers.values())
+
+    def stats(self) -> list[ConsumerStats]:
+        return [c.stats() for c in self._consumers.values()]
+
+    async def drain(self, timeout: float = 10.0) -> bool:
+        """Wait until every consumer has run everything queued (hooks may queue more: waits for that too).
+
+        True when all are idle at once, False after ``timeout`` seconds.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            busy = [c for c in self._consumers.values() if not c._idle.is_set()]
+            if not busy:
+                await asyncio.sleep(0)  # let a hook's follow-up publish land, then check again
+                if all(c._idle.is_set() for c in self._consumers.values()):
+                    return True
+                continue
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            try:
+                async with asyncio.timeout(remaining):
+                    await busy[0]._idle.wait()
+            except TimeoutError:
+                return False
+
+    async def prune(self) -> None:
+        """Stop idle consumers whose owner has no hook registered any more."""
+        live = {id(_owner(hook)) for hooks in self._hooks.values() for hook in hooks}
+        idle = [k for k, c in self._consumers.items() if k not in live and c._idle.is_set()]
+        stopped = [c for c in (self._consumers.pop(k, None) for k in idle) if c is not None]
+        for consumer in stopped:
+            await consumer.stop()
+
+    async def close(self) -> None:
+        consumers, self._consumers = list(self._consumers.values()), {}
+        for consumer in consumers:
+            await consumer.stop()
+
+
+def _owner(hook: Hook) -> object:
+    """The object a bound-method hook belongs to, else the callable itself."""
+    return hook.__self__ if hasattr(hook, "__self__") else hook
+
+
+__all__ = ["ConsumerStats", "HookDispatcher", "HookKind"]

@@ -1,0 +1,224 @@
+"""Per-agent outbound queue and writer: one bounded queue and one writer task per session.
+
+Why: a peer that stops reading must only ever stall its own writer. Callers enqueue (``post``,
+never blocks) or enqueue and wait for the frame to be written and drained (``send``); the writer
+task owns the socket. Two lanes: an *urgent* frame (operator/safety commands, close) is placed
+ahead of every queued *normal* frame (mission traffic, geofence, parameters, keepalive, sync
+releases), with one exception: type-4 frames (PerformActions) keep their relative order
+whatever their lane, because the agent applies them in order (a ``replace`` cancels a
+``pause``), so a pause overtaking the replace it was sent after would be lost. Normal frames
+always keep their order among themselves.
+
+The queue is bounded in frames and in bytes (queued plus the transport's own buffer); a peer
+that overflows it, or whose socket does not drain within ``send_timeout_s``, is cut off: the
+transport is closed and every waiting ``send`` resolves False.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+import struct
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from protocol.packets import Body, Close, PacketType, PerformActions, packet_type_of
+from protocol.wire import encode
+
+log = logging.getLogger("gcs.outbox")
+
+MAX_QUEUED_FRAMES = 1024
+"""Frames waiting for one peer before it counts as stuck (a healthy peer has almost none)."""
+MAX_BATCH_BYTES = 256 << 10
+"""Frames written before one drain: a fan-out costs one drain per agent, not one per frame."""
+_SEQ = struct.Struct(">I")
+_SEQ_OFFSET = 4  # protocol.wire header: magic(2) version(1) type(1) seq(4) ...
+
+
+def is_urgent(body: Body) -> bool:
+    """The lane a frame goes in when the caller does not say: safety and operator commands first.
+
+    Urgent: close, pause/resume, and a replace whose actions include a return or a landing.
+    Everything else (missions, geofence, parameters, keepalive, sync releases) is normal.
+    """
+    if isinstance(body, Close):
+        return True
+    if isinstance(body, PerformActions):
+        if body.mode in ("pause", "resume"):
+            return True
+        return body.mode == "replace" and any(a.kind in ("rtl", "land") for a in body.actions)
+    return False
+
+
+@dataclass(eq=False, slots=True)
+class _Outgoing:
+    frame: bytes
+    ptype: int
+    urgent: bool
+    done: asyncio.Future[bool] | None = None
+
+
+@dataclass(eq=False)
+class Outbox:
+    """The outbound side of one session. ``start()`` once; the writer ends when the session is cut off."""
+
+    writer: asyncio.StreamWriter
+    identity: str
+    send_timeout_s: float
+    max_pending_bytes: int
+    first_seq: int = 1
+    max_frames: int = MAX_QUEUED_FRAMES
+    on_cut_off: Callable[[str], None] | None = None
+    last_tx: float = field(default_factory=time.monotonic)
+    written: int = 0
+    open: bool = True
+    cut_off_reason: str | None = None
+    _queue: collections.deque[_Outgoing] = field(default_factory=collections.deque)
+    _queued_bytes: int = 0
+    _wakeup: asyncio.Event = field(default_factory=asyncio.Event)
+    _task: asyncio.Task[None] | None = None
+    _in_flight: list[_Outgoing] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._seq = self.first_seq
+
+    def start(self) -> None:
+        self._task = asyncio.create_task(self._run(), name=f"outbox-{self.identity}")
+
+    @property
+    def queued(self) -> int:
+        """Frames waiting (not yet handed to the socket)."""
+        return len(self._queue)
+
+    @property
+    def idle(self) -> bool:
+        return not self._queue and not self._in_flight
+
+    # --- enqueue --------------------------------------------------------------------------------
+
+    def post(self, body: Body, urgent: bool | None = None) -> bool:
+        """Queue ``body``; False (and the peer cut off if it overflowed) when it cannot be queued."""
+        return self._enqueue(body, urgent, None)
+
+    async def send(self, body: Body, urgent: bool | None = None, timeout: float | None = None) -> bool:
+        """Queue ``body`` and wait until it is written and drained (True) or the peer is cut off (False).
+
+        ``timeout`` bounds the wait; a frame not drained by then cuts the peer off, as a peer
+        that does not take a frame within the send timeout is considered stuck.
+        """
+        done: asyncio.Future[bool] = asyncio.get_running_loop().create_future()
+        if not self._enqueue(body, urgent, done):
+            return False
+        try:
+            async with asyncio.timeout(timeout):
+                return await asyncio.shield(done)
+        except TimeoutError:
+            self.cut_off(f"a frame was not written within {timeout:g} s")
+            return False
+
+    def _enqueue(self, body: Body, urgent: bool | None, done: asyncio.Future[bool] | None) -> bool:
+        if not self.open:
+            return False
+        frame = encode(body, 0)
+        item = _Outgoing(frame, packet_type_of(body), is_urgent(body) if urgent is None else urgent, done)
+        if len(self._queue) >= self.max_frames:
+            self.cut_off(f"more than {self.max_frames} frames waiting for a peer that does not read")
+            return False
+        if self._queued_bytes + _buffered(self.writer) > self.max_pending_bytes:
+            self.cut_off(f"more than {self.max_pending_bytes} bytes waiting for a peer that does not read")
+            return False
+        if item.urgent:
+            self._queue.insert(self._urgent_position(item.ptype), item)
+        else:
+            self._queue.append(item)
+        self._queued_bytes += len(frame)
+        self._wakeup.set()
+        return True
+
+    def _urgent_position(self, ptype: int) -> int:
+        """After every queued urgent frame and, for a type-4 frame, after every queued type-4 frame."""
+        keep_type4_order = ptype == PacketType.PERFORM_ACTIONS
+        for index in range(len(self._queue) - 1, -1, -1):
+            queued = self._queue[index]
+            if queued.urgent or (keep_type4_order and queued.ptype == PacketType.PERFORM_ACTIONS):
+                return index + 1
+        return 0
+
+    # --- writer ---------------------------------------------------------------------------------
+
+    async def _run(self) -> None:
+        try:
+            while self.open:
+                if not self._queue:
+                    self._wakeup.clear()
+                    await self._wakeup.wait()
+                    continue
+                batch_bytes = 0
+                while self._queue and batch_bytes < MAX_BATCH_BYTES:
+                    item = self._queue.popleft()
+                    self._queued_bytes -= len(item.frame)
+                    self._seq += 1
+                    frame = bytearray(item.frame)
+                    _SEQ.pack_into(frame, _SEQ_OFFSET, self._seq % (1 << 32))
+                    self.writer.write(frame)
+                    batch_bytes += len(frame)
+                    self._in_flight.append(item)
+                self.last_tx = time.monotonic()
+                async with asyncio.timeout(self.send_timeout_s):
+                    await self.writer.drain()
+                self.written += len(self._in_flight)
+                for item in self._in_flight:
+                    if item.done is not None and not item.done.done():
+                        item.done.set_result(True)
+                self._in_flight.clear()
+        except TimeoutError:
+            self.cut_off(f"socket did not drain within {self.send_timeout_s:g} s")
+        except (OSError, ConnectionError, RuntimeError) as exc:
+            self.cut_off(f"write failed: {exc}")
+        finally:
+            self._fail_pending()
+
+    def cut_off(self, reason: str) -> None:
+        """Close the transport and fail every waiting frame (idempotent)."""
+        if not self.open:
+            return
+        self.open = False
+        self.cut_off_reason = reason
+        log.warning("send to %s failed: %s", self.identity, reason)
+        with contextlib.suppress(Exception):
+            self.writer.close()
+        self._fail_pending()
+        self._wakeup.set()
+        if self.on_cut_off is not None:
+            self.on_cut_off(reason)
+
+    def close(self) -> None:
+        """The session ended for another reason: stop quietly, fail what is still waiting."""
+        self.open = False
+        self._fail_pending()
+        self._wakeup.set()
+
+    def _fail_pending(self) -> None:
+        for item in [*self._in_flight, *self._queue]:
+            if item.done is not None and not item.done.done():
+                item.done.set_result(False)
+        self._in_flight.clear()
+        self._queue.clear()
+        self._queued_bytes = 0
+
+    async def wait_closed(self, timeout: float = 2.0) -> None:
+        if self._task is not None and not self._task.done():
+            self._task.cancel()
+            await asyncio.wait([self._task], timeout=timeout)
+
+
+def _buffered(writer: asyncio.StreamWriter) -> int:
+    with contextlib.suppress(Exception):
+        return int(writer.transport.get_write_buffer_size())
+    return 0
+
+
+__all__ = ["MAX_QUEUED_FRAMES", "Outbox", "is_urgent"]
