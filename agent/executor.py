@@ -97,7 +97,7 @@ class ActionExecutor:
             await ap.land(action.lat, action.lon)
             await self._until_disarmed()
         elif isinstance(action, ReturnToLaunch):
-            await ap.return_to_launch()
+            await ap.return_to_launch(action.alt)
             await self._until_disarmed()
         elif isinstance(action, Hold):
             await ap.hold()

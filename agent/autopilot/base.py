@@ -149,8 +149,8 @@ class Autopilot(abc.ABC):
         """Land here, or at lat/lon when given."""
 
     @abc.abstractmethod
-    async def return_to_launch(self) -> None:
-        """Switch to return-to-launch."""
+    async def return_to_launch(self, alt_rel_m: float | None = None) -> None:
+        """Switch to return-to-launch; ``alt_rel_m`` (above home) sets the return altitude first."""
 
     @abc.abstractmethod
     async def hold(self) -> None:

@@ -610,7 +610,15 @@ class MavlinkAutopilot(Autopilot):
     def ensure_link(self, what: str) -> None:
         self._link.ensure_link(what)
 
-    async def return_to_launch(self) -> None:
+    async def return_to_launch(self, alt_rel_m: float | None = None) -> None:
+        if alt_rel_m is not None:
+            if not math.isfinite(alt_rel_m) or alt_rel_m <= 0:
+                raise ValueError(f"return altitude must be a positive number, not {alt_rel_m!r}")
+            # The return altitude layer: ArduCopter RTL_ALT is in cm, PX4 RTL_RETURN_ALT in m.
+            if self.is_px4:
+                await self._link.set_param("RTL_RETURN_ALT", alt_rel_m)
+            else:
+                await self._link.set_param("RTL_ALT", round(alt_rel_m * 100.0))
         await self.set_mode("RTL")
 
     async def hold(self) -> None:

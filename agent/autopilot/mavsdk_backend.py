@@ -565,7 +565,9 @@ class MavsdkAutopilot(Autopilot):
             await self.approach_landing_point(lat, lon)
         await self._call("land", self._action.land)
 
-    async def return_to_launch(self) -> None:
+    async def return_to_launch(self, alt_rel_m: float | None = None) -> None:
+        if alt_rel_m is not None:
+            await self._call("rtl altitude", self._action.set_return_to_launch_altitude, float(alt_rel_m))
         await self._call("rtl", self._action.return_to_launch)
 
     async def hold(self) -> None:

@@ -163,6 +163,24 @@ async def test_return_to_launch(sim_fleet: Any, closing: Any) -> None:
     assert distance_m(tel.lat, tel.lon, HOME[0], HOME[1]) < 5.0
 
 
+async def test_return_to_launch_at_a_given_altitude(sim_fleet: Any, closing: Any) -> None:
+    """ReturnToLaunch.alt sets RTL_ALT (cm) first; the vehicle climbs to it and returns at it."""
+    fleet = sim_fleet()
+    ap = await connected(fleet, closing)
+    await airborne(ap, 8.0)
+    lat, lon = offset_latlon(HOME[0], HOME[1], 40.0, 0.0)
+    await ap.goto(lat, lon, 8.0)
+    await wait_until(ap, lambda t: distance_m(t.lat, t.lon, lat, lon) < 3.0, "out at 40 m", timeout=15.0)
+    await ap.return_to_launch(alt_rel_m=23.0)
+    assert await ap.get_param("RTL_ALT") == pytest.approx(2300.0)
+    tel = await wait_until(ap, lambda t: t.alt_rel > 21.0, "climb to the return altitude", timeout=15.0)
+    assert distance_m(tel.lat, tel.lon, HOME[0], HOME[1]) > 30.0  # climbs before it returns
+    tel = await wait_until(
+        ap, lambda t: distance_m(t.lat, t.lon, HOME[0], HOME[1]) < 10.0, "back over home", timeout=20.0
+    )
+    assert tel.alt_rel == pytest.approx(23.0, abs=1.5)
+
+
 async def test_fence_upload_and_breach_triggers_rtl(sim_fleet: Any, closing: Any) -> None:
     fleet = sim_fleet()
     ap = await connected(fleet, closing)
