@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import os
 import secrets
 import sys
@@ -195,7 +196,8 @@ def _progress_line(daemon: Daemon, names: list[str], mission_id: str) -> str:
             continue
         sync = f" sync{status.waiting_sync}" if status.waiting_sync is not None else ""
         cells.append(
-            f"{name}: {status.mode:6} step {status.step:>2}{sync} alt {status.position.alt_rel:5.1f} "
+            f"{name}: {status.mode:6} step {status.step:>2}{sync} "
+            f"alt {status.position.alt_rel if status.position else math.nan:5.1f} "
             f"bat {status.battery.pct if status.battery.pct is not None else 0:5.1f}%"
         )
     progress = daemon.missions.progress(mission_id)

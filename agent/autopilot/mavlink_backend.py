@@ -337,6 +337,7 @@ class MavlinkAutopilot(Autopilot):
         tel.alt_amsl = msg.alt / 1000.0
         tel.alt_rel = msg.relative_alt / 1000.0
         tel.vn, tel.ve, tel.vd = msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0
+        tel.latch_position()
         if msg.hdg != 65535:
             tel.heading_deg = (msg.hdg / 100.0) % 360.0
             self._heading_from_gpi = True
@@ -353,6 +354,7 @@ class MavlinkAutopilot(Autopilot):
     def _h_gps_raw_int(self, msg: Any) -> None:
         self._tel.gps_fix = int(msg.fix_type)
         self._tel.satellites = 0 if msg.satellites_visible == 255 else int(msg.satellites_visible)
+        self._tel.latch_position()
 
     def _h_sys_status(self, msg: Any) -> None:
         tel = self._tel

@@ -307,6 +307,7 @@ class MavsdkAutopilot(Autopilot):
             return
         tel.lat, tel.lon = float(p.latitude_deg), float(p.longitude_deg)
         tel.alt_amsl, tel.alt_rel = float(p.absolute_altitude_m), float(p.relative_altitude_m)
+        tel.latch_position()
         self._update_landed()
 
     def _on_heading(self, h: Any) -> None:
@@ -337,6 +338,7 @@ class MavsdkAutopilot(Autopilot):
     def _on_gps(self, g: Any) -> None:
         self._tel.gps_fix = int(g.fix_type)
         self._tel.satellites = int(g.num_satellites)
+        self._tel.latch_position()
 
     def _on_armed(self, armed: Any) -> None:
         self._tel.armed = bool(armed)

@@ -40,6 +40,7 @@ class MemoryAutopilot(Autopilot):
             mode="STABILIZE",
             gps_fix=3,
             satellites=12,
+            position_known=True,
             home_lat=home[0],
             home_lon=home[1],
             home_alt_amsl=home[2],

@@ -206,8 +206,8 @@ class CooperationService:
         self.holds.pop(identity, None)
 
     async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
-        if status.buffered:
-            return  # history from a link outage: the live picture comes with the next report
+        if status.buffered or status.position is None:
+            return  # link-outage history, or no 3-D fix yet: nothing to track or check from
         now = time.monotonic()
         ident = session.identity
         agent = self.agents.get(ident)
