@@ -964,6 +964,8 @@ class SimVehicle:
             return "PreArm: GPS 1: Bad fix"
         if self.batt_failsafe:
             return "PreArm: Battery 1 low voltage failsafe"
+        if self.params["BATT_ARM_VOLT"] > 0 and self.battery.voltage_v < self.params["BATT_ARM_VOLT"]:
+            return "PreArm: Battery 1 below minimum arming voltage"
         if self._fence_enabled() and self._fence_breaches() != 0:
             return "PreArm: Fence: vehicle outside fence"
         return None
