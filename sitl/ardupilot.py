@@ -50,7 +50,7 @@ def find_binary(explicit: str | None = None) -> str | None:
         if cand:
             p = Path(cand).expanduser()
             if p.is_file() and os.access(p, os.X_OK):
-                return str(p)
+                return str(p.resolve())  # the instances run in their own directories
             found = shutil.which(cand)
             if found:
                 return found
@@ -206,7 +206,7 @@ class ArduPilotFleet:
             raise ValueError(f"base port {base_port} out of range for {vehicles} vehicles")
         if base_port == 0 and host == ALL_INTERFACES:
             raise ValueError("base port 0 (ephemeral ports) needs a host other than 0.0.0.0")
-        self.binary = binary
+        self.binary = str(Path(binary).resolve()) if os.sep in binary else binary
         self.n = vehicles
         self.home = home
         self.spacing_m = spacing_m
