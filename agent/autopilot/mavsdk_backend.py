@@ -554,11 +554,16 @@ class MavsdkAutopilot(Autopilot):
             raise ValueError("goto: non-finite target")
         if not self.telemetry().armed:
             raise CommandRefused("goto", "vehicle is disarmed")
+        if not self.is_ardupilot:
+            if speed_mps is not None:
+                await self.set_speed(speed_mps)
+            await self._call("goto", self._action.goto_location, lat, lon, self._amsl(alt_rel_m), math.nan)
+            return
+        # ArduCopter: GUIDED, the target, then the speed (the target resets it to WPNAV_SPEED).
+        await self._ardupilot_mode("GUIDED")
+        await self._call("goto", self._action.goto_location, lat, lon, self._amsl(alt_rel_m), math.nan)
         if speed_mps is not None:
             await self.set_speed(speed_mps)
-        if self.is_ardupilot:
-            await self._ardupilot_mode("GUIDED")
-        await self._call("goto", self._action.goto_location, lat, lon, self._amsl(alt_rel_m), math.nan)
 
     async def land(self, lat: float | None = None, lon: float | None = None) -> None:
         if (lat is None) != (lon is None):
