@@ -93,8 +93,8 @@ class Telemetry:
 
     @property
     def has_position(self) -> bool:
-        """True once the vehicle reports a 3D fix and a home position."""
-        return self.gps_fix >= 3 and self.home_lat is not None
+        """True while the vehicle reports a 3D fix, and it has reported a position and a home."""
+        return self.gps_fix >= 3 and self.position_known and self.home_lat is not None
 
 
 @dataclass(slots=True, frozen=True)
