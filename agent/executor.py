@@ -25,6 +25,7 @@ from protocol.actions import (
     Waypoints,
 )
 from protocol.geo import distance_m, offset_latlon
+from protocol.packets import ActionFailure
 
 POLL_S = 0.05
 VERTICAL_TOLERANCE_M = 1.0
@@ -59,21 +60,54 @@ class ActionExecutor:
         self.cruise_mps: float | None = None
         # What is left of the running action if it is interrupted now (pause), or None when idle.
         self.continuation: Action | None = None
+        # The last failed action, reported in every status until another action starts.
+        self.failure: ActionFailure | None = None
 
     async def run(self, action: Action) -> None:
-        """Execute ``action`` to completion within its timeout, else raise :class:`ActionFailed`."""
+        """Execute ``action`` to completion within its timeout, else raise :class:`ActionFailed`.
+
+        The failure is also kept in :attr:`failure` (step, kind, the autopilot's reason) for the
+        status reports, so the daemon's mission runner can apply its policy.
+        """
         limit = default_timeout(action)
         self.continuation = action
+        self.failure = None
         try:
-            async with asyncio.timeout(limit):
-                await self._dispatch(action)
-        except TimeoutError:
-            raise ActionFailed(
-                f"{action.kind} (step {action.step}) did not complete within {limit:.0f} s"
-            ) from None
-        except AutopilotError as exc:
+            try:
+                async with asyncio.timeout(limit):
+                    await self._await_position(action)
+                    await self._dispatch(action)
+            except TimeoutError:
+                raise ActionFailed(f"did not complete within {limit:.0f} s") from None
+            except AutopilotError as exc:
+                raise ActionFailed(str(exc)) from None
+        except ActionFailed as exc:
+            self.failure = ActionFailure(
+                step=action.step, kind=action.kind, reason=str(exc)[:300], time=time.time()
+            )
             raise ActionFailed(f"{action.kind} (step {action.step}): {exc}") from None
         self.continuation = None
+
+    async def _await_position(self, action: Action) -> None:
+        """No action can be planned from an unknown position (ArduCopter: lat/lon 0,0 at boot).
+
+        A takeoff waits for the first 3-D fix up to the arm deadline (arming would be refused
+        until then anyway); any other action fails at once.
+        """
+        ap = self.autopilot
+        if ap.telemetry().position_known:
+            return
+        if isinstance(action, Takeoff):
+            deadline = time.monotonic() + self.config.arm_deadline_s
+            while time.monotonic() < deadline:
+                if ap.telemetry().position_known:
+                    return
+                await asyncio.sleep(POLL_S * 4)
+        t = ap.telemetry()
+        raise ActionFailed(
+            f"no position: the vehicle has not reported a 3-D GPS fix (fix type {t.gps_fix}, "
+            f"{t.satellites} satellites)"
+        )
 
     async def _dispatch(self, action: Action) -> None:
         ap = self.autopilot
@@ -97,7 +131,7 @@ class ActionExecutor:
             await ap.land(action.lat, action.lon)
             await self._until_disarmed()
         elif isinstance(action, ReturnToLaunch):
-            await ap.return_to_launch()
+            await ap.return_to_launch(action.alt)
             await self._until_disarmed()
         elif isinstance(action, Hold):
             await ap.hold()

@@ -24,6 +24,7 @@ from agent.tasks import cancel_and_wait
 from protocol.actions import Action
 from protocol.auth import parse_key
 from protocol.packets import (
+    ActionFailure,
     Battery,
     Geofence,
     GeoPoint,
@@ -64,9 +65,10 @@ def build_status(
     queue: CommandQueue,
     exceptions: list[str],
     autopilot_link: bool,
+    failure: ActionFailure | None = None,
     failsafe: str | None = None,
 ) -> StatusReport:
-    """A type-2 report from telemetry and queue state."""
+    """A type-2 report from telemetry and queue state (no position before the first 3-D fix)."""
     return StatusReport(
         time=time.time(),
         position=Position(
@@ -74,7 +76,10 @@ def build_status(
             lon=finite_or_zero(t.lon),
             alt_rel=finite_or_zero(t.alt_rel),
             alt_amsl=finite_or_zero(t.alt_amsl),
-        ),
+        )
+        if t.position_known
+        else None,
+        failure=failure,
         velocity=VelocityNed(vn=finite_or_zero(t.vn), ve=finite_or_zero(t.ve), vd=finite_or_zero(t.vd)),
         heading_deg=finite_or_zero(t.heading_deg) % 360.0,
         battery=Battery(pct=_clamp_pct(t.battery_pct), voltage_v=t.voltage_v, current_a=t.current_a),
@@ -153,9 +158,15 @@ class Agent:
         while True:
             t = self.autopilot.telemetry()
             link_ok = time.monotonic() - t.last_heartbeat_monotonic < HEARTBEAT_TIMEOUT_S
-            await self.link.send_status(
-                build_status(t, self.queue, self.exception_list(), link_ok, self.monitor.failsafe_text())
+            status = build_status(
+                t,
+                self.queue,
+                self.exception_list(),
+                link_ok,
+                self.executor.failure,
+                self.monitor.failsafe_text(),
             )
+            await self.link.send_status(status)
             self._status_wakeup.clear()
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(self.settings.status_period_s):

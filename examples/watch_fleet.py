@@ -18,6 +18,11 @@ async def main(api: str) -> None:
             print(f"{agent.identity:12} cid {agent.cid:3} {'up' if agent.connected else 'down':4} {mode}")
         async for name, status in gcs.statuses(max_rate_hz=1):
             p = status.position
+            if p is None:  # no 3-D fix yet
+                print(
+                    f"{name:12} {status.mode:8} no position yet (GPS fix {status.gps.fix}) step {status.step}"
+                )
+                continue
             print(
                 f"{name:12} {status.mode:8} {p.lat:.6f} {p.lon:.6f} alt {p.alt_rel:5.1f} m step {status.step}"
             )

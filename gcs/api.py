@@ -491,7 +491,7 @@ def _drone_infos(daemon: Daemon, names: list[str]) -> list[DroneInfo]:
             infos.append(DroneInfo(name=name))
             continue
         home = (session.home.lat, session.home.lon) if session.home else None
-        if home is None and session.status is not None:
+        if home is None and session.status is not None and session.status.position is not None:
             home = (session.status.position.lat, session.status.position.lon)
         infos.append(
             DroneInfo(name=name, capabilities=session.capabilities, home=home, status=session.status)

@@ -165,7 +165,9 @@ class FleetClient:
     async def submit(self, task: TaskFile | dict[str, Any] | list[Any]) -> str:
         """Submit a task file (fleetgcs model or document, or CoUAS rows); returns the mission id."""
         body = task.model_dump(mode="json") if isinstance(task, TaskFile) else task
-        created = await self._call("POST", "/api/v1/missions", MissionCreated, json=body)
+        # The daemon may wait (fix_wait_s, default 60 s) for every agent's first 3-D fix.
+        wait = task.fix_wait_s if isinstance(task, TaskFile) else 60.0
+        created = await self._call("POST", "/api/v1/missions", MissionCreated, json=body, timeout=wait + 30.0)
         return str(created.mission_id)
 
     async def plan(self, request: PlanRequestModel | dict[str, Any]) -> PlanPreview:

@@ -186,7 +186,9 @@ class Daemon:
 
     def _fleet_view(self) -> dict[str, VehicleView]:
         return {
-            s.identity: VehicleView(s.status, s.home) for s in self.agents.connected() if s.status is not None
+            s.identity: VehicleView(s.status, s.status.position, s.home)
+            for s in self.agents.connected()
+            if s.status is not None and s.status.position is not None
         }
 
     def _release_return(self, ident: str, mission_id: str, step: int) -> None:
@@ -196,9 +198,9 @@ class Daemon:
         if status.buffered:
             return
         self.authority.observe(session.identity, status)
-        if session.home is None and status.landed and not status.armed and status.gps.fix >= 3:
+        p = status.position
+        if session.home is None and p is not None and status.landed and not status.armed:
             # An agent that joined before its autopilot had a home: where it stands is its home.
-            p = status.position
             session.home = GeoPoint(lat=p.lat, lon=p.lon, alt_amsl=p.alt_amsl)
         self.returns.tick()
 

@@ -41,15 +41,16 @@ class FlightRecord:
     def add(
         self, status: StatusReport, planned: LineString | None, origin: tuple[float, float] | None
     ) -> None:
+        position = status.position
+        if position is None:
+            return  # no 3-D fix yet
         self.samples += 1
         if self.first_time is None:
             self.first_time = status.time
         previous = self._last
-        if previous is not None and status.time > previous.time:
+        if previous is not None and previous.position is not None and status.time > previous.time:
             dt = status.time - previous.time
-            step = distance_m(
-                previous.position.lat, previous.position.lon, status.position.lat, status.position.lon
-            )
+            step = distance_m(previous.position.lat, previous.position.lon, position.lat, position.lon)
             if step > JITTER_FLOOR_M:
                 self.distance_m += step
             if not previous.landed:
@@ -62,12 +63,12 @@ class FlightRecord:
                 self.battery_start_pct = status.battery.pct
             self.battery_end_pct = status.battery.pct
         if planned is not None and origin is not None and not status.landed:
-            north, east = ned_offset_m(origin[0], origin[1], status.position.lat, status.position.lon)
+            north, east = ned_offset_m(origin[0], origin[1], position.lat, position.lon)
             self.max_path_error_m = max(self.max_path_error_m, planned.distance(Point(east, north)))
-        self.max_alt_m = max(self.max_alt_m, status.position.alt_rel)
+        self.max_alt_m = max(self.max_alt_m, position.alt_rel)
         self.landed, self.armed = status.landed, status.armed
         self.last_time = status.time
-        self.track.append((status.time, status.position.lat, status.position.lon, status.position.alt_rel))
+        self.track.append((status.time, position.lat, position.lon, position.alt_rel))
         self._last = status
 
     @property
@@ -104,6 +105,8 @@ class FlightRecorder:
         self._survey_steps[agent] = survey_steps
 
     def add(self, agent: str, status: StatusReport) -> None:
+        if status.position is None:
+            return  # no 3-D fix yet: nothing to record
         record = self.records.setdefault(agent, FlightRecord(agent))
         surveying = status.step in self._survey_steps.get(agent, set())
         record.add(status, self._planned.get(agent) if surveying else None, self._origin)

@@ -184,9 +184,10 @@ class LiveHub:
 
     def track(self, identity: str, mission_id: str | None = None) -> list[tuple[float, float]]:
         return [
-            (s.status.position.lat, s.status.position.lon)
+            (p.lat, p.lon)
             for s in self.history.get(identity, ())
-            if mission_id is None or s.status.mission_id == mission_id
+            if (p := s.status.position) is not None
+            and (mission_id is None or s.status.mission_id == mission_id)
         ]
 
     def subscribe(self, client: StreamClient) -> None:

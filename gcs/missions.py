@@ -27,10 +27,12 @@ from gcs.events import EventBus
 from gcs.store import Store
 from gcs.sync import BarrierSet
 from protocol.actions import Action, ReturnToLaunch
-from protocol.packets import Resume, StatusReport, SyncSignal
+from protocol.packets import ActionFailure, Resume, StatusReport, SyncSignal
 from protocol.taskfile import TaskFile
 
 log = logging.getLogger("gcs.missions")
+
+FIX_POLL_S = 0.25
 
 PreflightCheck = Callable[[TaskFile, dict[str, list[Action]]], Awaitable[None]]
 """Runs before a mission is accepted; raises MissionRejected (with the numbers) to refuse it."""
@@ -82,6 +84,8 @@ class ActiveMission:
     excluded: set[str] = field(default_factory=set)
     state: MissionState = "running"
     timers: dict[int, asyncio.TimerHandle] = field(default_factory=dict)
+    failures: dict[str, tuple[int, float]] = field(default_factory=dict)  # agent -> last (step, time) seen
+    retries: dict[tuple[str, int], int] = field(default_factory=dict)  # (agent, step) -> retries sent
 
     def last_step(self, agent: str) -> int:
         return self.plans[agent][-1].step
@@ -101,6 +105,7 @@ class MissionRunner:
         self.preflight_checks: list[PreflightCheck] = []
         self.paused: set[str] = set()
         self.return_home: ReturnHome | None = None  # set by the daemon once the coordinator exists
+        self._watchdogs: dict[str, asyncio.TimerHandle] = {}  # mission id -> next barrier's watchdog
         agents.on_join.append(self._on_join)
         agents.on_status.append(self._on_status)
         agents.on_sync.append(self._on_sync)
@@ -121,6 +126,7 @@ class MissionRunner:
                     mission.excluded.add(agent)
                     mission.barriers.members.discard(agent)
             self.active[stored.id] = mission
+            self._arm_watchdog(mission)
             self._events.publish(
                 "mission_restored", f"mission {task.name} resumed after restart", mission_id=stored.id
             )
@@ -142,6 +148,7 @@ class MissionRunner:
                     f"({verdict.order or ', '.join(verdict.holds) or verdict.failsafe}); "
                     "it takes a mission once that ends (landed) or the operator releases it"
                 )
+        await self._wait_for_fix(task, plans)
         for check in self.preflight_checks:
             await check(task, plans)
         task, plans = self._layered_returns(task, plans)
@@ -156,6 +163,7 @@ class MissionRunner:
         )
         for identity, actions in plans.items():
             self._authority.replace(identity, "mission", mission_id, actions, f"mission {task.name}")
+        self._arm_watchdog(mission)
         return mission_id
 
     def _layered_returns(
@@ -302,6 +310,7 @@ class MissionRunner:
             self._store.set_paused(mission.id, False)
         for timer in mission.timers.values():
             timer.cancel()
+        self._disarm_watchdog(mission.id)
         self._store.finish_mission(mission.id, state, result)
         self.active.pop(mission.id, None)
         self._events.publish(
@@ -373,7 +382,10 @@ class MissionRunner:
         if status.completed_step > previous:
             mission.completed[session.identity] = status.completed_step
             self._store.set_completed_step(mission.id, session.identity, status.completed_step)
-        self._check_complete(mission)
+        if status.failure is not None:
+            await self._on_action_failed(mission, session.identity, status.failure)
+        if mission.state == "running":
+            self._check_complete(mission)
 
     def _check_complete(self, mission: ActiveMission) -> None:
         flying = [a for a in mission.plans if a not in mission.excluded]
@@ -428,6 +440,7 @@ class MissionRunner:
         signal = SyncSignal(mission_id=mission.id, step=step, kind="release")
         for identity in members:  # each agent's own outbox; nobody waits for the slowest
             self._agents.post(identity, signal)
+        self._arm_watchdog(mission)
 
     async def _barrier_timeout(self, mission: ActiveMission, step: int) -> None:
         if mission.state != "running" or step in mission.barriers.released:
@@ -465,6 +478,180 @@ class MissionRunner:
             return  # it had finished its part
         if mission.task.lost_agent_policy == "continue":
             await self._exclude(mission, identity, "lost during the mission; continuing without it")
+
+    # --- pre-flight: wait for every agent's fix -------------------------------------------------
+
+    def _without_fix(self, plans: dict[str, list[Action]]) -> dict[str, str]:
+        """Agents of ``plans`` with no position yet, with what their last report says."""
+        missing: dict[str, str] = {}
+        for identity in plans:
+            session = self._agents.session(identity)
+            status = session.status if session else None
+            if status is None:
+                missing[identity] = "no status report yet"
+            elif status.position is None or status.gps.fix < 3:
+                missing[identity] = f"GPS fix {status.gps.fix}, {status.gps.satellites} satellites"
+        return missing
+
+    async def _wait_for_fix(self, task: TaskFile, plans: dict[str, list[Action]]) -> None:
+        """Wait (up to ``task.fix_wait_s``) until every agent reports a 3-D fix and a position.
+
+        A vehicle reports no position for a while after boot (ArduCopter: 11-13 s of fix 0 at
+        lat/lon 0,0); planning or checking energy from there gives absurd figures, so a mission
+        submitted right after the agents connect waits here instead of being refused.
+        """
+        missing = self._without_fix(plans)
+        if not missing:
+            return
+        started = time.monotonic()
+        self._events.publish(
+            "preflight_waiting",
+            f"{task.name}: waiting up to {task.fix_wait_s:.0f} s for a 3-D fix from "
+            + ", ".join(f"{a} ({why})" for a, why in sorted(missing.items())),
+            data={"agents": sorted(missing)},
+        )
+        deadline = started + task.fix_wait_s
+        while missing and time.monotonic() < deadline:
+            await asyncio.sleep(min(FIX_POLL_S, max(0.0, deadline - time.monotonic())))
+            missing = self._without_fix(plans)
+        if missing:
+            raise MissionRejected(
+                f"no 3-D fix after {task.fix_wait_s:.0f} s from "
+                + ", ".join(f"{a} ({why})" for a, why in sorted(missing.items()))
+            )
+        self._events.publish(
+            "preflight_fix",
+            f"{task.name}: every agent has a 3-D fix after {time.monotonic() - started:.1f} s",
+        )
+
+    # --- failed actions -------------------------------------------------------------------------
+
+    async def _on_action_failed(self, mission: ActiveMission, identity: str, failure: ActionFailure) -> None:
+        """Apply the task's ``on_action_failed`` policy once per failure an agent reports.
+
+        The agent has emptied its queue and holds; it keeps reporting the failure until it
+        starts another action, so each (step, time) is acted on once.
+        """
+        key = (failure.step, failure.time)
+        if (
+            mission.state != "running"
+            or identity in mission.excluded
+            or mission.failures.get(identity) == key
+        ):
+            return
+        mission.failures[identity] = key
+        what = f"{identity} step {failure.step} ({failure.kind}): {failure.reason}"
+        policy = mission.task.on_action_failed
+        self._events.publish(
+            "action_failed",
+            f"{what}; policy {policy}",
+            severity="error",
+            agent=identity,
+            mission_id=mission.id,
+            data={"step": failure.step, "kind": failure.kind, "reason": failure.reason},
+        )
+        plan = mission.plans[identity]
+        if policy == "retry":
+            tried = mission.retries.get((identity, failure.step), 0)
+            if tried < mission.task.action_retries:
+                mission.retries[(identity, failure.step)] = tried + 1
+                again = [a for a in plan if a.step >= failure.step]
+                self._events.publish(
+                    "action_retry",
+                    f"{identity}: retry {tried + 1}/{mission.task.action_retries} of step {failure.step}",
+                    agent=identity,
+                    mission_id=mission.id,
+                )
+                self._authority.replace(identity, "mission", mission.id, again, f"retry step {failure.step}")
+                return
+        elif policy == "skip":
+            await self._skip_step(mission, identity, failure)
+            return
+        await self.abort(mission.id, f"action failed: {what}")
+
+    async def _skip_step(self, mission: ActiveMission, identity: str, failure: ActionFailure) -> None:
+        """Count the failed step as done (a barrier at it counts the agent as arrived), fly on."""
+        plan = mission.plans[identity]
+        rest = [a for a in plan if a.step > failure.step]
+        self._events.publish(
+            "action_skipped",
+            f"{identity}: step {failure.step} skipped, {len(rest)} actions left",
+            severity="warning",
+            agent=identity,
+            mission_id=mission.id,
+        )
+        if mission.completed.get(identity, -1) < failure.step:
+            mission.completed[identity] = failure.step
+            self._store.set_completed_step(mission.id, identity, failure.step)
+        if rest:
+            self._authority.replace(identity, "mission", mission.id, rest, f"step {failure.step} skipped")
+        barriers = mission.barriers
+        if (
+            failure.step in barriers.sync_steps
+            and failure.step not in barriers.released
+            and barriers.arrive(identity, failure.step)
+        ):
+            await self._release(mission, failure.step)
+
+    # --- barrier watchdog: agents that never arrive ---------------------------------------------
+
+    def _next_barrier(self, mission: ActiveMission) -> int | None:
+        pending = [s for s in mission.barriers.sync_steps if s not in mission.barriers.released]
+        return pending[0] if pending else None
+
+    def _arm_watchdog(self, mission: ActiveMission) -> None:
+        """Time the next barrier from now (mission start or the previous release).
+
+        The usual sync timeout starts at a barrier's first arrival; this one catches a barrier
+        no agent ever reaches (every agent failed, stuck idle or gone).
+        """
+        self._disarm_watchdog(mission.id)
+        step = self._next_barrier(mission)
+        if step is None or mission.state != "running":
+            return
+        self._watchdogs[mission.id] = asyncio.get_running_loop().call_later(
+            mission.task.sync_timeout_s, lambda: asyncio.ensure_future(self._watchdog_fired(mission, step))
+        )
+
+    def _disarm_watchdog(self, mission_id: str) -> None:
+        timer = self._watchdogs.pop(mission_id, None)
+        if timer is not None:
+            timer.cancel()
+
+    def _working_on(self, mission: ActiveMission, identity: str) -> bool:
+        """True while the agent's reports show it flying an action or waiting at a barrier."""
+        session = self._agents.session(identity)
+        status = session.status if session else None
+        if status is None or status.mission_id != mission.id:
+            return False
+        return status.step >= 0 or status.waiting_sync is not None
+
+    async def _watchdog_fired(self, mission: ActiveMission, step: int) -> None:
+        self._watchdogs.pop(mission.id, None)
+        if mission.state != "running" or step in mission.barriers.released:
+            return
+        if mission.barriers.arrivals.get(step) and step in mission.timers:
+            return  # someone arrived: the first-arrival sync timeout is running
+        idle = sorted(a for a in mission.barriers.missing(step) if not self._working_on(mission, a))
+        if not idle or mission.id in self.paused:
+            self._arm_watchdog(mission)  # long legs: look again one timeout later
+            return
+        policy = mission.task.lost_agent_policy
+        self._events.publish(
+            "sync_timeout",
+            f"step {step}: {idle} not working towards it {mission.task.sync_timeout_s:.0f} s after "
+            f"the mission start or the previous release; policy {policy}",
+            severity="error",
+            mission_id=mission.id,
+            data={"step": step, "missing": idle},
+        )
+        if policy == "abort":
+            await self.abort(mission.id, f"sync step {step}: {idle} never arrived")
+            return
+        for identity in idle:
+            await self._exclude(mission, identity, f"never reached sync step {step}")
+        if mission.state == "running":
+            self._arm_watchdog(mission)
 
     # --- progress -------------------------------------------------------------------------------
 

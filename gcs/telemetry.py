@@ -47,6 +47,8 @@ CSV_COLUMNS = (
 def status_row(agent: str, status: StatusReport, received: float) -> tuple[Any, ...]:
     """One telemetry row in ``gcs.store.TELEMETRY_COLUMNS`` order."""
     p, v, b = status.position, status.velocity, status.battery
+    if p is None:
+        raise ValueError(f"{agent}: a status without a position (no 3-D fix yet) makes no telemetry row")
     return (
         agent, status.time, received, p.lat, p.lon, p.alt_rel, p.alt_amsl, v.vn, v.ve, v.vd,
         status.heading_deg, b.pct, b.voltage_v, b.current_a, status.mode, int(status.armed),
@@ -197,6 +199,8 @@ class TelemetryRecorder:
     async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
         if self._writer is None:
             return
+        if status.position is None:
+            return  # no 3-D fix yet: a row needs a position
         if self.config.period_s > 0:
             last = self._last_kept.get(session.identity)
             if last is not None and 0 <= status.time - last < self.config.period_s:

@@ -81,12 +81,14 @@ class Land(_Action):
 class ReturnToLaunch(_Action):
     """Return to the launch point and land; complete when disarmed.
 
-    ``alt`` (metres above home, optional) is the altitude to return at (ArduPilot: RTL_ALT); the
-    daemon gives drones returning together distinct altitudes so their paths home cannot meet.
+    ``alt`` (metres above home) is the altitude of the return leg: the autopilot climbs to it
+    (or stays higher if it already is) and flies home at it. Distinct altitudes keep drones
+    whose homes are a few metres apart from meeting on the way back. None = the autopilot's
+    own setting (ArduCopter RTL_ALT, 15 m by default).
     """
 
     kind: Literal["rtl"] = "rtl"
-    alt: Annotated[float, Field(gt=0.0, le=10_000.0, allow_inf_nan=False)] | None = None
+    alt: Annotated[float, Field(ge=2.0, le=3000.0, allow_inf_nan=False)] | None = None
 
 
 class Hold(_Action):

@@ -7,7 +7,9 @@ the ellipsoidal local frame in ``gcs.planning.geodesy`` instead.
 
 from __future__ import annotations
 
+import argparse
 import math
+import re
 from collections.abc import Sequence
 
 EARTH_RADIUS_M = 6_371_008.8
@@ -48,3 +50,13 @@ def point_in_polygon(lat: float, lon: float, polygon: Sequence[tuple[float, floa
             if lon < x_cross:
                 inside = not inside
     return inside
+
+
+# A negative number, or a comma-separated list starting with one: "-35.36,149.16,584".
+_NEGATIVE_NUMBERS = re.compile(r"^-\d*\.?\d+(?:[eE][-+]?\d+)?(?:,\s*-?\d*\.?\d+(?:[eE][-+]?\d+)?)*$")
+
+
+def allow_negative_coordinates(parser: argparse.ArgumentParser) -> None:
+    """Let ``--home -35.36,149.16,584`` parse: argparse takes an argument that starts with ``-``
+    for an option unless it looks like a negative number, and a coordinate list does not."""
+    parser._negative_number_matcher = _NEGATIVE_NUMBERS

@@ -155,11 +155,26 @@ class Gps(_Body):
     satellites: int = Field(default=0, ge=0, le=255)
 
 
+class ActionFailure(_Body):
+    """The action of the report's mission that failed last; the agent then holds, queue empty.
+
+    It stays in every report until the agent starts another action, so the daemon sees it even
+    across a lost report; ``time`` (agent clock) tells a repeated failure of the same step apart.
+    """
+
+    step: int = Field(ge=0)
+    kind: str = Field(max_length=32)
+    reason: str = Field(max_length=300, description="the autopilot's words, e.g. a refusal")
+    time: Finite
+
+
 class StatusReport(_Body):
     """Type 2. Sent every status period; ``seq`` of the frame orders them."""
 
     time: Finite = Field(description="agent wall clock, UNIX seconds")
-    position: Position
+    position: Position | None = Field(
+        default=None, description="None until the vehicle has reported a 3-D fix (no position yet)"
+    )
     velocity: VelocityNed = VelocityNed()
     heading_deg: Annotated[float, Field(ge=0.0, le=360.0)] = 0.0
     battery: Battery = Battery()
@@ -176,6 +191,7 @@ class StatusReport(_Body):
     exceptions: list[Annotated[str, Field(max_length=200)]] = Field(default_factory=list, max_length=32)
     autopilot_link: bool = True
     buffered: bool = Field(default=False, description="recorded while the daemon link was down")
+    failure: ActionFailure | None = None
     failsafe: str | None = Field(
         default=None,
         max_length=200,
@@ -324,6 +340,7 @@ __all__ = [
     "BODY_MODELS",
     "PROTOCOL_VERSION",
     "Action",
+    "ActionFailure",
     "AgentParameters",
     "AltitudeRel",
     "Battery",

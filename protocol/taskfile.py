@@ -62,6 +62,15 @@ class TaskFile(BaseModel):
     name: str = Field(default="mission", min_length=1, max_length=128)
     sync_timeout_s: float = Field(default=120.0, gt=0.0, le=86_400.0)
     lost_agent_policy: Literal["abort", "continue"] = "abort"
+    on_action_failed: Literal["end", "skip", "retry"] = Field(
+        default="end",
+        description="an agent's action failed (e.g. refused by its autopilot): end the mission "
+        "(everyone returns to launch), skip that action, or retry it (then end)",
+    )
+    action_retries: int = Field(default=1, ge=0, le=10, description="retries per failed step (retry)")
+    fix_wait_s: float = Field(
+        default=60.0, ge=0.0, le=600.0, description="pre-flight: wait this long for every agent's 3-D fix"
+    )
     plans: list[AgentPlan] = Field(min_length=1, max_length=1000)
 
     @model_validator(mode="after")

@@ -13,6 +13,8 @@ import threading
 from collections.abc import Callable
 from types import FrameType
 
+from protocol.geo import allow_negative_coordinates
+
 
 def _floats(text: str, n_min: int, n_max: int, what: str) -> tuple[float, ...]:
     try:
@@ -37,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="sitl", description="fleetgcs multi-vehicle MAVLink copter simulator")
     sub = ap.add_subparsers(dest="cmd", required=True)
     run = sub.add_parser("run", help="start N simulated copters and serve MAVLink until interrupted")
+    allow_negative_coordinates(run)  # --home -35.36,149.16,584
     run.add_argument("--vehicles", "-n", type=int, default=1, help="number of vehicles (1..250)")
     run.add_argument(
         "--home",
@@ -92,7 +95,13 @@ def build_parser() -> argparse.ArgumentParser:
         const="",
         default=None,
         metavar="PATH",
-        help="run real arducopter binaries instead (PATH or $ARDUPILOT_SITL)",
+        help="run real arducopter binaries instead (PATH or $ARDUPILOT_SITL); honours --vehicles, "
+        "--home, --spacing, --speedup, --base-port, --host, --param, --wind",
+    )
+    run.add_argument(
+        "--keep-logs",
+        action="store_true",
+        help="--ardupilot: write dataflash logs and keep the instances' scratch directory (path on stderr)",
     )
     return ap
 
@@ -114,6 +123,58 @@ class _StopSignal:
             pass
 
 
+def _run_ardupilot(args: argparse.Namespace, home: tuple[float, ...], stop: _StopSignal) -> int:
+    """``sitl run --ardupilot``: real arducopter instances behind the same READY contract."""
+    from sitl.ardupilot import ArduPilotFleet, find_binary, wind_params
+
+    unsupported = [
+        flag
+        for flag, used in (
+            ("--fail", bool(args.fail)),
+            ("--transport udp", args.transport != "tcp"),
+            ("--gust", args.gust != 0.0),
+            ("--legacy-mission-request", args.legacy_mission_request),
+        )
+        if used
+    ]
+    if unsupported:
+        print(f"sitl: {', '.join(unsupported)} not supported with --ardupilot", file=sys.stderr)
+        return 2
+    binary = find_binary(args.ardupilot or None)
+    if binary is None:
+        print("sitl: no arducopter binary (give --ardupilot PATH or set ARDUPILOT_SITL)", file=sys.stderr)
+        return 2
+    params = {**wind_params(*args.wind), **dict(args.param)} if any(args.wind) else dict(args.param)
+    try:
+        apf = ArduPilotFleet(
+            binary,
+            args.vehicles,
+            home,
+            args.spacing,
+            args.speedup or 1.0,
+            base_port=args.base_port,
+            host=args.host,
+            params=params,
+            keep_logs=args.keep_logs,
+        )
+    except ValueError as exc:
+        print(f"sitl: {exc}", file=sys.stderr)
+        return 2
+    try:
+        apf.start()
+    except (RuntimeError, OSError) as exc:
+        print(f"sitl: {exc}", file=sys.stderr)
+        return 1
+    if args.keep_logs:
+        print(f"sitl: logs in {apf.workdir}", file=sys.stderr)
+    print("SITL READY " + " ".join(apf.endpoints), flush=True)
+    try:
+        stop.wait(apf.alive)
+    finally:
+        apf.stop()
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Console entry point (``sitl = "sitl.cli:main"``)."""
     args = build_parser().parse_args(argv)
@@ -122,24 +183,7 @@ def main(argv: list[str] | None = None) -> int:
 
     home = args.home if args.home is not None else DEFAULT_HOME
     if args.ardupilot is not None:
-        from sitl.ardupilot import ArduPilotFleet, find_binary
-
-        binary = find_binary(args.ardupilot or None)
-        if binary is None:
-            print("sitl: no arducopter binary (give --ardupilot PATH or set ARDUPILOT_SITL)", file=sys.stderr)
-            return 2
-        apf = ArduPilotFleet(binary, args.vehicles, home, args.spacing, args.speedup or 1.0)
-        try:
-            apf.start()
-        except RuntimeError as exc:
-            print(f"sitl: {exc}", file=sys.stderr)
-            return 1
-        print("SITL READY " + " ".join(apf.endpoints), flush=True)
-        try:
-            stop.wait(apf.alive)
-        finally:
-            apf.stop()
-        return 0
+        return _run_ardupilot(args, home, stop)
 
     cfg = FleetConfig(
         vehicles=args.vehicles,

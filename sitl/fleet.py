@@ -39,6 +39,7 @@ class FleetConfig:
     transport: str = "tcp"
     spacing_m: float = 5.0
     prearm_delay_s: float = 3.0
+    gps_boot_s: float | None = None  # no fix/position/home before this (None: = prearm_delay_s)
     legacy_mission_request: bool = False
     wind: tuple[float, float] = (0.0, 0.0)
     gust_mps: float = 0.0
@@ -79,6 +80,7 @@ class SimFleet:
                     (vlat, vlon, alt),
                     seed=cfg.seed,
                     prearm_delay_s=cfg.prearm_delay_s,
+                    gps_boot_s=cfg.gps_boot_s,
                     legacy_mission_request=cfg.legacy_mission_request,
                     wind=cfg.wind,
                     gust_mps=cfg.gust_mps,

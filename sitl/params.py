@@ -47,6 +47,7 @@ DEFAULTS: dict[str, tuple[float, int]] = {
     "BATT_CAPACITY": (5000, INT32),
     "BATT_LOW_VOLT": (10.5, REAL32),
     "BATT_CRT_VOLT": (0.0, REAL32),
+    "BATT_ARM_VOLT": (0.0, REAL32),
     "BATT_LOW_TIMER": (10, INT8),
     "BATT_FS_LOW_ACT": (0, INT8),
     "BATT_FS_CRT_ACT": (0, INT8),

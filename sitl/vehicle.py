@@ -202,6 +202,7 @@ class SimVehicle:
         seed: int = 0,
         prearm_delay_s: float = 3.0,
         legacy_mission_request: bool = False,
+        gps_boot_s: float | None = None,
         wind: tuple[float, float] = (0.0, 0.0),
         gust_mps: float = 0.0,
         params: Mapping[str, float] | None = None,
@@ -214,6 +215,10 @@ class SimVehicle:
         self.origin = home  # EKF origin: where the vehicle boots (ground level of the flat world)
         self.home = home
         self.prearm_delay_s = prearm_delay_s
+        # ArduCopter reports GPS fix 0 and lat/lon 0,0 for ~11-13 s after boot, with no home:
+        # nothing may be computed from "where the vehicle is" before that. Default: the fix comes
+        # when the pre-arm checks would pass.
+        self.gps_boot_s = prearm_delay_s if gps_boot_s is None else gps_boot_s
         self.params = ParamStore()
         self.params.define("SYSID_THISMAV", self.sysid)
         for k, v in (params or {}).items():
@@ -252,6 +257,10 @@ class SimVehicle:
         self.speed_xy_override: float | None = None
         self.speed_up_override: float | None = None
         self.speed_dn_override: float | None = None
+        # GUIDED runs its waypoint controller only after a position target; the first target
+        # after takeoff or after entering GUIDED (re)starts it at WPNAV_SPEED (ArduCopter's
+        # ModeGuided::pos_control_start), dropping any speed change sent before.
+        self.guided_wp_active = False
         self.rtl_state = RTL_CLIMB
         self.rtl_alt = 15.0
         self.rtl_loiter_until = 0.0
@@ -314,8 +323,17 @@ class SimVehicle:
 
     @property
     def gps_ok(self) -> bool:
-        """True when GPS has a fix (no injected loss, SIM_GPS_DISABLE off)."""
-        return self.t >= self.gps_lost_until and self.params.get("SIM_GPS_DISABLE") == 0
+        """True when GPS has a fix (booted, no injected loss, SIM_GPS_DISABLE off)."""
+        return (
+            self.t >= self.gps_lost_until
+            and self.t >= self.gps_boot_s
+            and self.params.get("SIM_GPS_DISABLE") == 0
+        )
+
+    @property
+    def booting(self) -> bool:
+        """True before the first GPS fix: no position, no home (GLOBAL_POSITION_INT zeros)."""
+        return self.t < self.gps_boot_s
 
     @property
     def home_ned(self) -> tuple[float, float, float]:
@@ -408,6 +426,9 @@ class SimVehicle:
         self.leg = (self._true_prev[0], self._true_prev[1], tn, te)
 
     def _goto(self, n: float, e: float, d: float) -> None:
+        if self.mode == GUIDED and not self.guided_wp_active:
+            self.guided_wp_active = True
+            self.speed_xy_override = self.speed_up_override = self.speed_dn_override = None
         self.takeoff_alt = None  # a new destination ends a GUIDED takeoff, as in ArduCopter
         self.target = (n, e, d)
         self.vel_target = None
@@ -523,10 +544,11 @@ class SimVehicle:
         t = self.t
         while self.failures and self.failures[0].at <= t:
             self._apply_failure(self.failures.pop(0))
-        if not self.prearm_announced and t >= self.prearm_delay_s:
+        if not self.prearm_announced and t >= max(self.prearm_delay_s, self.gps_boot_s):
             self.prearm_announced = True
             self.statustext(SEV_INFO, "EKF3 IMU0 is using GPS")
-            self.send(self.msg_home_position())
+            if (home := self.msg_home_position()) is not None:
+                self.send(home)
         wn, we = self.wind.step(dt)
         self.gust = (wn - self.wind.north, we - self.wind.east)
         # GPS / estimate
@@ -748,6 +770,7 @@ class SimVehicle:
                 return False
         prev = self.mode
         self.mode = mode
+        self.guided_wp_active = False
         self.speed_xy_override = self.speed_up_override = self.speed_dn_override = None
         self.vel_target = None
         if mode != AUTO:
@@ -935,12 +958,14 @@ class SimVehicle:
     def _prearm_failure(self) -> str | None:
         if self.params["ARMING_CHECK"] == 0:
             return None
-        if self.t < self.prearm_delay_s:
+        if self.booting or self.t < self.prearm_delay_s:
             return "PreArm: Need Position Estimate"
         if not self.gps_ok:
             return "PreArm: GPS 1: Bad fix"
         if self.batt_failsafe:
             return "PreArm: Battery 1 low voltage failsafe"
+        if self.params["BATT_ARM_VOLT"] > 0 and self.battery.voltage_v < self.params["BATT_ARM_VOLT"]:
+            return "PreArm: Battery 1 below minimum arming voltage"
         if self._fence_enabled() and self._fence_breaches() != 0:
             return "PreArm: Fence: vehicle outside fence"
         return None
@@ -1227,8 +1252,8 @@ class SimVehicle:
             out = self.build(int(msg.param1))
             if out is not None:
                 self.send(out)
-        elif cmd == mav.MAV_CMD_GET_HOME_POSITION:
-            self.send(self.msg_home_position())
+        elif cmd == mav.MAV_CMD_GET_HOME_POSITION and (home := self.msg_home_position()) is not None:
+            self.send(home)
         elif cmd == mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES and result == mav.MAV_RESULT_ACCEPTED:
             self.send(self.msg_autopilot_version())
 
@@ -1279,6 +1304,7 @@ class SimVehicle:
             ):
                 return failed, []
             b = self.belief()
+            self.guided_wp_active = False
             self.takeoff_alt = alt + self.home[2] - self.origin[2]
             self.target = (b[0], b[1], -self.takeoff_alt)
             self.landed = False
@@ -1298,12 +1324,15 @@ class SimVehicle:
                 n, e = latlon_to_local(self.origin[0], self.origin[1], lat, lon)
             if d is None:
                 d = self.target[2] if not self.landed else b[2]
-            if p1 > 0:
-                self.speed_xy_override = p1
             if not self.landed or self.takeoff_alt is not None:
                 self._goto(n, e, d)
+            if p1 > 0:
+                self.speed_xy_override = p1
             return acc, []
         if cmd == mav.MAV_CMD_DO_CHANGE_SPEED:
+            # Only modes with a speed override take it (Mode::set_speed_xy): AUTO, GUIDED, RTL.
+            if self.mode not in (AUTO, GUIDED, RTL):
+                return failed, []
             return (acc if self._change_speed(p1, p2) else failed), []
         if cmd == mav.MAV_CMD_DO_SET_HOME:
             if p1 >= 0.5:
@@ -1318,7 +1347,8 @@ class SimVehicle:
                 if (lat_ == 0 and lon_ == 0) or math.isnan(alt_):
                     return failed, []
                 self.home = (lat_, lon_, alt_)
-            self.send(self.msg_home_position())
+            if (home := self.msg_home_position()) is not None:
+                self.send(home)
             return acc, []
         if cmd == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
             mid, us = int(p1), p2
@@ -1445,7 +1475,9 @@ class SimVehicle:
         )
 
     def msg_global_position_int(self) -> mav.MAVLink_message:
-        """GLOBAL_POSITION_INT from the estimate (what ArduPilot's EKF would report)."""
+        """GLOBAL_POSITION_INT from the estimate (what ArduPilot's EKF would report); zeros at boot."""
+        if self.booting:
+            return mav.MAVLink_global_position_int_message(self.time_boot_ms(), 0, 0, 0, 0, 0, 0, 0, 65535)
         en, ee, ed = self.est()
         lat, lon = local_to_latlon(self.origin[0], self.origin[1], en, ee)
         alt = self.origin[2] - ed
@@ -1482,6 +1514,8 @@ class SimVehicle:
             cog = round(math.degrees(math.atan2(gve, gvn)) % 360 * 100) % 36000 if vel > 0 else 0
         else:
             lat, lon, alt = self.gps_fix_lat, self.gps_fix_lon, self.origin[2] - self.est()[2]
+            if self.booting:
+                lat = lon = alt = 0.0
             fix, sats, eph, epv, vel, cog = 0, 0, 9999, 9999, 0, 0
         return mav.MAVLink_gps_raw_int_message(
             int(self.t * 1e6),
@@ -1557,8 +1591,10 @@ class SimVehicle:
             0,
         )
 
-    def msg_home_position(self) -> mav.MAVLink_message:
-        """HOME_POSITION (AMSL mm) plus its local NED offset."""
+    def msg_home_position(self) -> mav.MAVLink_message | None:
+        """HOME_POSITION (AMSL mm) plus its local NED offset; none before the first fix."""
+        if self.booting:
+            return None
         hn, he, hd = self.home_ned
         return mav.MAVLink_home_position_message(
             round(self.home[0] * 1e7),

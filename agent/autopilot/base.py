@@ -80,13 +80,21 @@ class Telemetry:
     home_lon: float | None = None
     home_alt_amsl: float | None = None
     mission_current: int = -1  # MISSION_CURRENT seq while flying an uploaded mission, else -1
+    # Latched once the vehicle has reported a 3-D fix and a non-zero position: before that
+    # (ArduCopter: the first 11-13 s after boot) lat/lon are 0,0 and mean nothing.
+    position_known: bool = False
     last_heartbeat_monotonic: float = 0.0
     status_texts: list[str] = field(default_factory=list)
 
+    def latch_position(self) -> None:
+        """Set :attr:`position_known` when the current fix and position allow it (never clears)."""
+        if not self.position_known and self.gps_fix >= 3 and (self.lat, self.lon) != (0.0, 0.0):
+            self.position_known = True
+
     @property
     def has_position(self) -> bool:
-        """True once the vehicle reports a 3D fix and a home position."""
-        return self.gps_fix >= 3 and self.home_lat is not None
+        """True while the vehicle reports a 3D fix, and it has reported a position and a home."""
+        return self.gps_fix >= 3 and self.position_known and self.home_lat is not None
 
 
 @dataclass(slots=True, frozen=True)
@@ -149,8 +157,8 @@ class Autopilot(abc.ABC):
         """Land here, or at lat/lon when given."""
 
     @abc.abstractmethod
-    async def return_to_launch(self) -> None:
-        """Switch to return-to-launch."""
+    async def return_to_launch(self, alt_rel_m: float | None = None) -> None:
+        """Switch to return-to-launch; ``alt_rel_m`` (above home) sets the return altitude first."""
 
     @abc.abstractmethod
     async def hold(self) -> None:

@@ -93,6 +93,8 @@ _STREAMS: tuple[tuple[str, int, float | None], ...] = (
     ("HOME_POSITION", mavlink.MAVLINK_MSG_ID_HOME_POSITION, 0.5),
 )
 STREAM_FULL_REASSERT_S = 30.0
+# ArduCopter modes whose controller takes MAV_CMD_DO_CHANGE_SPEED (Mode::set_speed_xy).
+SPEED_MODES = frozenset({"AUTO", "GUIDED", "RTL"})
 STREAM_STALE_REASSERT_MIN_S = 3.0
 
 
@@ -177,6 +179,7 @@ class MavlinkAutopilot(Autopilot):
         self._mission_seq = -1
         self._mission_offset = 0  # seq of the first uploaded point (1 on ArduPilot: seq 0 is home)
         self._capabilities: int | None = None
+        self._pending_speed: float | None = None  # set_speed in a mode that refuses it
         self._streams_ready = False
         self._stream_requested_at: dict[str, float] = {}
         self._last_full_reassert = 0.0
@@ -334,6 +337,7 @@ class MavlinkAutopilot(Autopilot):
         tel.alt_amsl = msg.alt / 1000.0
         tel.alt_rel = msg.relative_alt / 1000.0
         tel.vn, tel.ve, tel.vd = msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0
+        tel.latch_position()
         if msg.hdg != 65535:
             tel.heading_deg = (msg.hdg / 100.0) % 360.0
             self._heading_from_gpi = True
@@ -350,6 +354,7 @@ class MavlinkAutopilot(Autopilot):
     def _h_gps_raw_int(self, msg: Any) -> None:
         self._tel.gps_fix = int(msg.fix_type)
         self._tel.satellites = 0 if msg.satellites_visible == 255 else int(msg.satellites_visible)
+        self._tel.latch_position()
 
     def _h_sys_status(self, msg: Any) -> None:
         tel = self._tel
@@ -440,6 +445,12 @@ class MavlinkAutopilot(Autopilot):
             if "UNSUPPORTED" not in exc.reason:
                 raise
             await self._set_mode_legacy(what, name, custom)
+            return
+        if not self.is_px4:
+            # Accepted: the mode has changed, though the next heartbeat may be up to 1 s away.
+            # Later decisions (send the speed now? switch to GUIDED first?) need it at once.
+            with self._state_lock:
+                self._tel.mode = name
 
     async def _set_mode_legacy(self, what: str, name: str, custom: int) -> None:
         """SET_MODE message for autopilots without MAV_CMD_DO_SET_MODE; confirmed by the heartbeat."""
@@ -497,10 +508,40 @@ class MavlinkAutopilot(Autopilot):
         await self._link.command("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF, params)
 
     async def set_speed(self, speed_mps: float) -> None:
+        """Change the cruise speed now if the mode takes it, else with the next position target.
+
+        ArduCopter accepts DO_CHANGE_SPEED only in AUTO, GUIDED and RTL (BRAKE, LOITER, LAND
+        refuse it with MAV_RESULT_FAILED), so in a hold the speed is kept and sent right after
+        the next goto's target.
+        """
         if not math.isfinite(speed_mps) or speed_mps <= 0:
             raise ValueError(f"speed must be a positive number, not {speed_mps!r}")
+        if not self.is_px4 and self._mode_now() not in SPEED_MODES:
+            self._link.ensure_link("set speed")
+            log.info(
+                "mode %s takes no speed change; %.1f m/s goes with the next target",
+                self._mode_now(),
+                speed_mps,
+            )
+            self._pending_speed = speed_mps
+            return
+        await self._change_speed(speed_mps)
+
+    async def _change_speed(self, speed_mps: float) -> None:
         # param1 1 = ground speed, param3 -1 = throttle unchanged
         await self._link.command("set speed", mavlink.MAV_CMD_DO_CHANGE_SPEED, (1, speed_mps, -1))
+        self._pending_speed = None
+
+    async def _speed_after_target(self, speed_mps: float | None) -> None:
+        """Send the leg's speed *after* its position target (or a speed kept from a hold).
+
+        ArduCopter resets the horizontal speed to WPNAV_SPEED when a GUIDED position target
+        starts its waypoint controller (the first target after takeoff or after entering
+        GUIDED), so a speed sent before that target is lost.
+        """
+        speed = speed_mps if speed_mps is not None else self._pending_speed
+        if speed is not None:
+            await self._change_speed(speed)
 
     def _check_target(self, what: str, *values: float) -> None:
         if not all(math.isfinite(v) for v in values):
@@ -511,9 +552,9 @@ class MavlinkAutopilot(Autopilot):
 
     async def goto(self, lat: float, lon: float, alt_rel_m: float, speed_mps: float | None = None) -> None:
         self._check_target("goto", lat, lon, alt_rel_m)
-        if speed_mps is not None:
-            await self.set_speed(speed_mps)
         if self.is_px4:
+            if speed_mps is not None:
+                await self.set_speed(speed_mps)
             tel = self.telemetry()
             base_alt = tel.home_alt_amsl if tel.home_alt_amsl is not None else tel.alt_amsl - tel.alt_rel
             await self._link.command(
@@ -553,6 +594,7 @@ class MavlinkAutopilot(Autopilot):
                 0,
             )
         )
+        await self._speed_after_target(speed_mps)
 
     def supports_local_offset(self) -> bool:
         if self._local_offset_option is not None:
@@ -569,8 +611,6 @@ class MavlinkAutopilot(Autopilot):
             await super().go_by(north_m, east_m, up_m, speed_mps)
             return
         self._check_target("go_by", north_m, east_m, up_m)
-        if speed_mps is not None:
-            await self.set_speed(speed_mps)
         await self._ensure_mode("GUIDED")
         # MAV_FRAME_LOCAL_OFFSET_NED: x/y/z relative to the vehicle's position when received, z down.
         self._link.send(
@@ -593,6 +633,7 @@ class MavlinkAutopilot(Autopilot):
                 0,
             )
         )
+        await self._speed_after_target(speed_mps)
 
     async def land(self, lat: float | None = None, lon: float | None = None) -> None:
         if (lat is None) != (lon is None):
@@ -610,7 +651,15 @@ class MavlinkAutopilot(Autopilot):
     def ensure_link(self, what: str) -> None:
         self._link.ensure_link(what)
 
-    async def return_to_launch(self) -> None:
+    async def return_to_launch(self, alt_rel_m: float | None = None) -> None:
+        if alt_rel_m is not None:
+            if not math.isfinite(alt_rel_m) or alt_rel_m <= 0:
+                raise ValueError(f"return altitude must be a positive number, not {alt_rel_m!r}")
+            # The return altitude layer: ArduCopter RTL_ALT is in cm, PX4 RTL_RETURN_ALT in m.
+            if self.is_px4:
+                await self._link.set_param("RTL_RETURN_ALT", alt_rel_m)
+            else:
+                await self._link.set_param("RTL_ALT", round(alt_rel_m * 100.0))
         await self.set_mode("RTL")
 
     async def hold(self) -> None:

@@ -307,6 +307,7 @@ class MavsdkAutopilot(Autopilot):
             return
         tel.lat, tel.lon = float(p.latitude_deg), float(p.longitude_deg)
         tel.alt_amsl, tel.alt_rel = float(p.absolute_altitude_m), float(p.relative_altitude_m)
+        tel.latch_position()
         self._update_landed()
 
     def _on_heading(self, h: Any) -> None:
@@ -337,6 +338,7 @@ class MavsdkAutopilot(Autopilot):
     def _on_gps(self, g: Any) -> None:
         self._tel.gps_fix = int(g.fix_type)
         self._tel.satellites = int(g.num_satellites)
+        self._tel.latch_position()
 
     def _on_armed(self, armed: Any) -> None:
         self._tel.armed = bool(armed)
@@ -552,11 +554,16 @@ class MavsdkAutopilot(Autopilot):
             raise ValueError("goto: non-finite target")
         if not self.telemetry().armed:
             raise CommandRefused("goto", "vehicle is disarmed")
+        if not self.is_ardupilot:
+            if speed_mps is not None:
+                await self.set_speed(speed_mps)
+            await self._call("goto", self._action.goto_location, lat, lon, self._amsl(alt_rel_m), math.nan)
+            return
+        # ArduCopter: GUIDED, the target, then the speed (the target resets it to WPNAV_SPEED).
+        await self._ardupilot_mode("GUIDED")
+        await self._call("goto", self._action.goto_location, lat, lon, self._amsl(alt_rel_m), math.nan)
         if speed_mps is not None:
             await self.set_speed(speed_mps)
-        if self.is_ardupilot:
-            await self._ardupilot_mode("GUIDED")
-        await self._call("goto", self._action.goto_location, lat, lon, self._amsl(alt_rel_m), math.nan)
 
     async def land(self, lat: float | None = None, lon: float | None = None) -> None:
         if (lat is None) != (lon is None):
@@ -565,7 +572,9 @@ class MavsdkAutopilot(Autopilot):
             await self.approach_landing_point(lat, lon)
         await self._call("land", self._action.land)
 
-    async def return_to_launch(self) -> None:
+    async def return_to_launch(self, alt_rel_m: float | None = None) -> None:
+        if alt_rel_m is not None:
+            await self._call("rtl altitude", self._action.set_return_to_launch_altitude, float(alt_rel_m))
         await self._call("rtl", self._action.return_to_launch)
 
     async def hold(self) -> None:

@@ -40,6 +40,7 @@ class MemoryAutopilot(Autopilot):
             mode="STABILIZE",
             gps_fix=3,
             satellites=12,
+            position_known=True,
             home_lat=home[0],
             home_lon=home[1],
             home_alt_amsl=home[2],
@@ -51,6 +52,7 @@ class MemoryAutopilot(Autopilot):
         self._task: asyncio.Task[None] | None = None
         self.fence: FenceSpec | None = None
         self.refuse_arming = False
+        self.rtl_alt_m = 15.0  # ArduCopter's RTL_ALT default
 
     async def connect(self, timeout: float = 30.0) -> None:
         self._task = asyncio.create_task(self._run(), name="memory-autopilot")
@@ -99,11 +101,14 @@ class MemoryAutopilot(Autopilot):
             self._target = None
         self._landing = True
 
-    async def return_to_launch(self) -> None:
+    async def return_to_launch(self, alt_rel_m: float | None = None) -> None:
         self._require_flying("rtl")
         self._t.mode = "RTL"
         assert self._t.home_lat is not None and self._t.home_lon is not None
-        self._target = (self._t.home_lat, self._t.home_lon, max(self._t.alt_rel, 15.0))
+        if alt_rel_m is not None:
+            self.rtl_alt_m = alt_rel_m
+        # Like ArduCopter: return at the RTL altitude, or higher if already higher.
+        self._target = (self._t.home_lat, self._t.home_lon, max(self._t.alt_rel, self.rtl_alt_m))
         self._landing = False
 
     async def hold(self) -> None:

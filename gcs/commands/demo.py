@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from gcs.demo import DemoError, DemoOptions, run_demo, summary_table
+from protocol.geo import allow_negative_coordinates
 
 
 def _home(text: str) -> tuple[float, float, float]:
@@ -31,6 +32,7 @@ def run(args: argparse.Namespace) -> int:
         timeout_s=args.timeout,
         data_dir=args.data_dir,
         http=args.http,
+        ardupilot=args.ardupilot,
     )
     try:
         result = asyncio.run(run_demo(options))
@@ -46,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("demo", help="fly a multi-drone mission on the embedded simulator")
+    allow_negative_coordinates(parser)  # --home -35.36,149.16
     parser.add_argument("--drones", type=int, default=3, choices=range(1, 51), metavar="1..50")
     parser.add_argument("--home", type=_home, default=(47.397742, 8.545594, 488.0), help="LAT,LON[,ALT]")
     parser.add_argument(
@@ -60,4 +63,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--timeout", type=float, default=600.0, help="abort the mission after this many s")
     parser.add_argument("--data-dir", type=Path, help="keep the daemon database here (default: temporary)")
     parser.add_argument("--http", help="also serve the HTTP API on HOST:PORT")
+    parser.add_argument(
+        "--ardupilot",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="PATH",
+        help="fly on real ArduCopter SITL (the arducopter binary; default $ARDUPILOT_SITL or PATH)",
+    )
     parser.set_defaults(run=run)

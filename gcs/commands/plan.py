@@ -19,6 +19,7 @@ from gcs.planning.camera import Camera, CameraError, Spacing, spacing_from_camer
 from gcs.planning.division import DroneSpec, InsufficientCapabilityError
 from gcs.planning.planner import PlanConfig, SearchPlan, plan_search
 from gcs.planning.polygon import SelfIntersectionError
+from protocol.geo import allow_negative_coordinates
 
 _plan_targets: ModuleType | None
 try:  # target/missed-map planning lives in its own module; the area planner works without it
@@ -66,6 +67,7 @@ def _camera(text: str) -> Camera:
 
 def add_area_arguments(parser: argparse.ArgumentParser) -> None:
     """The area-search options (kept separate so they are easy to reuse and to test)."""
+    allow_negative_coordinates(parser)  # --home -35.36,149.16
     parser.add_argument(
         "area", nargs="?", help="area file: GeoJSON Polygon/Feature, QGC .plan, or [[lat,lon],...]"
     )

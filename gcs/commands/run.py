@@ -83,7 +83,10 @@ def run(args: argparse.Namespace) -> int:
     headers = {"Authorization": f"Bearer {api_token(args)}"}
     with httpx.Client(base_url=args.api, headers=headers, timeout=10.0) as client:
         try:
-            response = client.post("/api/v1/missions", json=task.model_dump(mode="json"))
+            # The daemon waits up to fix_wait_s for every agent's first 3-D fix before accepting.
+            response = client.post(
+                "/api/v1/missions", json=task.model_dump(mode="json"), timeout=task.fix_wait_s + 30.0
+            )
         except httpx.HTTPError as exc:
             print(f"gcs run: cannot reach the daemon at {args.api}: {exc}", file=sys.stderr)
             return 3

@@ -95,11 +95,37 @@ def resolve_config(args: argparse.Namespace) -> tuple[DaemonConfig, LoggingConfi
     return config, log.model_copy(update=updates)
 
 
+SHUTDOWN_DRAIN_S = 5.0
+
+
 def run_until_signalled(coroutine: Coroutine[Any, Any, None]) -> int:
-    """Run ``coroutine``; SIGTERM stops it like Ctrl-C (asyncio cancels it and its cleanup runs)."""
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    """Run ``coroutine`` until SIGINT/SIGTERM, then cancel it (its cleanup runs) and let the tasks
+    it leaves (agent connections being closed) end by themselves, bounded.
+
+    Cancelling everything at once, as ``asyncio.run`` does on Ctrl-C, cancels the connection
+    handlers while the daemon is still closing them, and asyncio logs a traceback for each.
+    """
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        stop = asyncio.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        work = asyncio.ensure_future(coroutine)
+        stopper = asyncio.ensure_future(stop.wait())
+        await asyncio.wait([work, stopper], return_when=asyncio.FIRST_COMPLETED)
+        stopper.cancel()
+        if work.done():
+            work.result()  # the daemon ended by itself: raise what ended it
+        work.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await work
+        others = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        if others:
+            await asyncio.wait(others, timeout=SHUTDOWN_DRAIN_S)
+
     with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(coroutine)
+        asyncio.run(main())
     return 0
 
 

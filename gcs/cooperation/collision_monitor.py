@@ -45,7 +45,8 @@ class CollisionMonitor:
         tracked = {}
         for a in agents:
             s = a.status
-            n, e = frame.point(s.position.lat, s.position.lon)
+            p = a.position
+            n, e = frame.point(p.lat, p.lon)
             grounded = not a.airborne
             yieldable = (
                 not grounded
@@ -59,7 +60,7 @@ class CollisionMonitor:
                 DroneState(
                     ident=a.ident,
                     cid=a.cid,
-                    position=(n, e, s.position.alt_amsl),
+                    position=(n, e, p.alt_amsl),
                     velocity=(0.0, 0.0, 0.0) if grounded else (s.velocity.vn, s.velocity.ve, -s.velocity.vd),
                     desired=None
                     if grounded
@@ -90,12 +91,9 @@ class CollisionMonitor:
 
     def _escape(self, agent: TrackedAgent, target_amsl: float, reason: str) -> list[Intent]:
         s = agent.status
-        alt_rel = max(target_amsl - (s.position.alt_amsl - s.position.alt_rel), self.config.min_escape_alt_m)
-        detour = (
-            agent.plan.detour(s, (s.position.lat, s.position.lon, alt_rel), agent.completed)
-            if agent.plan
-            else None
-        )
+        p = agent.position
+        alt_rel = max(target_amsl - (p.alt_amsl - p.alt_rel), self.config.min_escape_alt_m)
+        detour = agent.plan.detour(s, (p.lat, p.lon, alt_rel), agent.completed) if agent.plan else None
         if detour is None:
             self.avoider.escaping.pop(agent.ident, None)
             return [

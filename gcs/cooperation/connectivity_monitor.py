@@ -36,7 +36,7 @@ class ConnectivityMonitor:
             return []
         intents: list[Intent] = []
         base = frame.point(*base_latlon)
-        points = frame.to_ne([a.status.position.lat for a in agents], [a.status.position.lon for a in agents])
+        points = frame.to_ne([a.position.lat for a in agents], [a.position.lon for a in agents])
         ok = connected_to_base(base, points, w, cfg.multihop)
         for k, agent in enumerate(agents):
             if ok[k] or not agent.airborne:
@@ -125,7 +125,7 @@ class ConnectivityMonitor:
             lat, lon = frame.to_latlon(north, east)
             step = max(agent.completed, 0)
             agent.detour_step = step
-            goto = Goto(step=step, lat=lat, lon=lon, alt=agent.status.position.alt_rel)
+            goto = Goto(step=step, lat=lat, lon=lon, alt=agent.position.alt_rel)
             intents.append(
                 ReplaceIntent(agent.ident, "connectivity", [goto], "return toward the fleet", "return")
             )

@@ -47,7 +47,8 @@ class DivergenceMonitor:
         if leg is None:
             return []
         cfg = self.config
-        pos = (status.position.lat, status.position.lon, status.position.alt_rel)
+        here = agent.position
+        pos = (here.lat, here.lon, here.alt_rel)
         error = leg_error(leg, pos, cfg.lookahead_m)
         elapsed = (status.time - plan.segment_started) * self.vehicle_time_scale
         verdict, detail = judge.judge(leg, error, elapsed, now, plan.replans < cfg.max_replans_per_step)

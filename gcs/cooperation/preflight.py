@@ -25,8 +25,9 @@ def start_points(
     for ident in plans:
         session = session_of(ident)
         status = session.status if session else None
-        if status is not None:
-            homes[ident] = (status.position.lat, status.position.lon, max(status.position.alt_rel, 0.0))
+        if status is not None and status.position is not None:
+            p = status.position
+            homes[ident] = (p.lat, p.lon, max(p.alt_rel, 0.0))
         elif session is not None and session.home is not None:
             homes[ident] = (session.home.lat, session.home.lon, 0.0)
     return homes

@@ -32,7 +32,7 @@ from gcs.cooperation.returns import (
     spread_landing_spots,
 )
 from protocol.actions import Action, Goto, Hold, Land, ReturnToLaunch
-from protocol.packets import GeoPoint, StatusReport
+from protocol.packets import GeoPoint, Position, StatusReport
 
 RETURN_PREFIX = "return-"
 ReturnKind = Literal["rtl", "land"]
@@ -59,9 +59,10 @@ class _Return:
 
 @dataclass
 class VehicleView:
-    """What the coordinator reads of one agent."""
+    """What the coordinator reads of one agent (only agents with a position are in the view)."""
 
     status: StatusReport
+    position: Position
     home: GeoPoint | None
 
 
@@ -81,16 +82,16 @@ class ReturnCoordinator:
         airborne = {i: v for i, v in views.items() if v.status.armed and not v.status.landed}
         if not airborne:
             return []
-        first = next(iter(airborne.values())).status
-        frame = LocalFrame(first.position.lat, first.position.lon)
+        first = next(iter(airborne.values())).position
+        frame = LocalFrame(first.lat, first.lon)
         stamp = time.strftime("%H%M%S")
         mission_id = f"{RETURN_PREFIX}{kind}-{stamp}"
         returners = []
         for ident, view in airborne.items():
             s = view.status
-            here = frame.point(s.position.lat, s.position.lon)
+            here = frame.point(view.position.lat, view.position.lon)
             home = frame.point(view.home.lat, view.home.lon) if kind == "rtl" and view.home else here
-            returners.append(Returner(ident, here, s.position.alt_rel, home))
+            returners.append(Returner(ident, here, view.position.alt_rel, home))
         cfg = self.settings
         # Layers start above the highest returner, so nobody descends into another's layer.
         base = max([cfg.base_alt_m] + [r.alt for r in returners]) if kind == "rtl" else 0.0
@@ -101,7 +102,6 @@ class ReturnCoordinator:
         delivered = []
         for returner, plan in zip(returners, plans, strict=True):
             view = airborne[returner.ident]
-            s = view.status
             alt = min(cfg.max_alt_m, plan.alt)
             actions: list[Action]
             if len(returners) == 1:
@@ -111,7 +111,7 @@ class ReturnCoordinator:
                 alt_at_column = max(alt, 1.0)
             elif kind == "rtl" and view.home is not None:
                 actions = [
-                    Goto(step=0, lat=s.position.lat, lon=s.position.lon, alt=max(alt, 1.0)),
+                    Goto(step=0, lat=view.position.lat, lon=view.position.lon, alt=max(alt, 1.0)),
                     Goto(step=1, lat=view.home.lat, lon=view.home.lon, alt=max(alt, 1.0), sync=True),
                     Land(step=2),
                 ]
@@ -122,13 +122,13 @@ class ReturnCoordinator:
                 lat, lon = frame.to_latlon(*spot)
                 moved = math.dist(spot, returner.position) > 0.5
                 wait_point: Action = (
-                    Goto(step=0, lat=lat, lon=lon, alt=max(s.position.alt_rel, 1.0), sync=True)
+                    Goto(step=0, lat=lat, lon=lon, alt=max(view.position.alt_rel, 1.0), sync=True)
                     if moved
                     else Hold(step=0, seconds=0.0, sync=True)
                 )
                 actions = [wait_point, Land(step=1)]
                 column = spot
-                alt_at_column = s.position.alt_rel
+                alt_at_column = view.position.alt_rel
             ok, why = self.authority.replace(returner.ident, owner, mission_id, actions, reason, order=kind)
             if ok:
                 delivered.append(returner.ident)
@@ -157,10 +157,10 @@ class ReturnCoordinator:
             s = view.status
             if not s.armed or s.landed:
                 continue
-            here = frame.point(s.position.lat, s.position.lon)
+            here = frame.point(view.position.lat, view.position.lon)
             job = self.active.get(ident)
             target = job.column if job is not None and not job.released else here
-            others.append(Airborne(ident, here, s.position.alt_rel, target))
+            others.append(Airborne(ident, here, view.position.alt_rel, target))
         for ident, job in list(self.active.items()):
             current = fleet.get(ident)
             if current is None:
@@ -178,7 +178,7 @@ class ReturnCoordinator:
             if s.waiting_sync is None:
                 continue
             if cleared_to_descend(
-                ident, job.column, s.position.alt_rel, others, self.settings.horizontal_margin_m
+                ident, job.column, current.position.alt_rel, others, self.settings.horizontal_margin_m
             ):
                 job.released = True
                 self.release(ident, job.mission_id, s.waiting_sync)

@@ -198,20 +198,22 @@ class CooperationService:
         self.ctx.authority.drop_holds(identity, ("collision",), "agent lost")
 
     async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
-        if status.buffered:
-            return  # history from a link outage: the live picture comes with the next report
+        if status.buffered or status.position is None:
+            return  # link-outage history, or no 3-D fix yet: nothing to track or check from
         now = time.monotonic()
         ident = session.identity
+        position = status.position
         agent = self.agents.get(ident)
         if agent is None:
-            agent = TrackedAgent(ident, session.cid, session.home, status, now)
+            agent = TrackedAgent(ident, session.cid, session.home, status, position, now)
             self.agents[ident] = agent
             if self.frame is None:
-                self.frame = LocalFrame(status.position.lat, status.position.lon)
+                self.frame = LocalFrame(position.lat, position.lon)
             if self.base is None:
                 home = session.home
-                self.base = (home.lat, home.lon) if home else (status.position.lat, status.position.lon)
-        agent.status, agent.received, agent.connected = status, now, session.open
+                self.base = (home.lat, home.lon) if home else (position.lat, position.lon)
+        agent.status, agent.position, agent.received = status, position, now
+        agent.connected = session.open
         agent.home = session.home or agent.home
         try:
             mission = self._plan_of(ident, status)

@@ -16,7 +16,7 @@ from gcs.cooperation.flightlog import FlightLogWriter
 from gcs.cooperation.geo import LocalFrame
 from gcs.cooperation.legs import AgentPlanState, Point
 from protocol.actions import Action
-from protocol.packets import GeoPoint, StatusReport
+from protocol.packets import GeoPoint, Position, StatusReport
 
 
 @dataclass
@@ -27,6 +27,7 @@ class TrackedAgent:
     cid: int
     home: GeoPoint | None
     status: StatusReport
+    position: Position  # the last reported position (the service tracks positioned reports only)
     received: float  # monotonic
     connected: bool = True
     plan: AgentPlanState | None = None
@@ -63,7 +64,8 @@ def track(
     mission_id, actions = plan_of
     if agent.plan is None or agent.plan.mission_id != mission_id:
         home = agent.home
-        origin: Point = (home.lat, home.lon, 0.0) if home else (status.position.lat, status.position.lon, 0.0)
+        here = agent.position
+        origin: Point = (home.lat, home.lon, 0.0) if home else (here.lat, here.lon, 0.0)
         agent.plan = AgentPlanState(mission_id, actions, origin, acceptance_radius_m)
         agent.completed, agent.detour_step, agent.emergency = -1, None, None
         agent.judge = new_judge
@@ -86,9 +88,10 @@ def leg_target_velocity(
     leg = plan.leg(status.waiting_sync)
     if leg is None or leg.start is None:
         return (0.0, 0.0, 0.0) if status.waiting_sync is not None else None
-    here = frame.point(status.position.lat, status.position.lon)
+    position = agent.position
+    here = frame.point(position.lat, position.lon)
     there = frame.point(leg.target[0], leg.target[1])
-    delta = np.array([there[0] - here[0], there[1] - here[1], leg.target[2] - status.position.alt_rel])
+    delta = np.array([there[0] - here[0], there[1] - here[1], leg.target[2] - position.alt_rel])
     norm = float(np.linalg.norm(delta))
     if norm < 0.5:
         return (0.0, 0.0, 0.0)

@@ -69,9 +69,9 @@ class GeofenceProximityAlarm(Extension):
 
     async def on_status(self, agent: str, status: StatusReport) -> None:
         fence = self.fence()
-        if fence is None or status.landed:
-            return
         p = status.position
+        if fence is None or status.landed or p is None:
+            return
         margin = distance_to_fence(fence, p.lat, p.lon, p.alt_rel)
         if agent in self.alarmed:
             if margin > 1.5 * self.margin_m:

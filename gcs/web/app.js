@@ -115,6 +115,7 @@ function onStatus(msg) {
   const st = msg.status;
   a.status = st;
   a.received = msg.received;
+  if (!st.position) { S.tableDirty = true; return; } // no 3-D fix yet: in the table, not on the map
   ensureOrigin(st.position.lat, st.position.lon);
   const last = a.track[a.track.length - 1];
   if (!last || last[0] !== st.position.lat || last[1] !== st.position.lon) {
@@ -166,7 +167,8 @@ function onHello(msg) {
     if (v.status) {
       a.status = v.status;
       a.received = msg.server_time - (v.link_age_s || 0);
-      ensureOrigin(v.status.position.lat, v.status.position.lon);
+      if (v.status.position) ensureOrigin(v.status.position.lat, v.status.position.lon);
+      else if (v.home) ensureOrigin(v.home.lat, v.home.lon);
     } else if (v.home) {
       ensureOrigin(v.home.lat, v.home.lon);
     }
@@ -185,7 +187,8 @@ async function loadTracks() {
   for (const a of S.agents.values()) {
     try {
       const samples = await api("GET", `/api/v1/agents/${encodeURIComponent(a.identity)}/history?limit=1500`);
-      const pts = samples.map((s) => [s.status.position.lat, s.status.position.lon, s.status.mission_id || null]);
+      const pts = samples.filter((s) => s.status.position)
+        .map((s) => [s.status.position.lat, s.status.position.lon, s.status.mission_id || null]);
       a.track = pts.concat(a.track).slice(-MAX_TRACK);
     } catch (e) { /* agent gone: keep what we have */ }
   }
@@ -373,7 +376,7 @@ function polyline(points, close) {
 
 function fitView() {
   const pts = [];
-  for (const a of S.agents.values()) if (a.status) pts.push([a.status.position.lat, a.status.position.lon]);
+  for (const a of S.agents.values()) if (a.status && a.status.position) pts.push([a.status.position.lat, a.status.position.lon]);
   const g = S.mission && S.mission.geometry;
   if (g && g.area) pts.push(...g.area);
   if (g) for (const p of Object.values(g.paths)) pts.push(...p);
@@ -453,7 +456,7 @@ function drawGeofence() {
 
 function drawDrone(a) {
   const st = a.status;
-  if (!st) return;
+  if (!st || !st.position) return; // no 3-D fix yet: nothing to draw
   const [x, y] = toScreen(st.position.lat, st.position.lon);
   const dpr = window.devicePixelRatio || 1;
   ctx.save();

@@ -112,20 +112,22 @@ async def test_no_agent_starts_next_step_before_release(tmp_path: Path) -> None:
             await stop_agents([fast, slow])
 
 
-async def test_barrier_timeout_aborts_with_abort_policy(tmp_path: Path) -> None:
+async def test_refused_takeoff_ends_the_mission_naming_agent_step_and_reason(tmp_path: Path) -> None:
     key = new_key()
     async with running_daemon(tmp_path, key) as daemon:
         agents = [start_agent(name, daemon.listen_port, key, i) for i, name in enumerate(["a", "b"])]
         try:
             await wait_for(lambda: len(daemon.agents.connected()) == 2, 10, "two agents")
             agents[1].autopilot.refuse_arming = True  # b never reaches the takeoff barrier
-            task = survey_mission(["a", "b"], sync_legs=1, sync_timeout_s=1.5, lost_agent_policy="abort")
+            task = survey_mission(["a", "b"], sync_legs=1, sync_timeout_s=30, lost_agent_policy="abort")
             mission_id = await daemon.missions.submit(task)
             await wait_for(lambda: mission_id not in daemon.missions.active, 20, "mission end")
             progress = daemon.missions.progress(mission_id)
             assert progress is not None and progress.state == "aborted"
-            timeout_events = daemon.events.history(kind="sync_timeout")
-            assert timeout_events and timeout_events[0].data["missing"] == ["b"]
+            assert progress.result is not None
+            assert "b step 0 (takeoff)" in progress.result and "PreArm" in progress.result, progress.result
+            assert not daemon.events.history(kind="sync_timeout")  # ended by the failure, not a timeout
+            assert daemon.events.history(kind="action_failed", agent="b")
             failures = daemon.events.history(kind="agent_exception", agent="b")
             assert any("PreArm" in e.message for e in failures), [e.message for e in failures]
             await wait_for(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import Callable
 from typing import Any
@@ -163,6 +164,56 @@ async def test_return_to_launch(sim_fleet: Any, closing: Any) -> None:
     assert distance_m(tel.lat, tel.lon, HOME[0], HOME[1]) < 5.0
 
 
+async def test_return_to_launch_at_a_given_altitude(sim_fleet: Any, closing: Any) -> None:
+    """ReturnToLaunch.alt sets RTL_ALT (cm) first; the vehicle climbs to it and returns at it."""
+    fleet = sim_fleet()
+    ap = await connected(fleet, closing)
+    await airborne(ap, 8.0)
+    lat, lon = offset_latlon(HOME[0], HOME[1], 40.0, 0.0)
+    await ap.goto(lat, lon, 8.0)
+    await wait_until(ap, lambda t: distance_m(t.lat, t.lon, lat, lon) < 3.0, "out at 40 m", timeout=15.0)
+    await ap.return_to_launch(alt_rel_m=23.0)
+    assert await ap.get_param("RTL_ALT") == pytest.approx(2300.0)
+    tel = await wait_until(ap, lambda t: t.alt_rel > 21.0, "climb to the return altitude", timeout=15.0)
+    assert distance_m(tel.lat, tel.lon, HOME[0], HOME[1]) > 30.0  # climbs before it returns
+    tel = await wait_until(
+        ap, lambda t: distance_m(t.lat, t.lon, HOME[0], HOME[1]) < 10.0, "back over home", timeout=20.0
+    )
+    assert tel.alt_rel == pytest.approx(23.0, abs=1.5)
+
+
+async def peak_ground_speed(ap: MavlinkAutopilot, seconds: float) -> float:
+    peak = 0.0
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        t = ap.telemetry()
+        peak = max(peak, math.hypot(t.vn, t.ve))
+        await asyncio.sleep(0.02)
+    return peak
+
+
+async def test_speed_goes_after_the_target_and_survives_a_hold(sim_fleet: Any, closing: Any) -> None:
+    """The first leg after takeoff flies at the asked speed, not WPNAV_SPEED (8 m/s here); after a
+    hold (BRAKE refuses DO_CHANGE_SPEED) set_speed is kept and goto switches to GUIDED first."""
+    fleet = sim_fleet(params={"WPNAV_SPEED": 800})
+    ap = await connected(fleet, closing)
+    await airborne(ap, 8.0)
+    lat, lon = offset_latlon(HOME[0], HOME[1], 200.0, 0.0)
+    await ap.goto(lat, lon, 8.0, speed_mps=3.0)
+    assert 2.5 < await peak_ground_speed(ap, 0.6) < 3.3
+    await ap.hold()
+    await wait_until(ap, lambda t: math.hypot(t.vn, t.ve) < 0.3, "stopped by BRAKE", timeout=5.0)
+    await ap.set_speed(4.0)  # BRAKE: kept for the next target
+    assert ap.telemetry().mode == "BRAKE"
+    await ap.goto(lat, lon, 8.0)
+    assert ap.telemetry().mode == "GUIDED"
+    assert 3.5 < await peak_ground_speed(ap, 0.8) < 4.3
+    await ap.hold()
+    await wait_until(ap, lambda t: math.hypot(t.vn, t.ve) < 0.3, "stopped again", timeout=5.0)
+    await ap.goto(lat, lon, 8.0, speed_mps=2.0)  # resume with a speed: target first, then speed
+    assert 1.6 < await peak_ground_speed(ap, 0.8) < 2.3
+
+
 async def test_fence_upload_and_breach_triggers_rtl(sim_fleet: Any, closing: Any) -> None:
     fleet = sim_fleet()
     ap = await connected(fleet, closing)
@@ -252,7 +303,7 @@ async def test_link_lost_during_a_command_wait(sim_fleet: Any, closing: Any) -> 
     fleet.vehicle(0).inject_link_drop(60.0)
     started = time.monotonic()
     with pytest.raises(LinkLost):
-        await ap.set_speed(5.0)  # sent into the void: ends by LinkLost, not after 15 s of retries
+        await ap.set_mode("LOITER")  # sent into the void: ends by LinkLost, not after 15 s of retries
     assert time.monotonic() - started < 3.0
 
 

@@ -170,7 +170,7 @@ def test_header_is_sixteen_bytes_big_endian() -> None:
             r"invalid type 5 \(SYNC\) body at step",
         ),
         (_frame(5, b'{"mission_id":"m","step":1,"kind":"finished","x":1}'), "body at x"),
-        (_frame(2, b'{"time": 1}'), "body at position"),
+        (_frame(2, b'{"time": 1, "position": 5}'), "body at position"),  # position is optional
         (_frame(4, b'{"mission_id":"m","actions":[{"kind":"teleport","step":1}]}'), "body at actions"),
         (_frame(5, b"[" * 100_000 + b"]" * 100_000), "UTF-8 JSON|nests too deeply"),
     ],

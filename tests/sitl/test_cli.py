@@ -8,11 +8,13 @@ import signal
 import socket
 import subprocess
 import sys
-import time
+from pathlib import Path
 
 import pytest
 
-from sitl.ardupilot import ArduPilotFleet, find_binary
+from sitl.ardupilot import ArduPilotFleet
+from sitl.cli import build_parser
+from tests.ardupilot.binary import SKIP_REASON, ardupilot_binary
 from tests.sitl.conftest import Gcs, mavlink
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -123,31 +125,74 @@ def test_cli_rejects_bad_arguments() -> None:
 
 
 def test_ardupilot_command_line_layout() -> None:
-    apf = ArduPilotFleet("/opt/arducopter", 3, (47.0, 8.0, 500.0), spacing_m=10.0, defaults="/x/copter.parm")
-    cmd = apf.command(2)
-    assert cmd[:5] == ["/opt/arducopter", "-I", "2", "--model", "quad"]
-    assert cmd[cmd.index("--sysid") + 1] == "3" and cmd[cmd.index("--defaults") + 1] == "/x/copter.parm"
-    assert apf.endpoints == ["tcp:127.0.0.1:5760", "tcp:127.0.0.1:5770", "tcp:127.0.0.1:5780"]
-    homes = {apf.command(i)[apf.command(i).index("--home") + 1] for i in range(3)}
-    assert len(homes) == 3
+    apf = ArduPilotFleet(
+        "/opt/arducopter",
+        3,
+        (-35.36, 149.16, 500.0),
+        spacing_m=10.0,
+        defaults="/x/copter.parm",
+        base_port=6000,
+        params={"wpnav_speed": 300},
+    )
+    try:
+        cmd = apf.command(2)
+        assert cmd[0] == "/opt/arducopter" and "--wipe" in cmd
+        assert cmd[cmd.index("-I") + 1] == "2" and cmd[cmd.index("--model") + 1] == "quad"
+        assert cmd[cmd.index("--base-port") + 1] == "6000"
+        assert cmd[cmd.index("--sysid") + 1] == "3"
+        defaults = cmd[cmd.index("--defaults") + 1].split(",")
+        assert defaults[0] == "/x/copter.parm"
+        overrides = Path(defaults[1]).read_text()
+        assert "WPNAV_SPEED 300" in overrides and "LOG_BACKEND_TYPE 0" in overrides  # no logs by default
+        assert apf.endpoints == ["tcp:127.0.0.1:6000", "tcp:127.0.0.1:6010", "tcp:127.0.0.1:6020"]
+        homes = {apf.command(i)[apf.command(i).index("--home") + 1] for i in range(3)}
+        assert len(homes) == 3 and all(h.startswith("-35.36") for h in homes)
+    finally:
+        apf.stop()
+    assert not Path(apf.workdir).exists()  # scratch directory removed
+    with pytest.raises(ValueError, match=r"0\.0\.0\.0"):
+        ArduPilotFleet("/opt/arducopter", 1, (0.0, 0.0), base_port=0, host="0.0.0.0")
+
+
+def test_cli_parses_negative_coordinates_and_rejects_what_ardupilot_cannot_do() -> None:
+    args = build_parser().parse_args(["run", "--home", "-35.36,149.16,584", "--wind", "-2,1"])
+    assert args.home == (-35.36, 149.16, 584.0) and args.wind == (-2.0, 1.0)
+    proc = subprocess.run(
+        [sys.executable, "-m", "sitl", "run", "--ardupilot", "/nonexistent", "--fail", "1:link_drop@3+1"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=20,
+    )
+    assert proc.returncode == 2 and "--fail not supported with --ardupilot" in proc.stderr
 
 
 @pytest.mark.ardupilot
-@pytest.mark.skipif(find_binary() is None, reason="no arducopter binary (set ARDUPILOT_SITL or add to PATH)")
+@pytest.mark.skipif(ardupilot_binary() is None, reason=SKIP_REASON)
 def test_real_ardupilot_fleet_via_cli() -> None:
-    binary = find_binary()
+    """Loopback only, the given base port, parameters applied, scratch directory removed at exit."""
+    binary = ardupilot_binary()
     assert binary is not None
-    proc, line = _start("--vehicles", "2", "--ardupilot", binary, "--speedup", "5")
+    base = _free_base(2)
+    before = set(Path("/tmp").glob("fleetgcs-ardupilot-*"))
+    proc, line = _start(
+        "--vehicles", "2", "--ardupilot", binary, "--speedup", "5", "--base-port", str(base),
+        "--home", "-35.363261,149.165230,584", "--param", "WPNAV_SPEED=600",
+    )  # fmt: skip
     try:
         urls = line.split()[2:]
-        assert urls == ["tcp:127.0.0.1:5760", "tcp:127.0.0.1:5770"]
+        assert urls == [f"tcp:127.0.0.1:{base}", f"tcp:127.0.0.1:{base + 10}"]
+        listening = subprocess.run(["ss", "-ltn"], capture_output=True, text=True, timeout=10).stdout
+        assert f"127.0.0.1:{base} " in listening and f"0.0.0.0:{base} " not in listening
         for i, url in enumerate(urls):
             g = Gcs(url, sysid=i + 1)
             try:
-                deadline = time.monotonic() + 60
-                hb = g.heartbeat_msg(timeout=max(1.0, deadline - time.monotonic()))
+                hb = g.heartbeat_msg(timeout=30.0)
                 assert hb.autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+                g.m.mav.param_request_read_send(i + 1, 1, b"WPNAV_SPEED", -1)
+                assert g.wait("PARAM_VALUE", lambda m: m.param_id == "WPNAV_SPEED").param_value == 600
             finally:
                 g.close()
     finally:
         assert _stop(proc) == 0
+    assert set(Path("/tmp").glob("fleetgcs-ardupilot-*")) <= before  # its scratch directory is gone

@@ -159,3 +159,59 @@ def test_multiple_vehicles_fly_independently(make_fleet, make_gcs) -> None:
     g2.takeoff(4)
     assert fleet.vehicle(2).state.armed and not fleet.vehicle(2).state.landed
     assert not fleet.vehicle(0).state.armed and fleet.vehicle(1).state.landed
+
+
+def test_no_position_fix_or_home_during_the_boot_period(make_fleet, make_gcs) -> None:
+    """Like ArduCopter: fix 0 and lat/lon 0,0 after boot, no home, arming refused; then a fix."""
+    fleet = make_fleet(prearm_delay_s=8.0, gps_boot_s=6.0, speedup=10.0)
+    g = make_gcs(fleet.endpoints[0])
+    g.stream(mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 5)
+    g.stream(mavlink.MAVLINK_MSG_ID_GPS_RAW_INT, 5)
+    gpi = g.wait("GLOBAL_POSITION_INT")
+    gps = g.wait("GPS_RAW_INT")
+    assert gpi.time_boot_ms < 5000
+    assert (gpi.lat, gpi.lon, gps.fix_type, gps.lat) == (0, 0, 0, 0)
+    g.drain(0.05)
+    assert g.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION) == ACCEPTED
+    assert not [m for m in g.drain(0.1) if m.get_type() == "HOME_POSITION" and m.time_usec < 5_000_000]
+    assert g.set_mode("GUIDED") == ACCEPTED
+    assert g.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == mavlink.MAV_RESULT_FAILED
+    fixed = g.wait("GPS_RAW_INT", lambda m: m.fix_type == 3, timeout=5.0)
+    assert fixed.time_usec >= 6_000_000
+    gpi = g.wait("GLOBAL_POSITION_INT")
+    home = fleet.vehicle(0).state
+    assert dist_m(gpi.lat / 1e7, gpi.lon / 1e7, home.home_lat, home.home_lon) < 5.0
+
+
+def test_change_speed_refused_outside_auto_guided_rtl(make_fleet, make_gcs) -> None:
+    """DO_CHANGE_SPEED: MAV_RESULT_FAILED in BRAKE and LOITER (ArduCopter's Mode::set_speed_xy)."""
+    fleet = make_fleet()
+    g = make_gcs(fleet.endpoints[0])
+    g.takeoff(8)
+    for mode, expected in (
+        ("BRAKE", mavlink.MAV_RESULT_FAILED),
+        ("LOITER", mavlink.MAV_RESULT_FAILED),
+        ("GUIDED", ACCEPTED),
+        ("RTL", ACCEPTED),
+    ):
+        assert g.set_mode(mode) == ACCEPTED
+        assert g.command(mavlink.MAV_CMD_DO_CHANGE_SPEED, 1, 3.0, -1) == expected, mode
+
+
+def test_first_guided_target_after_takeoff_resets_the_speed(make_fleet, make_gcs) -> None:
+    """A speed sent before the first target after takeoff is lost (WPNAV_SPEED); sent after, it holds."""
+    fleet = make_fleet(params={"WPNAV_SPEED": 800})
+    g = make_gcs(fleet.endpoints[0])
+    g.takeoff(10)
+    g.stream(mavlink.MAVLINK_MSG_ID_VFR_HUD, 10)
+    st = fleet.vehicle(0).state
+    assert g.command(mavlink.MAV_CMD_DO_CHANGE_SPEED, 1, 3.0, -1) == ACCEPTED  # before the target
+    lat, lon = offset(st.home_lat, st.home_lon, 120.0, 0.0)
+    g.goto(lat, lon, 10)
+    g.wait("VFR_HUD", lambda m: m.groundspeed > 7.0, timeout=5)  # the 3 m/s was dropped
+    # after the target (waypoint controller running), the change holds
+    assert g.command(mavlink.MAV_CMD_DO_CHANGE_SPEED, 1, 3.0, -1) == ACCEPTED
+    g.wait("VFR_HUD", lambda m: m.groundspeed < 3.2, timeout=5)
+    g.goto(lat, lon, 12)  # a further target in the same GUIDED session keeps it
+    speeds = [g.wait("VFR_HUD").groundspeed for _ in range(20)]
+    assert max(speeds) <= 3.1

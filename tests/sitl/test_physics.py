@@ -146,7 +146,7 @@ def test_gps_noise_is_small_and_present() -> None:
 
 
 def test_every_stream_message_packs() -> None:
-    v = SimVehicle(0, HOME, params={"FENCE_ENABLE": 1})
+    v = SimVehicle(0, HOME, params={"FENCE_ENABLE": 1}, gps_boot_s=0.0)
     link = mav.MAVLink(None, 1, 1)
     for msgid, fn in BUILDERS.items():
         msg = fn(v)

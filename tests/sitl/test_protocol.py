@@ -87,6 +87,7 @@ def test_all_telemetry_messages_decode(make_fleet, make_gcs) -> None:
     for msgid in wanted.values():
         g.stream(msgid, 5)
     got = {name: g.wait(name) for name in wanted}
+    got["GPS_RAW_INT"] = g.wait("GPS_RAW_INT", lambda m: m.fix_type == 3)  # after the boot period
     assert got["GPS_RAW_INT"].fix_type == 3 and got["GPS_RAW_INT"].satellites_visible >= 6
     assert got["EXTENDED_SYS_STATE"].landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
     assert 99 <= got["BATTERY_STATUS"].battery_remaining <= 100
