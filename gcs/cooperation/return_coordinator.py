@@ -35,6 +35,8 @@ from protocol.actions import Action, Goto, Hold, Land, ReturnToLaunch
 from protocol.packets import GeoPoint, Position, StatusReport
 
 RETURN_PREFIX = "return-"
+CLEARANCE = 1.5
+"""A drone descends only when no lower drone is within this many horizontal margins of it."""
 ReturnKind = Literal["rtl", "land"]
 Publish = Callable[[str, str, str | None, dict[str, object]], None]
 
@@ -88,7 +90,6 @@ class ReturnCoordinator:
         mission_id = f"{RETURN_PREFIX}{kind}-{stamp}"
         returners = []
         for ident, view in airborne.items():
-            s = view.status
             here = frame.point(view.position.lat, view.position.lon)
             home = frame.point(view.home.lat, view.home.lon) if kind == "rtl" and view.home else here
             returners.append(Returner(ident, here, view.position.alt_rel, home))
@@ -98,7 +99,8 @@ class ReturnCoordinator:
         plans = assign_layers(returners, cfg.horizontal_margin_m * 1.5, base, cfg.layer_step_m)
         if kind == "land":  # layers keep today's altitudes; only the spots and the order matter
             plans = [ReturnPlan(p.ident, p.layer, r.alt) for p, r in zip(plans, returners, strict=True)]
-        spots = spread_landing_spots(returners, plans, cfg.horizontal_margin_m)
+        # Spots two margins apart: a wait point is reached only to the agent's acceptance radius.
+        spots = spread_landing_spots(returners, plans, 2.0 * cfg.horizontal_margin_m)
         delivered = []
         for returner, plan in zip(returners, plans, strict=True):
             view = airborne[returner.ident]
@@ -177,8 +179,10 @@ class ReturnCoordinator:
                 continue
             if s.waiting_sync is None:
                 continue
+            # It descends from where it actually is (a wait point is never exact).
+            here = frame.point(current.position.lat, current.position.lon)
             if cleared_to_descend(
-                ident, job.column, current.position.alt_rel, others, self.settings.horizontal_margin_m
+                ident, here, current.position.alt_rel, others, CLEARANCE * self.settings.horizontal_margin_m
             ):
                 job.released = True
                 self.release(ident, job.mission_id, s.waiting_sync)
