@@ -69,6 +69,11 @@ class SearchPlanRequest(_Request):
     area_document: dict[str, Any] | None = Field(
         default=None, description="instead of 'area': a GeoJSON or QGroundControl .plan document"
     )
+    area_text: str | None = Field(
+        default=None,
+        max_length=2_000_000,
+        description="instead of 'area': a KML, GeoJSON or QGroundControl .plan document as text",
+    )
     pattern: Literal["zigzag", "spiral", "segmented", "curved"] = "zigzag"
     division: Literal["path", "region", "partition"] = "region"
     swath_m: float = Field(default=20.0, ge=1.0, le=5000.0, description="sensor footprint width")
@@ -163,27 +168,57 @@ def plan(
 
 def _plan_search(request: SearchPlanRequest, drones: Sequence[DroneInfo]) -> PlanPreview:
     from gcs.planning.areas import AreaFormatError, parse_area
-    from gcs.planning.camera import spacing_from_swath
+    from gcs.planning.camera import Spacing, spacing_from_swath
     from gcs.planning.division import DroneSpec
+    from gcs.planning.interchange import QgcSurvey, load_area_text, read_qgc_survey
     from gcs.planning.planner import PlanConfig, plan_search
 
-    if (request.area is None) == (request.area_document is None):
-        raise PlanningError("give exactly one of 'area' ([lat, lon] ring) or 'area_document' (GeoJSON/.plan)")
+    given = [x for x in (request.area, request.area_document, request.area_text) if x is not None]
+    if len(given) != 1:
+        raise PlanningError(
+            "give exactly one of 'area' ([lat, lon] ring), 'area_document' (GeoJSON/.plan) "
+            "or 'area_text' (KML, GeoJSON or .plan as text)"
+        )
+    survey: QgcSurvey | None = None
     try:
-        area = parse_area(request.area if request.area is not None else request.area_document, request.name)
+        if request.area_text is not None:
+            area, survey = load_area_text(request.area_text, request.name)
+        elif isinstance(request.area_document, dict) and request.area_document.get("fileType") == "Plan":
+            survey = read_qgc_survey(request.area_document, request.name)
+            area = survey.area
+        else:
+            area = parse_area(
+                request.area if request.area is not None else request.area_document, request.name
+            )
     except (AreaFormatError, ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
         raise PlanningError(f"area: {exc}") from None
-    spacing = spacing_from_swath(request.swath_m, request.altitude_m, request.side_overlap)
+    # a QGC survey's own settings stand unless the request sets them
+    chosen = request.model_fields_set
+    altitude = request.altitude_m
+    if survey is not None and survey.altitude_m is not None and "altitude_m" not in chosen:
+        altitude = survey.altitude_m
+    if survey is not None and survey.step_m is not None and not chosen & {"swath_m", "side_overlap"}:
+        spacing = Spacing(
+            altitude=altitude,
+            swath=survey.swath_m or survey.step_m,
+            step=survey.step_m,
+            side_overlap=survey.side_overlap,
+        )
+    else:
+        spacing = spacing_from_swath(request.swath_m, altitude, request.side_overlap)
+    angle = survey.angle_deg if survey is not None else None
+    if survey is not None and survey.home is not None and request.home is None:
+        request = request.model_copy(update={"home": LatLonPoint(lat=survey.home[0], lon=survey.home[1])})
     local = area.local()
     extent = float(np.ptp(local, axis=0).max())
     if not np.isfinite(local).all() or extent > MAX_EXTENT_M:
         raise PlanningError(
             f"area is {extent / 1000:.0f} km across; the limit is {MAX_EXTENT_M / 1000:.0f} km"
         )
-    survey = Polygon(local).area / spacing.step
-    if survey > MAX_SURVEY_M:
+    lines_m = Polygon(local).area / spacing.step
+    if lines_m > MAX_SURVEY_M:
         raise PlanningError(
-            f"area needs about {survey / 1000:.0f} km of survey lines at {spacing.step:.1f} m spacing "
+            f"area needs about {lines_m / 1000:.0f} km of survey lines at {spacing.step:.1f} m spacing "
             f"(limit {MAX_SURVEY_M / 1000:.0f} km); widen the swath or split the area"
         )
     home = (
@@ -211,13 +246,14 @@ def _plan_search(request: SearchPlanRequest, drones: Sequence[DroneInfo]) -> Pla
             transit_alt_step=request.transit_alt_step,
             return_mode=request.return_mode,
             allow_partial=request.allow_partial,
+            angle_deg=angle,
         ),
         home_latlon=home,
         speed=request.speed_mps,
         agent_names=[d.name for d in drones],
     )
     estimates = [
-        _estimate(d, path, request.altitude_m, request.speed_mps, home)
+        _estimate(d, path, altitude, request.speed_mps, home)
         for d, path in zip(drones, result.paths_latlon, strict=True)
     ]
     return _preview(

@@ -1,5 +1,10 @@
 """`gcs plan`: plan a multi-drone area search and write mission JSON, GeoJSON paths and a PNG.
 
+The area may be GeoJSON, KML, a [[lat, lon], ...] list or a QGroundControl ``.plan``, whose
+survey settings (planned home, altitude, line spacing, side overlap, grid angle) are kept unless
+an option overrides them. ``--export plan,waypoints,kml`` also writes each drone's mission for
+QGroundControl and Mission Planner and the whole plan as KML.
+
 Area searches (zigzag/spiral/segmented/curved, path or region division) are planned here;
 ``--method psa|rsa`` (target and missed-map planning) is handed to ``gcs.commands.plan_targets``
 when that module is installed.
@@ -14,9 +19,17 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from gcs.planning.areas import AreaFormatError, load_area
+from gcs.planning.areas import AreaFormatError
 from gcs.planning.camera import Camera, CameraError, Spacing, spacing_from_camera, spacing_from_swath
 from gcs.planning.division import DroneSpec, InsufficientCapabilityError
+from gcs.planning.interchange import (
+    QgcSurvey,
+    kml_document,
+    load_area_text,
+    plan_items,
+    qgc_plan_document,
+    waypoints_text,
+)
 from gcs.planning.planner import PlanConfig, SearchPlan, plan_search
 from gcs.planning.polygon import SelfIntersectionError
 
@@ -40,6 +53,17 @@ def _floats(text: str) -> list[float]:
         return [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+EXPORT_FORMATS = ("plan", "waypoints", "kml")
+
+
+def _formats(text: str) -> list[str]:
+    formats = [f.strip().lower().lstrip(".") for f in text.split(",") if f.strip()]
+    bad = [f for f in formats if f not in EXPORT_FORMATS]
+    if bad:
+        raise argparse.ArgumentTypeError(f"export formats are {', '.join(EXPORT_FORMATS)}; got {bad}")
+    return formats
 
 
 def _camera(text: str) -> Camera:
@@ -67,7 +91,7 @@ def _camera(text: str) -> Camera:
 def add_area_arguments(parser: argparse.ArgumentParser) -> None:
     """The area-search options (kept separate so they are easy to reuse and to test)."""
     parser.add_argument(
-        "area", nargs="?", help="area file: GeoJSON Polygon/Feature, QGC .plan, or [[lat,lon],...]"
+        "area", nargs="?", help="area file: GeoJSON Polygon/Feature, KML, QGC .plan, or [[lat,lon],...]"
     )
     parser.add_argument("--drones", type=int, help="number of drones (default 1; psa: the target file's)")
     parser.add_argument("--pattern", choices=["zigzag", "spiral", "segmented", "curved"], default="zigzag")
@@ -94,6 +118,12 @@ def add_area_arguments(parser: argparse.ArgumentParser) -> None:
         "--allow-partial", action="store_true", help="plan even if the fleet cannot cover all"
     )
     parser.add_argument("--names", help="comma-separated agent names (default drone-1..N)")
+    parser.add_argument(
+        "--export",
+        type=_formats,
+        default=[],
+        help="also write plan (QGroundControl, one per drone), waypoints (Mission Planner) and/or kml",
+    )
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -139,9 +169,16 @@ def run(args: argparse.Namespace) -> int:
         return 1
 
 
-def _spacing(args: argparse.Namespace) -> Spacing:
+def _spacing(args: argparse.Namespace, survey: QgcSurvey | None = None) -> Spacing:
     if args.camera is not None and args.swath is not None:
         raise ValueError("give either --swath or --camera, not both")
+    if args.camera is None and args.swath is None and survey is not None and survey.step_m is not None:
+        # the QGC survey's own spacing and altitude, as the operator set them there
+        altitude = args.alt if args.alt is not None else survey.altitude_m
+        if altitude is None:
+            raise ValueError("the QGC survey has no altitude; give --alt")
+        swath = survey.swath_m or survey.step_m
+        return Spacing(altitude=altitude, swath=swath, step=survey.step_m, side_overlap=survey.side_overlap)
     if args.camera is not None:
         size = args.target_size
         return spacing_from_camera(
@@ -179,8 +216,16 @@ def _run_area(args: argparse.Namespace) -> int:
     if not args.area:
         print("error: give an AREA file (or --method psa/rsa)", file=sys.stderr)
         return 2
-    area = load_area(args.area)
+    path = Path(args.area)
+    try:
+        area, survey = load_area_text(path.read_text(), path.stem)
+    except OSError as exc:
+        raise AreaFormatError(f"{path}: {exc}") from None
+    except AreaFormatError as exc:
+        raise AreaFormatError(f"{path}: {exc}") from None
     drones = _drones(args)
+    angle = args.angle if args.angle is not None else (survey.angle_deg if survey else None)
+    home = args.home if args.home is not None else (survey.home if survey else None)
     config = PlanConfig(
         pattern=args.pattern,
         division=args.division,
@@ -188,16 +233,17 @@ def _run_area(args: argparse.Namespace) -> int:
         segments=args.segments,
         shift=args.shift,
         wind_from_deg=args.wind_from,
-        angle_deg=args.angle,
+        angle_deg=angle,
         allow_partial=args.allow_partial,
         return_mode=args.return_mode,
         transit_alt_step=args.stagger,
         name=area.name,
     )
     plan = plan_search(
-        area, drones, _spacing(args), config, args.home, _speed(args), [d.name for d in drones]
+        area, drones, _spacing(args, survey), config, home, _speed(args), [d.name for d in drones]
     )
     write_outputs(plan, args.out)
+    write_exports(plan, args.out, args.export, _speed(args))
     print(json.dumps(plan.summary, indent=2))
     return 0
 
@@ -227,6 +273,32 @@ def write_outputs(plan: SearchPlan, out: Path) -> dict[str, Path]:
         )
     files["geojson"].write_text(json.dumps({"type": "FeatureCollection", "features": features}))
     plot_plan(plan, files["png"])
+    return files
+
+
+def write_exports(plan: SearchPlan, out: Path, formats: list[str], speed: float) -> dict[str, Path]:
+    """Each drone's mission as QGC ``.plan`` / Mission Planner ``.waypoints``, the plan as KML."""
+    files: dict[str, Path] = {}
+    homes = [
+        (float(a), float(b))
+        for a, b in plan.frame.points_to_geodetic(
+            [d.home if d.home is not None else tuple(plan.home_local) for d in plan.drones]
+        )
+    ]
+    for agent_plan, home in zip(plan.taskfile.plans, homes, strict=True):
+        items = plan_items(agent_plan.actions, home)
+        if "plan" in formats:
+            files[f"{agent_plan.label}.plan"] = out / f"{agent_plan.label}.plan"
+            document = qgc_plan_document(items, home, cruise_speed=speed)
+            files[f"{agent_plan.label}.plan"].write_text(json.dumps(document, indent=2))
+        if "waypoints" in formats:
+            files[f"{agent_plan.label}.waypoints"] = out / f"{agent_plan.label}.waypoints"
+            files[f"{agent_plan.label}.waypoints"].write_text(waypoints_text(items, home))
+    if "kml" in formats:
+        area = [(float(a), float(b)) for a, b in plan.frame.points_to_geodetic(plan.area_local)]
+        paths = {d.name: pts for d, pts in zip(plan.drones, plan.paths_latlon, strict=True)}
+        files["plan.kml"] = out / "plan.kml"
+        files["plan.kml"].write_text(kml_document(plan.taskfile.name, area, paths, plan.spacing.altitude))
     return files
 
 
