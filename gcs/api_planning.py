@@ -16,21 +16,21 @@ length, time and energy per drone so the operator can judge a plan before flying
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from shapely.geometry import Polygon
 
+from gcs.cooperation.config import EnergyConfig
+from gcs.cooperation.energy import EnergyModel
 from protocol.actions import Goto, Land, Takeoff, Waypoints
-from protocol.geo import distance_m
 from protocol.packets import Capabilities, StatusReport
 from protocol.taskfile import TaskFile
 
 MAX_SURVEY_M = 400_000.0  # total survey lines a request may ask for (bounded planning time)
 MAX_EXTENT_M = 30_000.0
-NOMINAL_POWER_W = 180.0  # a mid-size quadcopter in forward flight, when the agent reports no battery_wh
-CLIMB_MPS, DESCENT_MPS = 2.5, 1.0
 
 Lat = Annotated[float, Field(ge=-90.0, le=90.0, allow_inf_nan=False)]
 Lon = Annotated[float, Field(ge=-180.0, le=180.0, allow_inf_nan=False)]
@@ -148,25 +148,42 @@ class DroneInfo(BaseModel):
     status: StatusReport | None = None
 
 
+@dataclass(frozen=True)
+class EnergySettings:
+    """The daemon's energy estimator: its config and (trained) model, so previews match the pre-flight."""
+
+    config: EnergyConfig = field(default_factory=EnergyConfig)
+    model: EnergyModel | None = None
+
+
 def plan(
-    request: SearchPlanRequest | PsaPlanRequest | RsaPlanRequest, drones: Sequence[DroneInfo]
+    request: SearchPlanRequest | PsaPlanRequest | RsaPlanRequest,
+    drones: Sequence[DroneInfo],
+    energy: EnergySettings | None = None,
 ) -> PlanPreview:
-    """Plan synchronously (call it in a worker thread); raises PlanningError with a readable reason."""
+    """Plan synchronously (call it in a worker thread); raises PlanningError with a readable reason.
+
+    ``energy``: the daemon's energy config and model (default: untrained, power x time), so the
+    preview predicts what the pre-flight check will (:func:`predict_plan_energy`).
+    """
     if not drones:
         raise PlanningError("no drones to plan for: name them in 'drones' or connect agents")
+    settings = energy or EnergySettings()
     try:
         if isinstance(request, SearchPlanRequest):
-            return _plan_search(request, drones)
+            return _plan_search(request, drones, settings)
         if isinstance(request, PsaPlanRequest):
-            return _plan_psa(request, drones)
-        return _plan_rsa(request, drones)
+            return _plan_psa(request, drones, settings)
+        return _plan_rsa(request, drones, settings)
     except PlanningError:
         raise
     except (ValueError, ArithmeticError, IndexError) as exc:  # planner and geometry errors
         raise PlanningError(f"{request.method} planning failed: {exc}") from None
 
 
-def _plan_search(request: SearchPlanRequest, drones: Sequence[DroneInfo]) -> PlanPreview:
+def _plan_search(
+    request: SearchPlanRequest, drones: Sequence[DroneInfo], energy: EnergySettings
+) -> PlanPreview:
     from gcs.planning.areas import AreaFormatError, parse_area
     from gcs.planning.camera import Spacing, spacing_from_swath
     from gcs.planning.division import DroneSpec
@@ -252,10 +269,9 @@ def _plan_search(request: SearchPlanRequest, drones: Sequence[DroneInfo]) -> Pla
         speed=request.speed_mps,
         agent_names=[d.name for d in drones],
     )
-    estimates = [
-        _estimate(d, path, altitude, request.speed_mps, home)
-        for d, path in zip(drones, result.paths_latlon, strict=True)
-    ]
+    estimates = _estimates(
+        result.taskfile, drones, result.paths_latlon, [home] * len(drones), request.speed_mps, energy
+    )
     return _preview(
         "search",
         request.name,
@@ -270,7 +286,7 @@ def _plan_search(request: SearchPlanRequest, drones: Sequence[DroneInfo]) -> Pla
     )
 
 
-def _plan_psa(request: PsaPlanRequest, drones: Sequence[DroneInfo]) -> PlanPreview:
+def _plan_psa(request: PsaPlanRequest, drones: Sequence[DroneInfo], energy: EnergySettings) -> PlanPreview:
     from gcs.planning._psa_mission import psa_mission
     from gcs.planning.geodesy import LocalFrame
     from gcs.planning.psa import plan_psa
@@ -285,11 +301,12 @@ def _plan_psa(request: PsaPlanRequest, drones: Sequence[DroneInfo]) -> PlanPrevi
     traj = result.trajectory
     names = [d.name for d in drones]
     task = psa_mission(traj, frame, request.altitude_m, request.speed_mps, names, name=request.name)
-    estimates = []
-    for j, d in enumerate(drones):
+    paths = []
+    for j in range(len(drones)):
         lat, lon = frame.to_geodetic(traj.positions[j, :, 0], traj.positions[j, :, 1])
-        path = list(zip(lat.tolist(), lon.tolist(), strict=True))
-        estimates.append(_estimate(d, path, request.altitude_m, request.speed_mps, d.home, round_trip=False))
+        paths.append(list(zip(lat.tolist(), lon.tolist(), strict=True)))
+    homes = [d.home if d.home is not None else p[0] for d, p in zip(drones, paths, strict=True)]
+    estimates = _estimates(task, drones, paths, homes, request.speed_mps, energy)
     return _preview(
         "psa",
         request.name,
@@ -300,7 +317,7 @@ def _plan_psa(request: PsaPlanRequest, drones: Sequence[DroneInfo]) -> PlanPrevi
     )
 
 
-def _plan_rsa(request: RsaPlanRequest, drones: Sequence[DroneInfo]) -> PlanPreview:
+def _plan_rsa(request: RsaPlanRequest, drones: Sequence[DroneInfo], energy: EnergySettings) -> PlanPreview:
     from gcs.planning.geodesy import LocalFrame
     from gcs.planning.mission import mission_from_paths
     from gcs.planning.rsa import MissedMap, plan_rsa
@@ -348,9 +365,7 @@ def _plan_rsa(request: RsaPlanRequest, drones: Sequence[DroneInfo]) -> PlanPrevi
         return_mode="land_home",
         name=request.name,
     )
-    estimates = [
-        _estimate(d, p, request.altitude_m, request.speed_mps, None) for d, p in zip(used, paths, strict=True)
-    ]
+    estimates = _estimates(task, used, paths, [p[-1] for p in paths], request.speed_mps, energy)
     corners = missed.to_east_north(
         np.array([[0, 0], [missed.extent[0], 0], [*missed.extent], [0, missed.extent[1]]])
     )
@@ -370,28 +385,45 @@ def _battery_fraction(drone: DroneInfo) -> float:
     return 1.0 if pct is None else min(1.0, max(0.05, pct / 100.0))
 
 
-def _estimate(
-    drone: DroneInfo,
-    path: Sequence[tuple[float, float]],
-    alt: float,
+def _estimates(
+    task: TaskFile,
+    drones: Sequence[DroneInfo],
+    paths: Sequence[Sequence[tuple[float, float]]],
+    homes: Sequence[tuple[float, float]],
     speed: float,
-    home: tuple[float, float] | None,
-    round_trip: bool = True,
-) -> DroneEstimate:
-    """Length (with the legs from and back to home), time (cruise + climb + descent) and energy."""
-    points = [(float(a), float(b)) for a, b in path]
-    legs = points if home is None else [home, *points, *([home] if round_trip else [])]
-    length = sum(distance_m(*legs[i], *legs[i + 1]) for i in range(len(legs) - 1)) if len(legs) > 1 else 0.0
-    seconds = length / speed + alt / CLIMB_MPS + alt / DESCENT_MPS
-    caps = drone.capabilities
-    power = caps.battery_wh * 3600.0 / caps.endurance_s if caps.battery_wh else NOMINAL_POWER_W
-    return DroneEstimate(
-        agent=drone.name,
-        points=points,
-        length_m=round(length, 1),
-        time_s=round(seconds, 1),
-        energy_wh=round(power * seconds / 3600.0, 2),
+    energy: EnergySettings,
+) -> list[DroneEstimate]:
+    """Each drone's planned time, distance and energy: the task file through the one estimator.
+
+    :func:`gcs.cooperation.energy.predict_plan_energy`, as the daemon's pre-flight check uses it:
+    climbs, legs with acceleration, landings, the hover at each barrier, then the trained model
+    (or the drone's mean power from its capabilities x time).
+    """
+    from gcs.cooperation.energy import capability_power_w, predict_plan_energy
+
+    cfg = energy.config.model_copy(update={"speed_mps": speed})
+    plans = {p.label: list(p.actions) for p in task.plans}
+    by_label = {p.label: (d, h) for p, d, h in zip(task.plans, drones, homes, strict=False)}
+    power = {
+        label: capability_power_w(d.capabilities.battery_wh, d.capabilities.endurance_s, cfg)
+        for label, (d, _) in by_label.items()
+    }
+    predicted = predict_plan_energy(
+        plans, {label: (h[0], h[1], 0.0) for label, (_, h) in by_label.items()}, cfg, energy.model, power
     )
+    out = []
+    for plan_, d, path in zip(task.plans, drones, paths, strict=False):
+        e = predicted[plan_.label]
+        out.append(
+            DroneEstimate(
+                agent=d.name,
+                points=[(float(a), float(b)) for a, b in path],
+                length_m=round(e.distance_m, 1),
+                time_s=round(e.time_s, 1),
+                energy_wh=round(e.energy_wh, 2),
+            )
+        )
+    return out
 
 
 def _preview(

@@ -80,6 +80,7 @@ class Telemetry:
     home_lon: float | None = None
     home_alt_amsl: float | None = None
     mission_current: int = -1  # MISSION_CURRENT seq while flying an uploaded mission, else -1
+    vehicle_time_s: float | None = None  # autopilot clock (time_boot_ms) of the position, if reported
     last_heartbeat_monotonic: float = 0.0
     status_texts: list[str] = field(default_factory=list)
 
