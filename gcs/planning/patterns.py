@@ -245,14 +245,16 @@ def _inward_bisector_excursions(
 
 
 def spiral(
-    vertices: ArrayLike, step: float, *, start: ArrayLike | None = None, corner_deg: float = 150.0
+    vertices: ArrayLike, step: float, *, start: ArrayLike | None = None, corner_deg: float = 173.0
 ) -> Sweep:
     """Inward spiral over the convex hull (seed 001 Alg. 1, corrected).
 
     Ring k is the mitred inward offset at (k + 1/2) step, i.e. half a step inside the offset
     B_k at k step; every point shallower than B_k is within half a step of ring k-1, so only
-    B_k's corners need care: corners sharper than ``corner_deg`` get an out-and-back detour
-    (see :func:`_inward_bisector_excursions`). Each ring is flown counter-clockwise from the
+    B_k's corners need care: a ring passes a corner of angle a at half a step / sin(a/2), so
+    every corner leaves an unseen wedge; corners sharper than ``corner_deg`` (173 deg: wedges
+    deeper than 0.1 % of a step) get an out-and-back detour (see
+    :func:`_inward_bisector_excursions`). Each ring is flown counter-clockwise from the
     vertex nearest the previous ring's end. The core deeper than the last ring plus step/2
     (narrower than one step) is flown as one leg along its long axis, ending near the centre.
     """
