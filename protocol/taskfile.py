@@ -12,8 +12,9 @@ Two formats are read:
 
 Validation makes the barrier service safe by construction: every agent's plan starts with a
 takeoff, steps never go backwards, and every agent has the same sequence of sync steps, so no
-barrier can wait on an agent that will never reach it. A plan must also end on the ground
-(land or rtl) unless the operator allows an airborne end explicitly.
+barrier can wait on an agent that will never reach it. A task document that comes in
+(:func:`parse_task_document`) must also end every plan on the ground (land or rtl) unless it
+allows an airborne end explicitly.
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ class TaskFile(BaseModel):
 
     @model_validator(mode="after")
     def _flyable(self) -> TaskFile:
-        validate_plans(self.plans, allow_airborne_end=self.allow_airborne_end)
+        validate_plans(self.plans)
         return self
 
 
@@ -98,8 +99,23 @@ def task_warnings(task: TaskFile) -> list[str]:
     ]
 
 
-def validate_plans(plans: list[AgentPlan], *, allow_airborne_end: bool = False) -> None:
-    """Raise ValueError unless the plans can be flown without a barrier deadlock or a drone left aloft."""
+def require_landing(task: TaskFile) -> None:
+    """Refuse a task whose drones would stay armed in the air, unless it allows that explicitly.
+
+    Checked where task documents come in (:func:`parse_task_document`: the API, ``gcs run``),
+    not in the model itself, so missions stored by older versions still load.
+    """
+    airborne = airborne_plans(task.plans)
+    if airborne and not task.allow_airborne_end:
+        raise TaskFileError(
+            f"{', '.join(airborne)}: the last action is not a land or rtl, so the drone would stay "
+            "armed in the air after the mission completes; add a land, or set allow_airborne_end "
+            "(gcs run --allow-airborne-end) if that is meant"
+        )
+
+
+def validate_plans(plans: list[AgentPlan]) -> None:
+    """Raise ValueError unless the plans can be flown without a barrier deadlock."""
     seen: set[str] = set()
     reference: tuple[str, list[int]] | None = None
     for plan in plans:
@@ -126,13 +142,6 @@ def validate_plans(plans: list[AgentPlan], *, allow_airborne_end: bool = False) 
                 f"unequal sync points: {reference[0]} syncs at steps {reference[1]} but "
                 f"{plan.label} at {syncs}; every agent must have the same sync steps"
             )
-    airborne = airborne_plans(plans)
-    if airborne and not allow_airborne_end:
-        raise ValueError(
-            f"{', '.join(airborne)}: the last action is not a land or rtl, so the drone would stay "
-            "armed in the air after the mission completes; add a land, or set allow_airborne_end "
-            "(gcs run --allow-airborne-end) if that is meant"
-        )
 
 
 class _CouasRow(BaseModel):
@@ -372,9 +381,11 @@ def parse_task_document(document: Any, *, allow_airborne_end: bool = False, gcj0
     if allow_airborne_end and isinstance(document, dict):
         document = {**document, "allow_airborne_end": True}
     try:
-        return TaskFile.model_validate(document)
+        task = TaskFile.model_validate(document)
     except ValidationError as exc:
         raise TaskFileError(f"invalid task file: {first_error(exc)}") from None
+    require_landing(task)
+    return task
 
 
 def load_task_text(text: str, *, allow_airborne_end: bool = False, gcj02: bool = False) -> TaskFile:

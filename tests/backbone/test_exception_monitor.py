@@ -19,9 +19,7 @@ def hover_mission(identity: str, seconds: float = 60.0, north_m: float = 0.0) ->
         Goto(step=1, lat=lat, lon=lon, alt=5.0),
         Hold(step=2, seconds=seconds),
     ]
-    return TaskFile(
-        name="hover", allow_airborne_end=True, plans=[AgentPlan(agent=identity, actions=list(actions))]
-    )
+    return TaskFile(name="hover", plans=[AgentPlan(agent=identity, actions=list(actions))])
 
 
 async def test_low_battery_makes_the_agent_return_to_launch(tmp_path: Path) -> None:

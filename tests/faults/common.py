@@ -78,6 +78,4 @@ def hover_mission(identity: str, seconds: float = 60.0, north_m: float = 10.0) -
         Goto(step=1, lat=lat, lon=lon, alt=5.0),
         Hold(step=2, seconds=seconds),
     ]
-    return TaskFile(
-        name="hover", allow_airborne_end=True, plans=[AgentPlan(agent=identity, actions=list(actions))]
-    )
+    return TaskFile(name="hover", plans=[AgentPlan(agent=identity, actions=list(actions))])

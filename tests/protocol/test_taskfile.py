@@ -296,3 +296,13 @@ def test_not_json_is_a_clear_error() -> None:
 def test_schema_is_published() -> None:
     schema = TaskFile.model_json_schema()
     assert schema["properties"]["format"]["const"] == "fleetgcs-task"
+
+
+def test_a_stored_task_without_landing_still_loads_but_submission_refuses_it() -> None:
+    # Missions stored by older versions are re-read with model_validate_json on restart; the
+    # landing rule applies where documents come in (the API, gcs run), not to stored ones.
+    takeoff = {"kind": "takeoff", "step": 0, "alt": 5}
+    stored = TaskFile.model_validate({"plans": [{"agent": "a", "actions": [takeoff]}]})
+    assert stored.allow_airborne_end is False
+    with pytest.raises(TaskFileError, match="a: the last action is not a land or rtl"):
+        load_task_text(stored.model_dump_json())
