@@ -120,6 +120,7 @@ class DroneEstimate(BaseModel):
     length_m: float
     time_s: float
     energy_wh: float
+    home: tuple[float, float] | None = Field(default=None, description="where the estimate starts")
 
 
 class PlanPreview(BaseModel):
@@ -412,7 +413,7 @@ def _estimates(
         plans, {label: (h[0], h[1], 0.0) for label, (_, h) in by_label.items()}, cfg, energy.model, power
     )
     out = []
-    for plan_, d, path in zip(task.plans, drones, paths, strict=False):
+    for plan_, d, path, h in zip(task.plans, drones, paths, homes, strict=False):
         e = predicted[plan_.label]
         out.append(
             DroneEstimate(
@@ -421,9 +422,29 @@ def _estimates(
                 length_m=round(e.distance_m, 1),
                 time_s=round(e.time_s, 1),
                 energy_wh=round(e.energy_wh, 2),
+                home=(float(h[0]), float(h[1])),
             )
         )
     return out
+
+
+def export_preview(preview: PlanPreview, formats: Sequence[str], speed_mps: float = 5.0) -> dict[str, str]:
+    """A previewed plan as files for QGroundControl (.plan), Mission Planner (.waypoints) and KML.
+
+    File name -> text (``gcs.planning.interchange.export_files``); each drone's home is the one
+    its estimate started from. Raises ValueError for an unknown format.
+    """
+    from gcs.planning.interchange import export_files
+
+    homes = {}
+    for agent_plan, estimate in zip(preview.taskfile.plans, preview.drones, strict=False):
+        homes[agent_plan.label] = estimate.home or (estimate.points[0] if estimate.points else (0.0, 0.0))
+    altitude = max(
+        (a.alt for p in preview.taskfile.plans for a in p.actions if isinstance(a, Takeoff)), default=None
+    )
+    return export_files(
+        preview.taskfile, homes, formats, area=preview.area, altitude_m=altitude, cruise_speed=speed_mps
+    )
 
 
 def _preview(

@@ -22,14 +22,7 @@ from typing import Any
 from gcs.planning.areas import AreaFormatError
 from gcs.planning.camera import Camera, CameraError, Spacing, spacing_from_camera, spacing_from_swath
 from gcs.planning.division import DroneSpec, InsufficientCapabilityError
-from gcs.planning.interchange import (
-    QgcSurvey,
-    kml_document,
-    load_area_text,
-    plan_items,
-    qgc_plan_document,
-    waypoints_text,
-)
+from gcs.planning.interchange import EXPORT_FORMATS, QgcSurvey, export_files, load_area_text
 from gcs.planning.planner import PlanConfig, SearchPlan, plan_search
 from gcs.planning.polygon import SelfIntersectionError
 
@@ -53,9 +46,6 @@ def _floats(text: str) -> list[float]:
         return [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
-
-
-EXPORT_FORMATS = ("plan", "waypoints", "kml")
 
 
 def _formats(text: str) -> list[str]:
@@ -278,27 +268,19 @@ def write_outputs(plan: SearchPlan, out: Path) -> dict[str, Path]:
 
 def write_exports(plan: SearchPlan, out: Path, formats: list[str], speed: float) -> dict[str, Path]:
     """Each drone's mission as QGC ``.plan`` / Mission Planner ``.waypoints``, the plan as KML."""
+    homes_local = [d.home if d.home is not None else tuple(plan.home_local) for d in plan.drones]
+    homes = {
+        p.label: (float(lat), float(lon))
+        for p, (lat, lon) in zip(plan.taskfile.plans, plan.frame.points_to_geodetic(homes_local), strict=True)
+    }
+    area = [(float(a), float(b)) for a, b in plan.frame.points_to_geodetic(plan.area_local)]
+    texts = export_files(
+        plan.taskfile, homes, formats, area=area, altitude_m=plan.spacing.altitude, cruise_speed=speed
+    )
     files: dict[str, Path] = {}
-    homes = [
-        (float(a), float(b))
-        for a, b in plan.frame.points_to_geodetic(
-            [d.home if d.home is not None else tuple(plan.home_local) for d in plan.drones]
-        )
-    ]
-    for agent_plan, home in zip(plan.taskfile.plans, homes, strict=True):
-        items = plan_items(agent_plan.actions, home)
-        if "plan" in formats:
-            files[f"{agent_plan.label}.plan"] = out / f"{agent_plan.label}.plan"
-            document = qgc_plan_document(items, home, cruise_speed=speed)
-            files[f"{agent_plan.label}.plan"].write_text(json.dumps(document, indent=2))
-        if "waypoints" in formats:
-            files[f"{agent_plan.label}.waypoints"] = out / f"{agent_plan.label}.waypoints"
-            files[f"{agent_plan.label}.waypoints"].write_text(waypoints_text(items, home))
-    if "kml" in formats:
-        area = [(float(a), float(b)) for a, b in plan.frame.points_to_geodetic(plan.area_local)]
-        paths = {d.name: pts for d, pts in zip(plan.drones, plan.paths_latlon, strict=True)}
-        files["plan.kml"] = out / "plan.kml"
-        files["plan.kml"].write_text(kml_document(plan.taskfile.name, area, paths, plan.spacing.altitude))
+    for name, text in texts.items():
+        files[name] = out / ("plan.kml" if name.endswith(".kml") else name)
+        files[name].write_text(text)
     return files
 
 

@@ -37,6 +37,7 @@ from protocol.actions import (
     Waypoints,
 )
 from protocol.geo import offset_latlon
+from protocol.taskfile import TaskFile
 
 MAV_FRAME_GLOBAL = 0
 MAV_FRAME_MISSION = 2
@@ -476,6 +477,39 @@ def area_from_kml(text: str, name: str = "area") -> SearchArea:
         raise InterchangeError("the KML document holds no Polygon placemark")
     mark, ring = content.polygons[0]
     return area_from_latlon(ring, mark or name)
+
+
+EXPORT_FORMATS = ("plan", "waypoints", "kml")
+
+
+def export_files(
+    task: TaskFile,
+    homes: Mapping[str, tuple[float, float]],
+    formats: Sequence[str],
+    *,
+    area: Sequence[tuple[float, float]] | None = None,
+    altitude_m: float | None = None,
+    cruise_speed: float = 5.0,
+) -> dict[str, str]:
+    """File name -> text for a task file: ``<agent>.plan`` / ``<agent>.waypoints`` per plan and
+    ``<task>.kml`` (the area and every plan's flown points), for the ``formats`` asked."""
+    bad = [f for f in formats if f not in EXPORT_FORMATS]
+    if bad:
+        raise ValueError(f"export formats are {', '.join(EXPORT_FORMATS)}; got {bad}")
+    files: dict[str, str] = {}
+    paths: dict[str, list[tuple[float, float]]] = {}
+    for agent_plan in task.plans:
+        home = homes[agent_plan.label]
+        items = plan_items(agent_plan.actions, home)
+        paths[agent_plan.label] = [(i.lat, i.lon) for i in items if i.command == NAV_WAYPOINT]
+        if "plan" in formats:
+            document = qgc_plan_document(items, home, cruise_speed=cruise_speed)
+            files[f"{agent_plan.label}.plan"] = json.dumps(document, indent=2)
+        if "waypoints" in formats:
+            files[f"{agent_plan.label}.waypoints"] = waypoints_text(items, home)
+    if "kml" in formats:
+        files[f"{task.name}.kml"] = kml_document(task.name, area, paths, altitude_m)
+    return files
 
 
 def load_area_text(text: str, name: str = "area") -> tuple[SearchArea, QgcSurvey | None]:

@@ -355,3 +355,27 @@ def test_dashboard_preview_reads_kml_text_and_qgc_settings() -> None:
     assert told.summary["step_m"] == 40.0
     with pytest.raises(PlanningError, match="area: not valid KML"):
         plan(SearchPlanRequest(area_text="<kml><Document>"), drones)
+
+
+def test_a_previewed_plan_exports_for_qgc_mission_planner_and_kml() -> None:
+    from gcs.api_planning import DroneInfo, SearchPlanRequest, export_preview, plan
+
+    drones = [DroneInfo(name="drone-1", home=HOME), DroneInfo(name="drone-2", home=HOME)]
+    preview = plan(SearchPlanRequest(area=FIELD, swath_m=30, altitude_m=25), drones)
+    files = export_preview(preview, ["plan", "waypoints", "kml"])
+    expected = [
+        f"{preview.name}.kml",
+        "drone-1.plan",
+        "drone-1.waypoints",
+        "drone-2.plan",
+        "drone-2.waypoints",
+    ]
+    assert sorted(files) == sorted(expected)
+    for name in ("drone-1", "drone-2"):
+        home, items = read_qgc_mission(json.loads(files[f"{name}.plan"]))
+        assert _close(home, HOME)
+        _same_items(items, read_waypoints(files[f"{name}.waypoints"])[1])
+    kml = read_kml(files[f"{preview.name}.kml"])
+    assert _close(kml.polygons[0][1][:-1], FIELD)
+    with pytest.raises(ValueError, match="export formats"):
+        export_preview(preview, ["gpx"])
