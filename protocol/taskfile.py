@@ -192,8 +192,8 @@ def _check_couas_drone(cid: int, rows: list[_Row], allow_airborne_end: bool) -> 
     first = rows[0]
     if first.row.Action_type != 0:
         raise TaskFileError(
-            f"CoUAS {first.where}: CID {cid} starts with {_a(first.row.Action_type)}; "
-            "a drone's first row in the file must be an arm-and-takeoff (Action_type 0)"
+            f"CoUAS {first.where}: the first action must be a takeoff, but CID {cid} starts with "
+            f"{_a(first.row.Action_type)} (a drone's first row in the file must be Action_type 0)"
         )
     by_step: dict[int, _Row] = {}
     for entry in rows:

@@ -184,7 +184,7 @@ def test_fleetgcs_task_round_trips_through_json() -> None:
     [
         (
             [couas_row(1, 1, 0, 0, Lat=1, Lon=1, Alt=5)],
-            r"row 1 \(CID 1, Step 0\): CID 1 starts with a go-to; a drone's first row",
+            r"row 1 \(CID 1, Step 0\): the first action must be a takeoff, but CID 1 starts with a go-to",
         ),
         (
             [
