@@ -22,11 +22,12 @@ async def test_telemetry_carries_the_simulator_clock(sim_fleet: Any, closing: An
     first = await wait_until(ap, lambda t: t.vehicle_time_s is not None, "a vehicle clock")
     assert first.vehicle_time_s is not None
     later = await wait_until(
-        ap, lambda t: (t.vehicle_time_s or 0.0) > first.vehicle_time_s + 4.0, "4 vehicle seconds"
+        ap, lambda t: (t.vehicle_time_s or 0.0) > 40.0, "40 vehicle seconds (5 s of wall time at 8x)", 60.0
     )
     assert later.vehicle_time_s is not None
-    # time_boot_ms of the last position: the sim clock, a telemetry period (or so) behind it
-    assert fleet.sim_time - 3.0 <= later.vehicle_time_s <= fleet.sim_time + 1e-3
+    # time_boot_ms of the last position: the sim clock, a little behind it (telemetry period and
+    # read latency); a wall clock would be 1/8 of it, a UNIX clock 1.7e9
+    assert fleet.sim_time - 15.0 <= later.vehicle_time_s <= fleet.sim_time + 1e-3
 
 
 def test_simulator_counts_and_reports_a_speed_up_it_cannot_keep(caplog: pytest.LogCaptureFixture) -> None:
