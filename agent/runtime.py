@@ -71,6 +71,7 @@ def build_status(
     """A type-2 report from telemetry and queue state (no position before the first 3-D fix)."""
     return StatusReport(
         time=time.time(),
+        vehicle_time=t.vehicle_time_s,
         position=Position(
             lat=finite_or_zero(t.lat),
             lon=finite_or_zero(t.lon),

@@ -121,29 +121,36 @@ def _random_area(rng: np.random.Generator) -> Polygon:
     return poly
 
 
-def bench_partition(cases: int, sizes: list[int]) -> list[dict[str, float]]:
+def bench_partition(
+    cases: int, sizes: list[int], strips: list[int] | None = None
+) -> list[dict[str, float | str]]:
     rows = []
     print(f"\nPartition: periods to converge (max relative area error <= 1%), {cases} random cases per grid")
     print(
-        "paper (seed 003): (2,2)-block sharing ~30% quicker than one-to-one beyond (3,2) blocks, "
-        "'about half the periods' in Sec. III-C"
+        "paper (seed 003): (2,2)-block sharing ~30% quicker than one-to-one beyond (3,2) blocks; "
+        "(1,4) strips and (4,4) grids 'about half the periods' (Sec. III-C, Figs. 7-8)"
     )
     print(
-        f"{'grid':>6} {'one-to-one':>11} {'block(2,2)':>11} {'block/o2o':>10} {'o2o fail':>9} {'blk fail':>9}"
+        f"{'grid':>6} {'block':>6} {'one-to-one':>11} {'block':>11} {'block/o2o':>10} "
+        f"{'o2o fail':>9} {'blk fail':>9}"
     )
-    for n in sizes:
+    shapes = [((1, n), (1, 4)) for n in strips or []] + [((n, n), (2, 2)) for n in sizes]
+    for shape, block in shapes:
+        n = shape[1]
         rng = np.random.default_rng(n)
         res: dict[str, list[float | None]] = {"one-to-one": [], "block": []}
         for _ in range(cases):
             raster = Raster.from_polygon(_random_area(rng), 1.0)
-            a = capability(3.0, rng.uniform(0.5, 1.0, (n, n)))
+            a = capability(3.0, rng.uniform(0.5, 1.0, shape))
             for s in res:
-                res[s].append(simulate(raster, a, s, max_periods=80).periods_to(0.01))  # type: ignore[arg-type]
+                r = simulate(raster, a, s, block=block, max_periods=80)  # type: ignore[arg-type]
+                res[s].append(r.periods_to(0.01))
         both = [(o, b) for o, b in zip(res["one-to-one"], res["block"], strict=True) if o and b]
         o2o = float(np.mean([o for o, _ in both])) if both else float("nan")
         blk = float(np.mean([b for _, b in both])) if both else float("nan")
         row = {
-            "grid": n,
+            "grid": f"{shape[0]}x{shape[1]}",
+            "block": f"({block[0]},{block[1]})",
             "one_to_one_periods": o2o,
             "block_periods": blk,
             "ratio": blk / o2o,
@@ -152,7 +159,7 @@ def bench_partition(cases: int, sizes: list[int]) -> list[dict[str, float]]:
         }
         rows.append(row)
         print(
-            f"{f'{n}x{n}':>6} {o2o:>11.2f} {blk:>11.2f} {row['ratio']:>10.2f} "
+            f"{row['grid']:>6} {row['block']:>6} {o2o:>11.2f} {blk:>11.2f} {row['ratio']:>10.2f} "
             f"{row['one_to_one_unconverged']:>9} {row['block_unconverged']:>9}"
         )
     return rows
@@ -224,7 +231,9 @@ def main() -> None:
         "psa_paper_setting": bench_psa_paper(2 if quick else 10, 0.3 if quick else 1.0),
         "psa_scaling": bench_psa_scaling([10, 100, 1000] if quick else [10, 100, 1000, 10_000], 1.0),
         "rsa_scaling": bench_rsa([100, 500] if quick else [100, 500, 1000, 2000]),
-        "partition_convergence": bench_partition(5 if quick else args.cases, [2, 4] if quick else [2, 4, 6]),
+        "partition_convergence": bench_partition(
+            5 if quick else args.cases, [2, 4] if quick else [2, 4, 6], [8] if quick else [8, 16]
+        ),
         "table_i": bench_table_i(10 if quick else 20),
     }
     OUT.parent.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,6 @@
-"""Search-planning benchmark: planning time vs size, pattern length/turns, coverage under eq. 9 error.
+"""Search-planning benchmark: planning time vs size, pattern length/turns, coverage under eq. 9 error,
+and the planned coverage of every pattern (curved at shifts -0.5..0.5, with and without wind) over
+random convex polygons.
 
 Run: python bench/bench_planning.py  (writes bench/results/planning.json; < 1 min on 2 cores)
 """
@@ -19,7 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from gcs.planning.camera import Camera, spacing_from_camera
 from gcs.planning.coverage import evaluate_coverage, path_error_m, simulate_track
 from gcs.planning.decompose import cover_area
-from gcs.planning.patterns import segmented, spiral, zigzag
+from gcs.planning.patterns import curved_cover, segmented, spiral, swept_footprint, zigzag
 from gcs.planning.polygon import regularity
 
 # seed 001 Tables 2-3 (Unity simulation, 5 m/s, 0 % desired overlap)
@@ -93,7 +95,12 @@ def bench_coverage(step: float, swath: float, seeds: int = 10) -> list[dict]:
     for shape, poly in shapes().items():
         zz = zigzag(poly, step)
         for speed in (3.0, 5.0):
-            for name, sw in (("zigzag", zz), ("segmented", segmented(zz, 4)), ("spiral", spiral(poly, step))):
+            for name, sw in (
+                ("zigzag", zz),
+                ("segmented", segmented(zz, 4)),
+                ("spiral", spiral(poly, step)),
+                ("curved +0.2", curved_cover(poly, step, 0.2)),
+            ):
                 cov, ovl, secs = [], [], []
                 for seed in range(seeds):
                     track, t = simulate_track(sw.points, speed, accel=1.0, seed=seed)
@@ -119,6 +126,58 @@ def bench_coverage(step: float, swath: float, seeds: int = 10) -> list[dict]:
     return rows
 
 
+def random_convex(rng: np.random.Generator) -> np.ndarray:
+    """The tests' generator: the hull of 3-12 random points, stretched 20-400 x 5-400 m, rotated."""
+    from scipy.spatial import ConvexHull
+
+    n = int(rng.integers(3, 13))
+    pts = rng.uniform(0, 1, (n, 2)) * [rng.uniform(20, 400), rng.uniform(5, 400)]
+    hull = pts[ConvexHull(pts).vertices]
+    a = rng.uniform(0, math.pi)
+    c, s = math.cos(a), math.sin(a)
+    return hull @ np.array([[c, s], [-s, c]])
+
+
+def planned_pct(poly: np.ndarray, points: np.ndarray, half: float) -> float:
+    p = Polygon(poly)
+    return 100.0 * p.intersection(swept_footprint(points, half)).area / p.area
+
+
+def bench_planned_coverage(polygons: int = 120, seed: int = 0) -> list[dict]:
+    """Planned coverage (footprint half a step on the plan itself): worst and mean over polygons."""
+    rng = np.random.default_rng(seed)
+    cases = [(random_convex(rng), float(rng.uniform(4.0, 40.0))) for _ in range(polygons)]
+    variants: list[tuple[str, object]] = [
+        ("zigzag", lambda p, st: zigzag(p, st)),
+        ("segmented", lambda p, st: segmented(zigzag(p, st), 4)),
+        ("spiral", lambda p, st: spiral(p, st)),
+        ("spiral (corners < 150 deg only)", lambda p, st: spiral(p, st, corner_deg=150.0)),
+    ]
+    for shift in (-0.5, -0.25, 0.2, 0.5):
+        variants.append((f"curved shift {shift:+.2f}", lambda p, st, s=shift: curved_cover(p, st, s)))
+        variants.append(
+            (f"curved shift {shift:+.2f} wind 45", lambda p, st, s=shift: curved_cover(p, st, s, 45.0))
+        )
+    rows = []
+    base = [zigzag(p, st).length for p, st in cases]
+    for name, build in variants:
+        cov, ratio = [], []
+        for (poly, st), zz in zip(cases, base, strict=True):
+            sw = build(poly, st)  # type: ignore[operator]
+            cov.append(planned_pct(poly, sw.points, st / 2))
+            ratio.append(sw.length / zz)
+        rows.append(
+            {
+                "pattern": name,
+                "polygons": polygons,
+                "worst_pct": round(float(np.min(cov)), 3),
+                "mean_pct": round(float(np.mean(cov)), 4),
+                "length_vs_zigzag": round(float(np.mean(ratio)), 3),
+            }
+        )
+    return rows
+
+
 def table(rows: list[dict], title: str) -> None:
     print(f"\n## {title}")
     keys = list(rows[0])
@@ -138,6 +197,7 @@ def main() -> int:
         "patterns": bench_patterns(sp.step),
         "coverage": bench_coverage(sp.step, sp.swath),
         "paper_table3": PAPER_TABLE3,
+        "planned_coverage": bench_planned_coverage(),
     }
     results["wall_s"] = round(time.perf_counter() - t0, 1)
     print(f"camera: h_max {sp.h_max:.2f} m, swath {sp.swath:.2f} m, step {sp.step:.2f} m (0 % overlap)")
@@ -148,6 +208,10 @@ def main() -> int:
         results["coverage"], "covered % under eq. 9 path error (mean of 10 seeds), seed 001 Table 2 alongside"
     )
     print(f"\nseed 001 Table 3 (zigzag vs spiral, 5 m/s): {PAPER_TABLE3}")
+    table(
+        results["planned_coverage"],
+        "planned coverage over random convex polygons (footprint = line step, on the plan itself)",
+    )
     out = Path(__file__).resolve().parent / "results" / "planning.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=2))

@@ -136,6 +136,13 @@ async def fly_batch(out: Path, drones: int, speedup: float, rng: random.Random, 
         ):
             await asyncio.sleep(0.2)
         await asyncio.sleep(0.5)  # the disarmed report closes each log
+        kept = fleet.sim_time / max(fleet.wall_time_s, 1e-9)
+        note = (
+            f", fell behind {fleet.overruns}x ({fleet.dropped_sim_s:.1f} sim s dropped)"
+            if fleet.overruns
+            else ""
+        )
+        print(f"  simulator speed-up kept {kept:.2f}x of {speedup:g}x{note}", flush=True)
         return drones
     finally:
         for task in tasks:

@@ -37,7 +37,15 @@ from gcs.api_models import (
     MissionSummary,
     UiConfig,
 )
-from gcs.api_planning import DroneInfo, PlanningError, PlanPreview, PlanRequest, plan, task_paths
+from gcs.api_planning import (
+    DroneInfo,
+    EnergySettings,
+    PlanningError,
+    PlanPreview,
+    PlanRequest,
+    plan,
+    task_paths,
+)
 from gcs.authority import VehicleControl
 from gcs.events import Event
 from gcs.live import LiveHub, StatusSample, StreamClient
@@ -297,10 +305,17 @@ def create_app(daemon: Daemon) -> FastAPI:
         hub.plans[mission_id] = planned
         return MissionCreated(mission_id=mission_id, plan=planned)
 
+    def _energy_settings() -> EnergySettings:
+        """The pre-flight check's estimator, so a preview predicts what the daemon will check."""
+        coop = next((s for s in daemon.services if getattr(s, "name", "") == "cooperation"), None)
+        model = getattr(coop, "energy_model", None)
+        return EnergySettings(daemon.config.cooperation.energy, model if model and model.trained_on else None)
+
     async def _plan(request: Any) -> PlanPreview:
         infos = _drone_infos(daemon, list(request.drones))
         try:
-            return await asyncio.wait_for(asyncio.to_thread(plan, request, infos), PLAN_TIMEOUT_S)
+            energy = _energy_settings()
+            return await asyncio.wait_for(asyncio.to_thread(plan, request, infos, energy), PLAN_TIMEOUT_S)
         except PlanningError as exc:
             raise ApiProblem(422, "cannot plan", str(exc)[:1000]) from None
         except TimeoutError:

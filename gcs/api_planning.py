@@ -16,21 +16,21 @@ length, time and energy per drone so the operator can judge a plan before flying
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from shapely.geometry import Polygon
 
+from gcs.cooperation.config import EnergyConfig
+from gcs.cooperation.energy import EnergyModel
 from protocol.actions import Goto, Land, Takeoff, Waypoints
-from protocol.geo import distance_m
 from protocol.packets import Capabilities, StatusReport
 from protocol.taskfile import TaskFile
 
 MAX_SURVEY_M = 400_000.0  # total survey lines a request may ask for (bounded planning time)
 MAX_EXTENT_M = 30_000.0
-NOMINAL_POWER_W = 180.0  # a mid-size quadcopter in forward flight, when the agent reports no battery_wh
-CLIMB_MPS, DESCENT_MPS = 2.5, 1.0
 
 Lat = Annotated[float, Field(ge=-90.0, le=90.0, allow_inf_nan=False)]
 Lon = Annotated[float, Field(ge=-180.0, le=180.0, allow_inf_nan=False)]
@@ -68,6 +68,11 @@ class SearchPlanRequest(_Request):
     )
     area_document: dict[str, Any] | None = Field(
         default=None, description="instead of 'area': a GeoJSON or QGroundControl .plan document"
+    )
+    area_text: str | None = Field(
+        default=None,
+        max_length=2_000_000,
+        description="instead of 'area': a KML, GeoJSON or QGroundControl .plan document as text",
     )
     pattern: Literal["zigzag", "spiral", "segmented", "curved"] = "zigzag"
     division: Literal["path", "region", "partition"] = "region"
@@ -115,6 +120,7 @@ class DroneEstimate(BaseModel):
     length_m: float
     time_s: float
     energy_wh: float
+    home: tuple[float, float] | None = Field(default=None, description="where the estimate starts")
 
 
 class PlanPreview(BaseModel):
@@ -143,47 +149,94 @@ class DroneInfo(BaseModel):
     status: StatusReport | None = None
 
 
+@dataclass(frozen=True)
+class EnergySettings:
+    """The daemon's energy estimator: its config and (trained) model, so previews match the pre-flight."""
+
+    config: EnergyConfig = field(default_factory=EnergyConfig)
+    model: EnergyModel | None = None
+
+
 def plan(
-    request: SearchPlanRequest | PsaPlanRequest | RsaPlanRequest, drones: Sequence[DroneInfo]
+    request: SearchPlanRequest | PsaPlanRequest | RsaPlanRequest,
+    drones: Sequence[DroneInfo],
+    energy: EnergySettings | None = None,
 ) -> PlanPreview:
-    """Plan synchronously (call it in a worker thread); raises PlanningError with a readable reason."""
+    """Plan synchronously (call it in a worker thread); raises PlanningError with a readable reason.
+
+    ``energy``: the daemon's energy config and model (default: untrained, power x time), so the
+    preview predicts what the pre-flight check will (:func:`predict_plan_energy`).
+    """
     if not drones:
         raise PlanningError("no drones to plan for: name them in 'drones' or connect agents")
+    settings = energy or EnergySettings()
     try:
         if isinstance(request, SearchPlanRequest):
-            return _plan_search(request, drones)
+            return _plan_search(request, drones, settings)
         if isinstance(request, PsaPlanRequest):
-            return _plan_psa(request, drones)
-        return _plan_rsa(request, drones)
+            return _plan_psa(request, drones, settings)
+        return _plan_rsa(request, drones, settings)
     except PlanningError:
         raise
     except (ValueError, ArithmeticError, IndexError) as exc:  # planner and geometry errors
         raise PlanningError(f"{request.method} planning failed: {exc}") from None
 
 
-def _plan_search(request: SearchPlanRequest, drones: Sequence[DroneInfo]) -> PlanPreview:
+def _plan_search(
+    request: SearchPlanRequest, drones: Sequence[DroneInfo], energy: EnergySettings
+) -> PlanPreview:
     from gcs.planning.areas import AreaFormatError, parse_area
-    from gcs.planning.camera import spacing_from_swath
+    from gcs.planning.camera import Spacing, spacing_from_swath
     from gcs.planning.division import DroneSpec
+    from gcs.planning.interchange import QgcSurvey, load_area_text, read_qgc_survey
     from gcs.planning.planner import PlanConfig, plan_search
 
-    if (request.area is None) == (request.area_document is None):
-        raise PlanningError("give exactly one of 'area' ([lat, lon] ring) or 'area_document' (GeoJSON/.plan)")
+    given = [x for x in (request.area, request.area_document, request.area_text) if x is not None]
+    if len(given) != 1:
+        raise PlanningError(
+            "give exactly one of 'area' ([lat, lon] ring), 'area_document' (GeoJSON/.plan) "
+            "or 'area_text' (KML, GeoJSON or .plan as text)"
+        )
+    survey: QgcSurvey | None = None
     try:
-        area = parse_area(request.area if request.area is not None else request.area_document, request.name)
+        if request.area_text is not None:
+            area, survey = load_area_text(request.area_text, request.name)
+        elif isinstance(request.area_document, dict) and request.area_document.get("fileType") == "Plan":
+            survey = read_qgc_survey(request.area_document, request.name)
+            area = survey.area
+        else:
+            area = parse_area(
+                request.area if request.area is not None else request.area_document, request.name
+            )
     except (AreaFormatError, ValueError, TypeError, KeyError, IndexError, AttributeError) as exc:
         raise PlanningError(f"area: {exc}") from None
-    spacing = spacing_from_swath(request.swath_m, request.altitude_m, request.side_overlap)
+    # a QGC survey's own settings stand unless the request sets them
+    chosen = request.model_fields_set
+    altitude = request.altitude_m
+    if survey is not None and survey.altitude_m is not None and "altitude_m" not in chosen:
+        altitude = survey.altitude_m
+    if survey is not None and survey.step_m is not None and not chosen & {"swath_m", "side_overlap"}:
+        spacing = Spacing(
+            altitude=altitude,
+            swath=survey.swath_m or survey.step_m,
+            step=survey.step_m,
+            side_overlap=survey.side_overlap,
+        )
+    else:
+        spacing = spacing_from_swath(request.swath_m, altitude, request.side_overlap)
+    angle = survey.angle_deg if survey is not None else None
+    if survey is not None and survey.home is not None and request.home is None:
+        request = request.model_copy(update={"home": LatLonPoint(lat=survey.home[0], lon=survey.home[1])})
     local = area.local()
     extent = float(np.ptp(local, axis=0).max())
     if not np.isfinite(local).all() or extent > MAX_EXTENT_M:
         raise PlanningError(
             f"area is {extent / 1000:.0f} km across; the limit is {MAX_EXTENT_M / 1000:.0f} km"
         )
-    survey = Polygon(local).area / spacing.step
-    if survey > MAX_SURVEY_M:
+    lines_m = Polygon(local).area / spacing.step
+    if lines_m > MAX_SURVEY_M:
         raise PlanningError(
-            f"area needs about {survey / 1000:.0f} km of survey lines at {spacing.step:.1f} m spacing "
+            f"area needs about {lines_m / 1000:.0f} km of survey lines at {spacing.step:.1f} m spacing "
             f"(limit {MAX_SURVEY_M / 1000:.0f} km); widen the swath or split the area"
         )
     home = (
@@ -211,15 +264,15 @@ def _plan_search(request: SearchPlanRequest, drones: Sequence[DroneInfo]) -> Pla
             transit_alt_step=request.transit_alt_step,
             return_mode=request.return_mode,
             allow_partial=request.allow_partial,
+            angle_deg=angle,
         ),
         home_latlon=home,
         speed=request.speed_mps,
         agent_names=[d.name for d in drones],
     )
-    estimates = [
-        _estimate(d, path, request.altitude_m, request.speed_mps, home)
-        for d, path in zip(drones, result.paths_latlon, strict=True)
-    ]
+    estimates = _estimates(
+        result.taskfile, drones, result.paths_latlon, [home] * len(drones), request.speed_mps, energy
+    )
     return _preview(
         "search",
         request.name,
@@ -234,7 +287,7 @@ def _plan_search(request: SearchPlanRequest, drones: Sequence[DroneInfo]) -> Pla
     )
 
 
-def _plan_psa(request: PsaPlanRequest, drones: Sequence[DroneInfo]) -> PlanPreview:
+def _plan_psa(request: PsaPlanRequest, drones: Sequence[DroneInfo], energy: EnergySettings) -> PlanPreview:
     from gcs.planning._psa_mission import psa_mission
     from gcs.planning.geodesy import LocalFrame
     from gcs.planning.psa import plan_psa
@@ -249,11 +302,12 @@ def _plan_psa(request: PsaPlanRequest, drones: Sequence[DroneInfo]) -> PlanPrevi
     traj = result.trajectory
     names = [d.name for d in drones]
     task = psa_mission(traj, frame, request.altitude_m, request.speed_mps, names, name=request.name)
-    estimates = []
-    for j, d in enumerate(drones):
+    paths = []
+    for j in range(len(drones)):
         lat, lon = frame.to_geodetic(traj.positions[j, :, 0], traj.positions[j, :, 1])
-        path = list(zip(lat.tolist(), lon.tolist(), strict=True))
-        estimates.append(_estimate(d, path, request.altitude_m, request.speed_mps, d.home, round_trip=False))
+        paths.append(list(zip(lat.tolist(), lon.tolist(), strict=True)))
+    homes = [d.home if d.home is not None else p[0] for d, p in zip(drones, paths, strict=True)]
+    estimates = _estimates(task, drones, paths, homes, request.speed_mps, energy)
     return _preview(
         "psa",
         request.name,
@@ -264,7 +318,7 @@ def _plan_psa(request: PsaPlanRequest, drones: Sequence[DroneInfo]) -> PlanPrevi
     )
 
 
-def _plan_rsa(request: RsaPlanRequest, drones: Sequence[DroneInfo]) -> PlanPreview:
+def _plan_rsa(request: RsaPlanRequest, drones: Sequence[DroneInfo], energy: EnergySettings) -> PlanPreview:
     from gcs.planning.geodesy import LocalFrame
     from gcs.planning.mission import mission_from_paths
     from gcs.planning.rsa import MissedMap, plan_rsa
@@ -312,9 +366,7 @@ def _plan_rsa(request: RsaPlanRequest, drones: Sequence[DroneInfo]) -> PlanPrevi
         return_mode="land_home",
         name=request.name,
     )
-    estimates = [
-        _estimate(d, p, request.altitude_m, request.speed_mps, None) for d, p in zip(used, paths, strict=True)
-    ]
+    estimates = _estimates(task, used, paths, [p[-1] for p in paths], request.speed_mps, energy)
     corners = missed.to_east_north(
         np.array([[0, 0], [missed.extent[0], 0], [*missed.extent], [0, missed.extent[1]]])
     )
@@ -334,27 +386,64 @@ def _battery_fraction(drone: DroneInfo) -> float:
     return 1.0 if pct is None else min(1.0, max(0.05, pct / 100.0))
 
 
-def _estimate(
-    drone: DroneInfo,
-    path: Sequence[tuple[float, float]],
-    alt: float,
+def _estimates(
+    task: TaskFile,
+    drones: Sequence[DroneInfo],
+    paths: Sequence[Sequence[tuple[float, float]]],
+    homes: Sequence[tuple[float, float]],
     speed: float,
-    home: tuple[float, float] | None,
-    round_trip: bool = True,
-) -> DroneEstimate:
-    """Length (with the legs from and back to home), time (cruise + climb + descent) and energy."""
-    points = [(float(a), float(b)) for a, b in path]
-    legs = points if home is None else [home, *points, *([home] if round_trip else [])]
-    length = sum(distance_m(*legs[i], *legs[i + 1]) for i in range(len(legs) - 1)) if len(legs) > 1 else 0.0
-    seconds = length / speed + alt / CLIMB_MPS + alt / DESCENT_MPS
-    caps = drone.capabilities
-    power = caps.battery_wh * 3600.0 / caps.endurance_s if caps.battery_wh else NOMINAL_POWER_W
-    return DroneEstimate(
-        agent=drone.name,
-        points=points,
-        length_m=round(length, 1),
-        time_s=round(seconds, 1),
-        energy_wh=round(power * seconds / 3600.0, 2),
+    energy: EnergySettings,
+) -> list[DroneEstimate]:
+    """Each drone's planned time, distance and energy: the task file through the one estimator.
+
+    :func:`gcs.cooperation.energy.predict_plan_energy`, as the daemon's pre-flight check uses it:
+    climbs, legs with acceleration, landings, the hover at each barrier, then the trained model
+    (or the drone's mean power from its capabilities x time).
+    """
+    from gcs.cooperation.energy import capability_power_w, predict_plan_energy
+
+    cfg = energy.config.model_copy(update={"speed_mps": speed})
+    plans = {p.label: list(p.actions) for p in task.plans}
+    by_label = {p.label: (d, h) for p, d, h in zip(task.plans, drones, homes, strict=False)}
+    power = {
+        label: capability_power_w(d.capabilities.battery_wh, d.capabilities.endurance_s, cfg)
+        for label, (d, _) in by_label.items()
+    }
+    predicted = predict_plan_energy(
+        plans, {label: (h[0], h[1], 0.0) for label, (_, h) in by_label.items()}, cfg, energy.model, power
+    )
+    out = []
+    for plan_, d, path, h in zip(task.plans, drones, paths, homes, strict=False):
+        e = predicted[plan_.label]
+        out.append(
+            DroneEstimate(
+                agent=d.name,
+                points=[(float(a), float(b)) for a, b in path],
+                length_m=round(e.distance_m, 1),
+                time_s=round(e.time_s, 1),
+                energy_wh=round(e.energy_wh, 2),
+                home=(float(h[0]), float(h[1])),
+            )
+        )
+    return out
+
+
+def export_preview(preview: PlanPreview, formats: Sequence[str], speed_mps: float = 5.0) -> dict[str, str]:
+    """A previewed plan as files for QGroundControl (.plan), Mission Planner (.waypoints) and KML.
+
+    File name -> text (``gcs.planning.interchange.export_files``); each drone's home is the one
+    its estimate started from. Raises ValueError for an unknown format.
+    """
+    from gcs.planning.interchange import export_files
+
+    homes = {}
+    for agent_plan, estimate in zip(preview.taskfile.plans, preview.drones, strict=False):
+        homes[agent_plan.label] = estimate.home or (estimate.points[0] if estimate.points else (0.0, 0.0))
+    altitude = max(
+        (a.alt for p in preview.taskfile.plans for a in p.actions if isinstance(a, Takeoff)), default=None
+    )
+    return export_files(
+        preview.taskfile, homes, formats, area=preview.area, altitude_m=altitude, cruise_speed=speed_mps
     )
 
 

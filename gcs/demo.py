@@ -15,10 +15,12 @@ import secrets
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from gcs.config import DaemonConfig
+from gcs.cooperation.config import EnergyConfig
+from gcs.cooperation.energy import EnergyPrediction, predict_plan_energy
 from gcs.daemon import Daemon
 from gcs.flight_recorder import FlightRecorder
 from gcs.missions import MissionProgress
@@ -61,6 +63,8 @@ class DemoResult:
     landed: dict[str, bool]
     message: str
     mission_wall_s: float = 0.0  # from submit (pre-flight wait included) to the mission's end
+    predicted: dict[str, EnergyPrediction] = field(default_factory=dict)  # before take-off
+    speedup: float = 1.0  # asked of the simulator
 
 
 class DemoError(RuntimeError):
@@ -224,7 +228,12 @@ async def run_demo(options: DemoOptions) -> DemoResult:
             status_period_s=0.2,
         )
     )
-    recorder = FlightRecorder()
+    recorder = FlightRecorder(time_scale=options.speedup)
+    predicted = predict_plan_energy(  # the daemon's pre-flight estimate, for the summary
+        {p.label: list(p.actions) for p in task.plans},
+        {n: (h[0], h[1], 0.0) for n, h in zip(names, vehicle_homes(options), strict=True)},
+        EnergyConfig(speed_mps=options.speed_mps),
+    )
     for plan, path in zip(task.plans, paths, strict=True):
         survey_steps = {a.step for a in plan.actions if isinstance(a, Waypoints)}
         recorder.set_plan(plan.label, path, survey_steps)
@@ -273,7 +282,7 @@ async def run_demo(options: DemoOptions) -> DemoResult:
         landed = {n: bool((r := recorder.records.get(n)) and r.landed and not r.armed) for n in names}
         ok = progress is not None and progress.state == "completed" and all(landed.values())
         message = progress.result if progress and progress.result else "no result"
-        return DemoResult(ok, progress, recorder, landed, message, mission_wall_s)
+        return DemoResult(ok, progress, recorder, landed, message, mission_wall_s, predicted, options.speedup)
     finally:
         await _stop(agents)  # agents first, so none sees its autopilot vanish
         await _stop(simulator)
@@ -294,6 +303,22 @@ def summary_table(result: DemoResult) -> str:
             f"{record.airborne_s:7.1f} {record.energy_wh:9.2f} {used:11.1f} "
             f"{record.max_path_error_m:14.2f}"
         )
+    if result.predicted:
+        cells = [
+            f"{name} {p.energy_wh:.2f} Wh/{p.time_s:.0f} s" for name, p in sorted(result.predicted.items())
+        ]
+        lines.append("predicted before take-off (energy/vehicle time): " + ", ".join(cells))
+    kept = [k for r in result.recorder.records.values() if (k := r.speedup_kept) is not None]
+    if kept:
+        worst = min(kept)
+        note = (
+            "kept"
+            if worst >= 0.9 * result.speedup
+            else "NOT kept: the host was too slow; times and energy above are on the vehicle clock"
+        )
+        lines.append(f"simulator speed-up: {worst:.2f}x of {result.speedup:g}x asked, {note}")
+    else:
+        lines.append("vehicle clock not reported: times and energy above are wall time x speed-up")
     state = result.mission.state if result.mission else "unknown"
     lines.append(f"mission: {state} ({result.message}); result: {'SUCCESS' if result.ok else 'FAILURE'}")
     return "\n".join(lines)

@@ -1,5 +1,9 @@
 """Per-drone flight records built from status reports: track, distance, time, energy, path error.
 
+Time is the vehicle's own clock when the agent reports it (a simulator's sim time, right under
+any speed-up, kept or not), else wall time stretched by the nominal speed-up
+(:class:`gcs.cooperation.flightlog.VehicleClock`); ``speedup_kept`` compares the two.
+
 Distance is summed over horizontal track segments longer than a noise floor, so GPS jitter
 while hovering does not add up. Energy integrates voltage x current over time; when an autopilot
 reports no current, the battery percentage drop is reported instead. Path error is the largest
@@ -14,6 +18,7 @@ from dataclasses import dataclass, field
 
 from shapely.geometry import LineString, Point
 
+from gcs.cooperation.flightlog import VehicleClock
 from protocol.geo import distance_m, ned_offset_m
 from protocol.packets import StatusReport
 
@@ -36,7 +41,12 @@ class FlightRecord:
     landed: bool = True
     armed: bool = False
     track: list[tuple[float, float, float, float]] = field(default_factory=list)  # time, lat, lon, alt_rel
+    first_wall: float | None = None
+    last_wall: float | None = None
+    vehicle_clock: bool = False  # True once the agent reported the vehicle's own clock
+    clock: VehicleClock = field(default_factory=VehicleClock)
     _last: StatusReport | None = None
+    _last_t: float = 0.0
 
     def add(
         self, status: StatusReport, planned: LineString | None, origin: tuple[float, float] | None
@@ -45,11 +55,15 @@ class FlightRecord:
         if position is None:
             return  # no 3-D fix yet
         self.samples += 1
+        now = self.clock(status)
+        self.vehicle_clock = self.vehicle_clock or status.vehicle_time is not None
         if self.first_time is None:
-            self.first_time = status.time
+            self.first_time = now
+            self.first_wall = status.time
+        self.last_wall = status.time
         previous = self._last
-        if previous is not None and previous.position is not None and status.time > previous.time:
-            dt = status.time - previous.time
+        if previous is not None and previous.position is not None and now > self._last_t:
+            dt = now - self._last_t
             step = distance_m(previous.position.lat, previous.position.lon, position.lat, position.lon)
             if step > JITTER_FLOOR_M:
                 self.distance_m += step
@@ -67,15 +81,24 @@ class FlightRecord:
             self.max_path_error_m = max(self.max_path_error_m, planned.distance(Point(east, north)))
         self.max_alt_m = max(self.max_alt_m, position.alt_rel)
         self.landed, self.armed = status.landed, status.armed
-        self.last_time = status.time
-        self.track.append((status.time, position.lat, position.lon, position.alt_rel))
+        self.last_time = now
+        self.track.append((now, position.lat, position.lon, position.alt_rel))
         self._last = status
+        self._last_t = now
 
     @property
     def duration_s(self) -> float:
         if self.first_time is None or self.last_time is None:
             return 0.0
         return self.last_time - self.first_time
+
+    @property
+    def speedup_kept(self) -> float | None:
+        """Vehicle seconds per wall second over the record (None without a vehicle clock)."""
+        if not self.vehicle_clock or self.first_wall is None or self.last_wall is None:
+            return None
+        wall = self.last_wall - self.first_wall
+        return self.duration_s / wall if wall > 0 else None
 
     @property
     def battery_used_pct(self) -> float | None:
@@ -87,7 +110,8 @@ class FlightRecord:
 class FlightRecorder:
     """Collects :class:`FlightRecord` per agent; planned paths are given in lat/lon."""
 
-    def __init__(self) -> None:
+    def __init__(self, time_scale: float = 1.0) -> None:
+        self.time_scale = time_scale  # nominal speed-up, for agents that report no vehicle clock
         self.records: dict[str, FlightRecord] = {}
         self._planned: dict[str, LineString] = {}
         self._survey_steps: dict[str, set[int]] = {}

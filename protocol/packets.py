@@ -172,6 +172,12 @@ class StatusReport(_Body):
     """Type 2. Sent every status period; ``seq`` of the frame orders them."""
 
     time: Finite = Field(description="agent wall clock, UNIX seconds")
+    vehicle_time: Finite | None = Field(
+        default=None,
+        ge=0.0,
+        description="the autopilot's own clock (seconds since its boot) at this position; a simulator's "
+        "sim time, so records stay right when it runs faster than real time or falls behind",
+    )
     position: Position | None = Field(
         default=None, description="None until the vehicle has reported a 3-D fix (no position yet)"
     )

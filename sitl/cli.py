@@ -213,6 +213,12 @@ def main(argv: list[str] | None = None) -> int:
         stop.wait(lambda: fleet.running)
     finally:
         fleet.stop()
+    if fleet.overruns:
+        print(
+            f"sitl: fell behind {fleet.overruns} times ({fleet.dropped_sim_s:.1f} sim s dropped); "
+            f"speed-up kept {fleet.speedup_kept:.2f}x of {cfg.speedup:g}x",
+            file=sys.stderr,
+        )
     if fleet.error is not None:
         print(f"sitl: simulation failed: {fleet.error!r}", file=sys.stderr)
         return 1

@@ -11,6 +11,7 @@ the telemetry that became due (in sim time), then waits on the sockets until the
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import selectors
 import threading
@@ -21,7 +22,10 @@ from types import TracebackType
 from sitl.failures import parse_failures
 from sitl.mavlink_link import Endpoint
 from sitl.physics import local_to_latlon
-from sitl.vehicle import SimVehicle
+from sitl.vehicle import SEV_WARNING, SimVehicle
+
+log = logging.getLogger("sitl")
+OVERRUN_REPORT_S = 5.0  # at most one log line / STATUSTEXT about falling behind per this many wall s
 
 # ArduPilot's default SITL location (Canberra model flying club, "CMAC").
 DEFAULT_HOME = (-35.363262, 149.165237, 584.0)
@@ -103,6 +107,12 @@ class SimFleet:
         self._paused_evt = threading.Event()
         self._anchor: tuple[float, float] = (0.0, 0.0)
         self.cpu_time_s = 0.0  # CPU time used by the simulation thread
+        # Falling behind: when the host cannot step fast enough for the speed-up, the backlog is
+        # dropped (sim time runs slower than wall x speed-up). Counted, logged and told to the GCS.
+        self.overruns = 0
+        self.dropped_sim_s = 0.0
+        self._overrun_reported = -math.inf
+        self._anchor_wall0 = 0.0
         self.wall_time_s = 0.0  # wall time the simulation thread has been running
 
     # ------------------------------------------------------------------ public API
@@ -245,6 +255,7 @@ class SimFleet:
         vehicles = self._vehicles
         endpoints = self._endpoints
         wall0 = time.monotonic()
+        self._anchor_wall0 = wall0
         cpu0 = time.thread_time()
         self._anchor = (wall0, 0.0)
         self._ready.set()
@@ -273,6 +284,7 @@ class SimFleet:
                         ep.pump(t)
                     steps += 1
                 if not unlimited and not self._paused and target - self.sim_time > 0.25 * speedup:
+                    self._overrun(target - self.sim_time, now, speedup)
                     self._anchor = (now, self.sim_time)  # cannot keep up: drop the backlog
                 for ep in endpoints:
                     ep.tick(now)
@@ -298,6 +310,30 @@ class SimFleet:
                     self._flush_all(sel)
             self.cpu_time_s = time.thread_time() - cpu0
             self.wall_time_s = time.monotonic() - wall0
+
+    def _overrun(self, behind_s: float, now: float, speedup: float) -> None:
+        """Count a dropped backlog; say so (log line, STATUSTEXT) at most every OVERRUN_REPORT_S."""
+        self.overruns += 1
+        self.dropped_sim_s += behind_s
+        if now - self._overrun_reported < OVERRUN_REPORT_S:
+            return
+        self._overrun_reported = now
+        kept = self.sim_time / max(now - self._anchor_wall0, 1e-9)
+        log.warning(
+            "simulator behind: %.2f sim s dropped (%d times, %.1f s in all); speed-up %.2fx of %.2fx",
+            behind_s,
+            self.overruns,
+            self.dropped_sim_s,
+            kept,
+            speedup,
+        )
+        for v in self._vehicles:
+            v.statustext(SEV_WARNING, f"SIM: speedup not kept, {self.dropped_sim_s:.1f}s lost")
+
+    @property
+    def speedup_kept(self) -> float:
+        """Sim seconds per wall second since start (the speed-up actually achieved)."""
+        return self.sim_time / max(self.wall_time_s, 1e-9)
 
     def _accept(self, sel: selectors.BaseSelector, ep: Endpoint) -> None:
         try:

@@ -83,6 +83,7 @@ class Telemetry:
     # Latched once the vehicle has reported a 3-D fix and a non-zero position: before that
     # (ArduCopter: the first 11-13 s after boot) lat/lon are 0,0 and mean nothing.
     position_known: bool = False
+    vehicle_time_s: float | None = None  # autopilot clock (time_boot_ms) of the position, if reported
     last_heartbeat_monotonic: float = 0.0
     status_texts: list[str] = field(default_factory=list)
 

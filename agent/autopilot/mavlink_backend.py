@@ -338,6 +338,7 @@ class MavlinkAutopilot(Autopilot):
         tel.alt_rel = msg.relative_alt / 1000.0
         tel.vn, tel.ve, tel.vd = msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0
         tel.latch_position()
+        tel.vehicle_time_s = msg.time_boot_ms / 1000.0
         if msg.hdg != 65535:
             tel.heading_deg = (msg.hdg / 100.0) % 360.0
             self._heading_from_gpi = True

@@ -1,5 +1,10 @@
 """`gcs plan`: plan a multi-drone area search and write mission JSON, GeoJSON paths and a PNG.
 
+The area may be GeoJSON, KML, a [[lat, lon], ...] list or a QGroundControl ``.plan``, whose
+survey settings (planned home, altitude, line spacing, side overlap, grid angle) are kept unless
+an option overrides them. ``--export plan,waypoints,kml`` also writes each drone's mission for
+QGroundControl and Mission Planner and the whole plan as KML.
+
 Area searches (zigzag/spiral/segmented/curved, path or region division) are planned here;
 ``--method psa|rsa`` (target and missed-map planning) is handed to ``gcs.commands.plan_targets``
 when that module is installed.
@@ -14,9 +19,10 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from gcs.planning.areas import AreaFormatError, load_area
+from gcs.planning.areas import AreaFormatError
 from gcs.planning.camera import Camera, CameraError, Spacing, spacing_from_camera, spacing_from_swath
 from gcs.planning.division import DroneSpec, InsufficientCapabilityError
+from gcs.planning.interchange import EXPORT_FORMATS, QgcSurvey, export_files, load_area_text
 from gcs.planning.planner import PlanConfig, SearchPlan, plan_search
 from gcs.planning.polygon import SelfIntersectionError
 from protocol.geo import allow_negative_coordinates
@@ -41,6 +47,14 @@ def _floats(text: str) -> list[float]:
         return [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def _formats(text: str) -> list[str]:
+    formats = [f.strip().lower().lstrip(".") for f in text.split(",") if f.strip()]
+    bad = [f for f in formats if f not in EXPORT_FORMATS]
+    if bad:
+        raise argparse.ArgumentTypeError(f"export formats are {', '.join(EXPORT_FORMATS)}; got {bad}")
+    return formats
 
 
 def _camera(text: str) -> Camera:
@@ -69,7 +83,7 @@ def add_area_arguments(parser: argparse.ArgumentParser) -> None:
     """The area-search options (kept separate so they are easy to reuse and to test)."""
     allow_negative_coordinates(parser)  # --home -35.36,149.16
     parser.add_argument(
-        "area", nargs="?", help="area file: GeoJSON Polygon/Feature, QGC .plan, or [[lat,lon],...]"
+        "area", nargs="?", help="area file: GeoJSON Polygon/Feature, KML, QGC .plan, or [[lat,lon],...]"
     )
     parser.add_argument("--drones", type=int, help="number of drones (default 1; psa: the target file's)")
     parser.add_argument("--pattern", choices=["zigzag", "spiral", "segmented", "curved"], default="zigzag")
@@ -96,6 +110,12 @@ def add_area_arguments(parser: argparse.ArgumentParser) -> None:
         "--allow-partial", action="store_true", help="plan even if the fleet cannot cover all"
     )
     parser.add_argument("--names", help="comma-separated agent names (default drone-1..N)")
+    parser.add_argument(
+        "--export",
+        type=_formats,
+        default=[],
+        help="also write plan (QGroundControl, one per drone), waypoints (Mission Planner) and/or kml",
+    )
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -141,9 +161,16 @@ def run(args: argparse.Namespace) -> int:
         return 1
 
 
-def _spacing(args: argparse.Namespace) -> Spacing:
+def _spacing(args: argparse.Namespace, survey: QgcSurvey | None = None) -> Spacing:
     if args.camera is not None and args.swath is not None:
         raise ValueError("give either --swath or --camera, not both")
+    if args.camera is None and args.swath is None and survey is not None and survey.step_m is not None:
+        # the QGC survey's own spacing and altitude, as the operator set them there
+        altitude = args.alt if args.alt is not None else survey.altitude_m
+        if altitude is None:
+            raise ValueError("the QGC survey has no altitude; give --alt")
+        swath = survey.swath_m or survey.step_m
+        return Spacing(altitude=altitude, swath=swath, step=survey.step_m, side_overlap=survey.side_overlap)
     if args.camera is not None:
         size = args.target_size
         return spacing_from_camera(
@@ -181,8 +208,16 @@ def _run_area(args: argparse.Namespace) -> int:
     if not args.area:
         print("error: give an AREA file (or --method psa/rsa)", file=sys.stderr)
         return 2
-    area = load_area(args.area)
+    path = Path(args.area)
+    try:
+        area, survey = load_area_text(path.read_text(), path.stem)
+    except OSError as exc:
+        raise AreaFormatError(f"{path}: {exc}") from None
+    except AreaFormatError as exc:
+        raise AreaFormatError(f"{path}: {exc}") from None
     drones = _drones(args)
+    angle = args.angle if args.angle is not None else (survey.angle_deg if survey else None)
+    home = args.home if args.home is not None else (survey.home if survey else None)
     config = PlanConfig(
         pattern=args.pattern,
         division=args.division,
@@ -190,16 +225,17 @@ def _run_area(args: argparse.Namespace) -> int:
         segments=args.segments,
         shift=args.shift,
         wind_from_deg=args.wind_from,
-        angle_deg=args.angle,
+        angle_deg=angle,
         allow_partial=args.allow_partial,
         return_mode=args.return_mode,
         transit_alt_step=args.stagger,
         name=area.name,
     )
     plan = plan_search(
-        area, drones, _spacing(args), config, args.home, _speed(args), [d.name for d in drones]
+        area, drones, _spacing(args, survey), config, home, _speed(args), [d.name for d in drones]
     )
     write_outputs(plan, args.out)
+    write_exports(plan, args.out, args.export, _speed(args))
     print(json.dumps(plan.summary, indent=2))
     return 0
 
@@ -229,6 +265,24 @@ def write_outputs(plan: SearchPlan, out: Path) -> dict[str, Path]:
         )
     files["geojson"].write_text(json.dumps({"type": "FeatureCollection", "features": features}))
     plot_plan(plan, files["png"])
+    return files
+
+
+def write_exports(plan: SearchPlan, out: Path, formats: list[str], speed: float) -> dict[str, Path]:
+    """Each drone's mission as QGC ``.plan`` / Mission Planner ``.waypoints``, the plan as KML."""
+    homes_local = [d.home if d.home is not None else tuple(plan.home_local) for d in plan.drones]
+    homes = {
+        p.label: (float(lat), float(lon))
+        for p, (lat, lon) in zip(plan.taskfile.plans, plan.frame.points_to_geodetic(homes_local), strict=True)
+    }
+    area = [(float(a), float(b)) for a, b in plan.frame.points_to_geodetic(plan.area_local)]
+    texts = export_files(
+        plan.taskfile, homes, formats, area=area, altitude_m=plan.spacing.altitude, cruise_speed=speed
+    )
+    files: dict[str, Path] = {}
+    for name, text in texts.items():
+        files[name] = out / ("plan.kml" if name.endswith(".kml") else name)
+        files[name].write_text(text)
     return files
 
 

@@ -11,7 +11,7 @@ from typing import Any
 import httpx
 
 from gcs.config import default_data_dir
-from protocol.taskfile import TaskFileError, load_task_text
+from protocol.taskfile import TaskFileError, load_task_text, task_warnings
 
 TERMINAL = {"completed", "aborted"}
 
@@ -76,10 +76,14 @@ def follow(client: httpx.Client, mission_id: str, timeout_s: float, quiet: bool 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        task = load_task_text(Path(args.taskfile).read_text())
+        task = load_task_text(
+            Path(args.taskfile).read_text(), allow_airborne_end=args.allow_airborne_end, gcj02=args.gcj02
+        )
     except (OSError, TaskFileError) as exc:
         print(f"gcs run: {exc}", file=sys.stderr)
         return 2
+    for warning in task_warnings(task):
+        print(f"gcs run: warning: {warning}", file=sys.stderr)
     headers = {"Authorization": f"Bearer {api_token(args)}"}
     with httpx.Client(base_url=args.api, headers=headers, timeout=10.0) as client:
         try:
@@ -105,5 +109,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("run", help="submit a task file to a running daemon and follow it")
     parser.add_argument("taskfile", help="fleetgcs task file or CoUAS task file (JSON)")
     parser.add_argument("--timeout", type=float, default=3600.0, help="give up following after this many s")
+    parser.add_argument(
+        "--allow-airborne-end",
+        action="store_true",
+        help="fly plans that never land (refused otherwise: the drones would stay armed in the air)",
+    )
+    parser.add_argument(
+        "--gcj02",
+        action="store_true",
+        help="CoUAS go-to/land coordinates are GCJ-02 (Chinese web maps): convert them to WGS-84",
+    )
     api_arguments(parser)
     parser.set_defaults(run=run)

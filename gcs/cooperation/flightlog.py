@@ -2,7 +2,8 @@
 
 Format (the same as ``gcs log export``): a header line
 ``time,lat,lon,alt_rel,alt_amsl,vn,ve,vd,heading_deg,battery_pct,voltage_v,current_a,mode,armed,landed,step,mission_id``
-then one row per status report. ``time`` is UNIX seconds; empty cells mean "not reported";
+then one row per status report. ``time`` is seconds on the vehicle's clock, anchored at the
+first report's UNIX time (:class:`VehicleClock`); empty cells mean "not reported";
 ``armed``/``landed`` are 0/1. Energy is the integral of voltage x current over time.
 """
 
@@ -56,23 +57,51 @@ def status_row(status: StatusReport, time_s: float) -> list[str]:
     ]  # fmt: skip
 
 
+class VehicleClock:
+    """Record time for status reports: the vehicle's own clock whenever the agent reports it.
+
+    Times are anchored at the first report's wall time and advance with ``vehicle_time`` (the
+    autopilot's clock; a simulator's sim time), so a log stays right when a simulator runs
+    faster than real time or falls behind its speed-up. Without a vehicle clock, wall time
+    is stretched by ``time_scale`` (the nominal speed-up), which is only right if it was kept.
+    A vehicle clock that goes backwards (autopilot reboot) is re-anchored.
+    """
+
+    def __init__(self, time_scale: float = 1.0) -> None:
+        self.time_scale = time_scale
+        self._anchor: tuple[float, float, bool] | None = None  # (record time, source time, vehicle?)
+        self.last: float | None = None
+
+    def __call__(self, status: StatusReport) -> float:
+        vehicle = status.vehicle_time is not None
+        source = status.vehicle_time if status.vehicle_time is not None else status.time
+        anchor = self._anchor
+        if anchor is None or anchor[2] != vehicle or (vehicle and source < anchor[1] - 1e-6):
+            start = status.time if self.last is None else self.last
+            anchor = self._anchor = (start, source, vehicle)
+        scale = 1.0 if vehicle else self.time_scale
+        t = anchor[0] + (source - anchor[1]) * scale
+        self.last = t
+        return t
+
+
 class FlightLogWriter:
-    """Appends status rows to one CSV; ``time_scale`` stretches time for simulator speed-ups."""
+    """Appends status rows to one CSV, timed by the vehicle's clock (see :class:`VehicleClock`)."""
 
     def __init__(self, path: Path, time_scale: float = 1.0) -> None:
         self.path = path
-        self.time_scale = time_scale
+        self.clock = VehicleClock(time_scale)
         path.parent.mkdir(parents=True, exist_ok=True)
         self._file: TextIO = path.open("w", newline="")
         self._writer = csv.writer(self._file)
         self._writer.writerow(COLUMNS)
-        self._t0: float | None = None
+
+    @property
+    def time_scale(self) -> float:
+        return self.clock.time_scale
 
     def add(self, status: StatusReport) -> None:
-        if self._t0 is None:
-            self._t0 = status.time
-        t = self._t0 + (status.time - self._t0) * self.time_scale
-        self._writer.writerow(status_row(status, t))
+        self._writer.writerow(status_row(status, self.clock(status)))
 
     def close(self) -> None:
         self._file.close()

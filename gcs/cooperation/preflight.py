@@ -7,7 +7,7 @@ from collections.abc import Callable
 from gcs.agents import AgentSession
 from gcs.cooperation.config import CooperationConfig
 from gcs.cooperation.connectivity import preflight_disconnections
-from gcs.cooperation.energy import EnergyModel, estimate_mission
+from gcs.cooperation.energy import EnergyModel, capability_power_w, predict_plan_energy
 from gcs.cooperation.geo import LocalFrame
 from gcs.events import EventBus
 from gcs.missions import MissionRejected
@@ -81,10 +81,16 @@ class PreflightChecks:
     def predict_energy(
         self, plans: dict[str, list[Action]], homes: StartPoints
     ) -> dict[str, tuple[float, float, float]]:
-        """Per agent: (plan time s, plan distance m, predicted Wh)."""
-        estimates = estimate_mission(plans, homes, self.config.energy)
+        """Per agent: (plan time s, plan distance m, predicted Wh), by the one shared estimator."""
+        cfg = self.config.energy
+        power = {
+            a: capability_power_w(s.capabilities.battery_wh, s.capabilities.endurance_s, cfg)
+            for a in plans
+            if (s := self._session_of(a)) is not None
+        }
         model = self._model()
-        return {a: (t, d, model.predict_wh(t, d)) for a, (t, d) in estimates.items()}
+        predictions = predict_plan_energy(plans, homes, cfg, model if model.trained_on else None, power)
+        return {a: (e.time_s, e.distance_m, e.energy_wh) for a, e in predictions.items()}
 
     def _energy(self, task: TaskFile, plans: dict[str, list[Action]], homes: StartPoints) -> None:
         cfg = self.config.energy

@@ -1,4 +1,4 @@
-"""Search-area readers: GeoJSON, QGroundControl ``.plan`` surveys and plain vertex lists.
+"""Search-area readers: GeoJSON, QGroundControl ``.plan`` surveys and plain vertex lists (KML: interchange).
 
 Everything returns a :class:`SearchArea` (lat/lon vertex ring, outer boundary only, not closed),
 so planners never see file formats. Coordinates are validated here, at the I/O edge.
@@ -6,7 +6,6 @@ so planners never see file formats. Coordinates are validated here, at the I/O e
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -123,10 +122,11 @@ def parse_area(obj: Any, name: str = "area") -> SearchArea:
 
 
 def load_area(path: str | Path) -> SearchArea:
-    """Read an area file (.geojson/.json/.plan or a JSON list of [lat, lon])."""
+    """Read an area file (.geojson/.json/.plan, .kml, or a JSON list of [lat, lon])."""
+    from gcs.planning.interchange import load_area_text  # interchange builds on this module
+
     p = Path(path)
     try:
-        obj = json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise AreaFormatError(f"{p}: not JSON: {exc}") from exc
-    return parse_area(obj, p.stem)
+        return load_area_text(p.read_text(), p.stem)[0]
+    except AreaFormatError as exc:
+        raise AreaFormatError(f"{p}: {exc}") from None

@@ -25,7 +25,6 @@ from shapely.geometry import Polygon, box
 from shapely.geometry.base import BaseGeometry
 
 from gcs.planning.geodesy import FloatArray
-from gcs.planning.patterns import path_length
 from gcs.planning.polygon import centroid, rotate
 
 
@@ -146,6 +145,51 @@ def _homes(drones: Sequence[DroneSpec], home: ArrayLike | None) -> FloatArray:
     return np.array([d.home if d.home is not None else default for d in drones], dtype=float)
 
 
+class _Path:
+    """A polyline with arc-length lookup (for cutting it and pricing the trips to its pieces)."""
+
+    def __init__(self, points: FloatArray) -> None:
+        self.p = points
+        self.seg = np.hypot(*np.diff(points, axis=0).T) if len(points) > 1 else np.zeros(0)
+        self.cum = np.concatenate([[0.0], np.cumsum(self.seg)])
+        self.total = float(self.cum[-1])
+
+    def at(self, s: float) -> FloatArray:
+        if len(self.seg) == 0:
+            return self.p[0]
+        s = min(max(s, 0.0), self.total)
+        k = min(int(np.searchsorted(self.cum, s, side="right") - 1), len(self.seg) - 1)
+        t = 0.0 if self.seg[k] == 0 else (s - self.cum[k]) / self.seg[k]
+        return self.p[k] + t * (self.p[k + 1] - self.p[k])
+
+    def longest_from(self, start: float, home: FloatArray, budget: float) -> float:
+        """The longest piece from ``start`` a drone with ``budget`` metres can fly, home to home.
+
+        Its cost L + |p(start + L) - home| never decreases with L (the return leg shrinks at most
+        as fast as the piece grows), so bisection finds the limit.
+        """
+        left = budget - float(np.hypot(*(self.at(start) - home)))
+        rest = self.total - start
+
+        def cost(length: float) -> float:
+            return length + float(np.hypot(*(self.at(start + length) - home)))
+
+        if left <= 0 or rest <= 0:
+            return 0.0
+        if cost(rest) <= left:
+            return rest
+        lo, hi = 0.0, rest
+        if cost(0.0) > left:
+            return 0.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            if cost(mid) <= left:
+                lo = mid
+            else:
+                hi = mid
+        return lo
+
+
 def path_division(
     points: ArrayLike,
     drones: Sequence[DroneSpec],
@@ -155,46 +199,83 @@ def path_division(
 ) -> list[PathShare]:
     """Seed 000 Alg. 3: consecutive pieces of one path, sized by capability after the home trip.
 
-    C_h is first the paper's bound (twice the farthest waypoint from home), then refined to each
-    piece's real trip (home to its start, its end to home) until the split stops changing; the
-    final split is checked against every drone's range.
+    Each drone's share is proportional to C' = its range less its own trip (home to its piece's
+    start, the piece's end back home), priced on the real pieces rather than on the paper's bound
+    (twice the farthest waypoint), which refused paths the fleet can fly. Pieces are laid out in
+    drone order; a drone whose share would not fit its range takes the longest piece it can fly
+    and the rest moves on to the drones after it (the scale of the shares is bisected so the
+    pieces add up to the path). When even every drone flying as far as it can leaves path over,
+    the shortfall is exact: :class:`InsufficientCapabilityError`, or with ``allow_partial`` the
+    plan that flies the most of the path.
     """
-    p = np.asarray(points, dtype=float).reshape(-1, 2)
+    path = _Path(np.asarray(points, dtype=float).reshape(-1, 2))
     homes = _homes(drones, home)
     ranges = np.array([d.range_m for d in drones])
-    far = np.array([2 * float(np.hypot(*(p - h).T).max()) for h in homes])
-    usable = ranges - far
-    if np.all(usable <= 0):
-        raise InsufficientCapabilityError(
-            "no drone can even reach the area and return", shortfall_m=path_length(p)
+    total = path.total
+    n = len(drones)
+
+    def lay_out(weights: FloatArray, scale: float) -> FloatArray:
+        lengths = np.zeros(n)
+        start = 0.0
+        for i in range(n):
+            want = min(scale * weights[i], total - start)
+            lengths[i] = min(want, path.longest_from(start, homes[i], ranges[i]))
+            start += lengths[i]
+        return lengths
+
+    def trips(lengths: FloatArray) -> FloatArray:
+        starts = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
+        return np.array(
+            [
+                0.0 if ln <= 0 else float(np.hypot(*(path.at(s) - h)) + np.hypot(*(path.at(s + ln) - h)))
+                for s, ln, h in zip(starts, lengths, homes, strict=True)
+            ]
         )
-    total = path_length(p)
-    frac = (
-        capability_fractions(np.maximum(usable, 1e-9)) if fractions is None else np.asarray(fractions, float)
-    )
-    lengths = split_lengths(total, frac, usable, allow_partial)
-    pieces = cut_path(p, lengths)
-    for _ in range(20):
-        transit = np.array([_trip(pc, h) for pc, h in zip(pieces, homes, strict=True)])
-        usable2 = ranges - transit
-        frac2 = capability_fractions(np.maximum(usable2, 1e-9)) if fractions is None else frac
-        try:
-            lengths2 = split_lengths(total, frac2, usable2, allow_partial)
-        except InsufficientCapabilityError:
-            break
-        pieces2 = cut_path(p, lengths2)
-        transit2 = np.array([_trip(pc, h) for pc, h in zip(pieces2, homes, strict=True)])
-        if np.any(lengths2 + transit2 > ranges + 1e-6):
-            break
-        converged = np.allclose(lengths2, lengths, atol=0.01)
-        lengths, pieces = lengths2, pieces2
-        if converged:
-            break
-    shares = [
+
+    greedy = lay_out(np.ones(n), total)  # every drone as far as it can: the most the fleet can fly
+    flown = float(greedy.sum())
+    if flown < total - 1e-6 * max(total, 1.0):
+        short = total - flown
+        if flown <= 1e-9:
+            raise InsufficientCapabilityError(
+                "no drone can even reach the area and return", shortfall_m=total
+            )
+        if not allow_partial:
+            raise InsufficientCapabilityError(
+                f"the fleet can survey {flown:.1f} m of a {total:.1f} m path; "
+                f"{short:.1f} m would be left unflown (add drones, charge batteries or shrink the area)",
+                shortfall_m=short,
+            )
+        lengths = greedy
+    else:
+        if fractions is not None:
+            weights = np.asarray(fractions, dtype=float).reshape(n)
+            rounds = 1
+        else:
+            near = np.array([2 * float(np.hypot(*(path.p - h).T).min()) for h in homes])
+            weights = np.maximum(ranges - near, 1e-9)
+            rounds = 4
+        lengths = greedy
+        for _ in range(rounds):
+            w = weights / weights.sum()
+            lo, hi = 0.0, total / float(w.min())
+            for _ in range(60):  # the pieces' sum grows with the scale; bisect to the whole path
+                mid = 0.5 * (lo + hi)
+                if lay_out(w, mid).sum() >= total - 1e-9 * max(total, 1.0):
+                    hi = mid
+                else:
+                    lo = mid
+            lengths = lay_out(w, hi)
+            if fractions is not None:
+                break
+            weights = np.maximum(ranges - trips(lengths), 1e-9)  # C' on the real trips
+        last = int(np.flatnonzero(lengths > 0)[-1])
+        lengths[last] += total - float(lengths.sum())  # bisection leaves a hair of the path over
+    pieces = cut_path(path.p, lengths)
+    return [
         PathShare(d.name, pc, float(ln), _trip(pc, h), d.range_m)
         for d, pc, ln, h in zip(drones, pieces, lengths, homes, strict=True)
     ]
-    return shares
 
 
 def _trip(piece: FloatArray, home: FloatArray) -> float:

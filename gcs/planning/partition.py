@@ -220,6 +220,8 @@ class SimResult:
     areas: list[FloatArray]
     masks: dict[tuple[int, int], NDArray[np.bool_]] = field(repr=False)
     divisions: int = 0
+    division_times: dict[tuple[int, int], list[float]] = field(default_factory=dict, repr=False)
+    """Per UAV, when (periods) it took each new sub-area from a block division."""
 
     def periods_to(self, tol: float) -> float | None:
         """First time (periods, quarter resolution) the error is <= ``tol`` and stays so."""
@@ -273,15 +275,18 @@ def simulate(
                 union |= snap[(u, epoch[u] if u == k else epoch[k])]
             masks[k] = divide_block(union, members, a)[k]
             result.divisions += 1
+            result.division_times.setdefault(k, []).append(clock[0])
             epoch[k] += 1
             snap[(k, epoch[k])] = masks[k]
             known[k] = {k}
 
+    clock = [0.0]  # periods elapsed, at quarter resolution
     if strategy == "block":
         for k in masks:
             try_divide(k)
-    for _ in range(max_periods):
-        for quarter in schedule:
+    for period in range(max_periods):
+        for q_index, quarter in enumerate(schedule):
+            clock[0] = period + (q_index + 1) / 4.0
             for i, j in quarter:
                 if strategy == "one-to-one":
                     axis = 0 if i[0] == j[0] else 1  # side by side: vertical cut; stacked: horizontal
@@ -290,14 +295,22 @@ def simulate(
                     masks[i], masks[j] = parts
                     result.divisions += 2
                     continue
-                for x, y in ((i, j), (j, i)):
-                    if y in block_of(x, epoch[x]):
-                        if epoch[y] == epoch[x]:
-                            known[x] |= known[y]
-                        elif epoch[y] > epoch[x]:  # y already divided this block: x learns it all
-                            known[x] = set(block_of(x, epoch[x]))
-                for u in (i, j):
-                    try_divide(u)
+                # One contact: share, divide what is complete, and share again what the division
+                # (or the block learnt from the other) changed. The paper's timing: the contact that
+                # completes a division is also the first exchange for the next block, so a (1, 4)
+                # or (2, 2) block divides once per period after the first (seed 003, Sec. III).
+                for _ in range(4):  # bounded: each round can only raise the pair's epochs
+                    before = (epoch[i], epoch[j])
+                    for x, y in ((i, j), (j, i)):
+                        if y in block_of(x, epoch[x]):
+                            if epoch[y] == epoch[x]:
+                                known[x] |= known[y]
+                            elif epoch[y] > epoch[x]:  # y already divided this block: x learns it all
+                                known[x] = set(block_of(x, epoch[x]))
+                    for u in (i, j):
+                        try_divide(u)
+                    if (epoch[i], epoch[j]) == before:
+                        break
             areas = np.array([[masks[(r, c)].sum() for c in range(cols)] for r in range(rows)], dtype=float)
             result.errors.append(float(np.max(np.abs(areas - want) / want)))
             result.areas.append(areas)

@@ -17,6 +17,7 @@ Every pattern returns a :class:`Sweep` in local metres. Pure functions, no I/O.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -244,14 +245,16 @@ def _inward_bisector_excursions(
 
 
 def spiral(
-    vertices: ArrayLike, step: float, *, start: ArrayLike | None = None, corner_deg: float = 150.0
+    vertices: ArrayLike, step: float, *, start: ArrayLike | None = None, corner_deg: float = 173.0
 ) -> Sweep:
     """Inward spiral over the convex hull (seed 001 Alg. 1, corrected).
 
     Ring k is the mitred inward offset at (k + 1/2) step, i.e. half a step inside the offset
     B_k at k step; every point shallower than B_k is within half a step of ring k-1, so only
-    B_k's corners need care: corners sharper than ``corner_deg`` get an out-and-back detour
-    (see :func:`_inward_bisector_excursions`). Each ring is flown counter-clockwise from the
+    B_k's corners need care: a ring passes a corner of angle a at half a step / sin(a/2), so
+    every corner leaves an unseen wedge; corners sharper than ``corner_deg`` (173 deg: wedges
+    deeper than 0.1 % of a step) get an out-and-back detour (see
+    :func:`_inward_bisector_excursions`). Each ring is flown counter-clockwise from the
     vertex nearest the previous ring's end. The core deeper than the last ring plus step/2
     (narrower than one step) is flown as one leg along its long axis, ending near the centre.
     """
@@ -322,35 +325,87 @@ def segmented(sweep: Sweep, segments: int) -> Sweep:
 
 
 def curved(sweep: Sweep, shift: float, wind_from_deg: float | None = None, max_shift: float = 0.5) -> Sweep:
-    """Seed 001 Alg. 3: move every leg's midpoint ``shift x step`` sideways, into the wind.
+    """Seed 001 Alg. 3: bend every leg so its midpoint sits ``shift x spacing`` sideways, into the wind.
 
-    With ``wind_from_deg`` (meteorological: direction the wind blows FROM, clockwise from north)
-    the midpoint moves upwind, scaled by how square the wind is to the leg; without it ``shift``
-    is signed along the leg's left normal (the paper's q_y + S x step in the rotated frame).
-    The paper allows |S| <= 2, which puts a midpoint on or past the next leg; we refuse
-    |S| > ``max_shift`` (default 0.5: at most half a spacing) so curved legs never cross.
+    As in the paper (q_y + S x Step in the rotated frame) every leg bends the same way: along the
+    pattern's cross-track axis without wind, or upwind with ``wind_from_deg`` (meteorological:
+    the direction the wind blows FROM, clockwise from north), scaled by how square the wind is
+    to the legs. The bend is centred on the leg's line: its ends move back by half the offset
+    and its midpoint forward by half, so the family of legs stays inside its strip. The paper
+    allows |S| <= 2, which puts a midpoint on or past the next leg; we refuse |S| > ``max_shift``
+    (default 0.5: at most half a spacing). Bending alone can open gaps where neighbouring legs
+    differ in length; :func:`curved_cover` picks the line spacing that closes them.
     """
     if abs(shift) > max_shift:
         raise ValueError(f"|shift| = {abs(shift)} exceeds {max_shift} x step; curved legs would cross")
     if sweep.pattern.endswith("spiral"):
         raise ValueError("curved paths apply to zigzag legs, not to a spiral")
-    up = None
-    if wind_from_deg is not None:
+    # the rotated frame's +y axis in world coordinates: one side for every leg
+    across = np.array([math.sin(sweep.angle), math.cos(sweep.angle)])
+    if wind_from_deg is None:
+        off = shift * sweep.spacing * across
+    else:
         th = math.radians(wind_from_deg)
         up = np.array([math.sin(th), math.cos(th)])  # unit vector pointing to where the wind comes from
+        off = abs(shift) * sweep.spacing * float(np.dot(up, across)) * across
     pts: list[FloatArray] = []
     for a, b in sweep.lines:
-        d = b - a
-        length = float(np.hypot(*d))
-        if length < 1e-9:
+        if float(np.hypot(*(b - a))) < 1e-9:
             pts.append(np.array([a]))
             continue
-        normal = np.array([-d[1], d[0]]) / length
-        if up is None:
-            off = shift * sweep.spacing * normal
-        else:
-            off = abs(shift) * sweep.spacing * float(np.dot(up, normal)) * normal
-        pts.append(np.array([a, 0.5 * (a + b) + off, b]))
+        pts.append(np.array([a - off / 2, 0.5 * (a + b) + off / 2, b - off / 2]))
     points = dedupe(np.vstack(pts))
     meta = {**sweep.meta, "shift": shift, "wind_from_deg": wind_from_deg}
     return replace(sweep, pattern=f"curved-{sweep.pattern}", points=points, meta=meta)
+
+
+BaseSweep = Callable[[FloatArray, float, float | None, FloatArray | None], Sweep]
+
+
+def uncovered_area(vertices: ArrayLike, points: ArrayLike, half_width: float) -> float:
+    """Area (m^2) of the polygon that a footprint of ``half_width`` swept along ``points`` misses."""
+    poly = Polygon(np.asarray(vertices, dtype=float).reshape(-1, 2))
+    if not poly.is_valid:
+        poly = poly.buffer(0)
+    seen = swept_footprint(points, half_width * (1 + 1e-9))
+    return float(poly.difference(seen).area)
+
+
+def curved_cover(
+    vertices: ArrayLike,
+    step: float,
+    shift: float,
+    wind_from_deg: float | None = None,
+    *,
+    angle: float | None = None,
+    start: ArrayLike | None = None,
+    base: BaseSweep | None = None,
+    tries: int = 6,
+) -> Sweep:
+    """A curved zigzag whose legs, bent by ``shift``, still leave no point farther than step/2.
+
+    Bending moves each leg's middle by up to ``|shift| x spacing`` relative to its neighbours
+    when their lengths differ, so straight-line spacing is not enough. Lines ``step / (1 + |shift|)``
+    apart always suffice (neighbours then lie at most ``step`` apart at every abscissa, and the
+    outer legs within ``step / 2`` of the edges); wider spacings, from ``step`` down to that bound,
+    are tried first and the first one whose plan covers the polygon is kept (checked with the
+    swept footprint). ``base`` builds the straight legs (default :func:`zigzag`; concave areas
+    pass the cell decomposition).
+    """
+    v = np.asarray(vertices, dtype=float).reshape(-1, 2)
+    s = np.asarray(start, dtype=float).reshape(2) if start is not None else None
+
+    def straight(vs: FloatArray, line_step: float, ang: float | None, st: FloatArray | None) -> Sweep:
+        return zigzag(vs, line_step, ang, start=st)
+
+    build = base or straight
+    tol = 1e-8 * max(Polygon(v).area, 1.0)
+    best: Sweep | None = None
+    for i in range(max(tries, 1) + 1):
+        line_step = step / (1.0 + abs(shift) * i / max(tries, 1))
+        sweep = curved(build(v, line_step, angle, s), shift, wind_from_deg)
+        best = sweep
+        if abs(shift) < 1e-12 or uncovered_area(v, sweep.points, step / 2) <= tol:
+            break
+    assert best is not None
+    return replace(best, step=step, meta={**best.meta, "line_step_m": round(best.spacing, 4)})

@@ -29,7 +29,7 @@ from gcs.planning.division import (
 from gcs.planning.geodesy import FloatArray, LocalFrame
 from gcs.planning.mission import mission_from_paths
 from gcs.planning.partition import partition_for_search
-from gcs.planning.patterns import Sweep, curved, path_length, segmented, spiral, zigzag
+from gcs.planning.patterns import Sweep, curved_cover, path_length, segmented, spiral, zigzag
 from gcs.planning.polygon import PolygonType, classify, convex_hull, min_height_rotation, require_simple
 from protocol.taskfile import TaskFile
 
@@ -78,11 +78,14 @@ def build_sweep(
     convex = classify(vertices) == PolygonType.CONVEX or config.concave == "hull"
     if config.pattern == "spiral":
         return spiral(vertices, step, start=start)  # spirals fill the hull (seed 001 §5)
+    if config.pattern == "curved":
+        cells = None if convex else cover_area  # concave: bend the legs of every cell
+        return curved_cover(
+            vertices, step, config.shift, config.wind_from_deg, angle=angle, start=start, base=cells
+        )
     base = zigzag(vertices, step, angle, start=start) if convex else cover_area(vertices, step, angle, start)
     if config.pattern == "segmented":
         return segmented(base, config.segments)
-    if config.pattern == "curved":
-        return curved(base, config.shift, config.wind_from_deg)
     return base
 
 

@@ -283,7 +283,11 @@ function readArea() {
   if (S.area && S.area.length >= 3) return { area: S.area };
   const text = $("area-text").value.trim();
   if (!text) throw new Error("draw an area on the map, or paste/upload one");
-  const doc = JSON.parse(text);
+  if (text.startsWith("<")) return { area_text: text }; // KML: the daemon parses it
+  let doc;
+  try { doc = JSON.parse(text); } catch (e) {
+    throw new Error("the area is neither JSON (GeoJSON, QGC .plan, [[lat, lon], ...]) nor KML");
+  }
   return Array.isArray(doc) ? { area: doc } : { area_document: doc };
 }
 

@@ -142,3 +142,29 @@ def test_cli_train_and_predict(tmp_path: Path) -> None:
         text=True,
     )
     assert missing.returncode == 2 and "nope.csv" in missing.stderr
+
+
+def test_cli_train_compares_with_the_baseline_by_kfold(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    logs = []
+    for k in range(12):
+        path = tmp_path / f"p{k}.csv"
+        length, speed, hover = rng.uniform(60, 300), rng.uniform(3, 8), rng.uniform(0, 30)
+        synthetic_flight(path, length, speed, hover)
+        flown = summarize(path)
+        planned = [flown.time_s / rng.uniform(1.0, 1.2), flown.distance_m / rng.uniform(1.0, 1.1)]
+        path.with_suffix(".plan.json").write_text(json.dumps({"planned": planned}))
+        logs.append(str(path))
+    model_path = tmp_path / "model.json"
+    trained = subprocess.run(
+        [BIN / "gcs", "energy", "train", *logs, "--out", model_path, "--folds", "4"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert trained.returncode == 0, trained.stderr
+    assert "4-fold accuracy from the plan: two-step" in trained.stdout and "baseline" in trained.stdout
+    model = EnergyModel.load(model_path)
+    assert set(model.selection) == {"two_step", "baseline"}
+    winner = "baseline" if model.selection["baseline"] > model.selection["two_step"] else "two-step"
+    assert model.kind == winner and f"kept the {winner} model" in trained.stdout

@@ -115,3 +115,56 @@ def test_partition_division_gives_areas_in_proportion_to_range_and_covers_the_ar
     assert union.area == pytest.approx(Polygon(plan.area_local).area, rel=1e-3)
     assert plan.coverage.covered_pct > 99.0
     assert plan.summary["division"] == "partition"
+
+
+def _six_legs() -> np.ndarray:
+    """A 610 m zigzag (six 100 m legs, 2 m apart) whose ends are 5 m from home at (0, 5)."""
+    pts: list[tuple[float, float]] = []
+    for k in range(6):
+        y = 2.0 * k
+        pts += [(0.0, y), (100.0, y)] if k % 2 == 0 else [(100.0, y), (0.0, y)]
+    return np.array(pts)
+
+
+def _drone(name: str, range_m: float) -> DroneSpec:
+    return DroneSpec(name=name, endurance_s=range_m / 5.0 / 0.8)  # 5 m/s, 20 % reserve
+
+
+@pytest.mark.parametrize("range_m", [620.0, 650.0, 700.0, 1000.0])
+def test_path_division_plans_a_path_the_drone_can_fly(range_m: float) -> None:
+    # 610 m of path + 10 m of trips: the paper's bound (twice the farthest waypoint, ~200 m)
+    # refused this at every range below 810 m.
+    pts = _six_legs()
+    assert path_length(pts) == pytest.approx(610.0)
+    (share,) = path_division(pts, [_drone("a", range_m)], home=(0.0, 5.0))
+    assert share.survey_m == pytest.approx(610.0)
+    assert share.transit_m == pytest.approx(10.0)
+    assert share.total_m <= range_m + 1e-6
+
+
+def test_path_division_shortfall_is_exact() -> None:
+    with pytest.raises(InsufficientCapabilityError) as short:
+        path_division(_six_legs(), [_drone("a", 619.0)], home=(0.0, 5.0))
+    assert short.value.shortfall_m == pytest.approx(1.0, abs=0.2)
+
+
+def test_short_fleet_uses_every_drone_to_its_range() -> None:
+    pts = _six_legs()
+    up12, up24 = np.array([0.0, 12.0]), np.array([0.0, 24.0])
+    long_path = np.vstack([pts, pts[::-1] + up12, pts + up24])  # 1830 m
+    fleet = [_drone("big", 1200.0), _drone("small", 300.0)]
+    with pytest.raises(InsufficientCapabilityError) as short:
+        path_division(long_path, fleet, home=(0.0, 5.0))
+    shares = path_division(long_path, fleet, home=(0.0, 5.0), allow_partial=True)
+    for s, d in zip(shares, fleet, strict=True):
+        assert s.total_m == pytest.approx(d.range_m, abs=0.01)  # nobody goes home with range to spare
+    flown = sum(s.survey_m for s in shares)
+    assert short.value.shortfall_m == pytest.approx(path_length(long_path) - flown, abs=0.01)
+
+
+def test_path_division_shares_follow_capability_after_the_real_trips() -> None:
+    fleet = [_drone("big", 1200.0), _drone("small", 300.0)]
+    shares = path_division(_six_legs(), fleet, home=(0.0, 5.0))
+    assert sum(s.survey_m for s in shares) == pytest.approx(610.0)
+    spare = [d.range_m - s.transit_m for s, d in zip(shares, fleet, strict=True)]
+    assert shares[0].survey_m / shares[1].survey_m == pytest.approx(spare[0] / spare[1], rel=0.02)

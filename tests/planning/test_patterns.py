@@ -9,6 +9,7 @@ from shapely.geometry import LineString, Point, Polygon
 from gcs.planning.patterns import (
     count_turns,
     curved,
+    curved_cover,
     line_grid,
     path_length,
     segmented,
@@ -101,16 +102,62 @@ def test_segmented_alg2():
 def test_curved_alg3_shifts_midpoints_into_wind():
     base = zigzag(RECT, 20.0, angle=0.0)  # legs east-west
     cv = curved(base, 0.3, wind_from_deg=0.0)  # wind from north: midpoints move north
-    mids = cv.points[1::3]
-    ends = base.lines[:, 0, 1]
-    assert np.allclose(mids[:, 1] - ends, 0.3 * base.spacing)
+    mids, ends = cv.points[1::3], cv.points[0::3]
+    assert np.allclose(mids[:, 1] - ends[: len(mids), 1], 0.3 * base.spacing)
+    # the bend is centred on the straight leg: ends back by half, midpoint forward by half
+    assert np.allclose(mids[:, 1] - base.lines[:, 0, 1], 0.15 * base.spacing)
     assert path_length(cv.points) > base.length
-    signed = curved(base, -0.2)
-    assert np.allclose(np.abs(signed.points[1::3, 1] - ends), 0.2 * base.spacing)
     with pytest.raises(ValueError, match="cross"):
         curved(base, 2.0)  # the paper's |S| <= 2 would cross neighbouring legs
+
+
+@pytest.mark.parametrize("shift", [-0.5, -0.2, 0.2, 0.5])
+def test_curved_without_wind_bends_every_leg_the_same_way(shift):
+    # The paper's q_y + S x Step: one side for all legs. Following each leg's own left normal
+    # flipped the bend on alternate legs, so legs met on one side and gaped on the other.
+    base = zigzag(RECT, 20.0, angle=0.0)
+    cv = curved(base, shift)
+    mids, ends = cv.points[1::3], cv.points[0::3][: len(base.lines)]
+    bends = mids[:, 1] - ends[:, 1]
+    assert np.allclose(bends, shift * base.spacing)
+
+
+CURVE_AREAS = {
+    "rectangle": RECT,
+    "triangle": np.array([(0, 0), (380, 0), (80, 440)], float),
+    "kite": np.array([(0, 0), (120, -60), (300, 10), (90, 200)], float),
+}
+
+
+@pytest.mark.parametrize("area", sorted(CURVE_AREAS))
+@pytest.mark.parametrize("wind", [None, 0.0, 45.0, 200.0])
+@pytest.mark.parametrize("shift", [-0.5, -0.25, 0.0, 0.25, 0.5])
+def test_curved_cover_leaves_no_gap_at_any_allowed_shift(area, wind, shift):
+    poly = CURVE_AREAS[area]
+    sw = curved_cover(poly, 30.0, shift, wind)
+    assert sw.pattern == "curved-zigzag"
+    assert sw.meta["line_step_m"] <= 30.0
+    assert _uncovered(poly, sw.points, 15.0) <= 1e-6 * Polygon(poly).area
+
+
+@settings(max_examples=25, deadline=None)
+@given(convex_polygons(), st.floats(-0.5, 0.5), st.one_of(st.none(), st.floats(0.0, 360.0)))
+def test_curved_cover_on_random_convex_polygons(poly, shift, wind):
+    sw = curved_cover(poly, 20.0, shift, wind)
+    assert _uncovered(poly, sw.points, 10.0) <= 1e-6 * Polygon(poly).area
 
 
 def test_count_turns():
     assert count_turns([(0, 0), (1, 0), (2, 0), (2, 1)]) == 1
     assert count_turns([(0, 0), (1, 0)]) == 0
+
+
+@pytest.mark.parametrize("corners", [14, 20])
+def test_spiral_sees_the_wedges_of_obtuse_corners(corners):
+    # 154 and 162 deg corners: a ring half a step inside passes them 1-3 % of a step too far
+    # away; with detours only below 150 deg the plan itself left 43 and 25 m^2 unseen.
+    poly = np.array(
+        [(100 * math.cos(a), 100 * math.sin(a)) for a in np.arange(corners) * 2 * math.pi / corners]
+    )
+    assert _uncovered(poly, spiral(poly, 30.0).points, 15.0) == pytest.approx(0.0, abs=1e-6)
+    assert _uncovered(poly, spiral(poly, 30.0, corner_deg=150.0).points, 15.0) > 10.0
