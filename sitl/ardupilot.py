@@ -224,7 +224,8 @@ class ArduPilotFleet:
         self.workdir = tempfile.mkdtemp(prefix="fleetgcs-ardupilot-")
         self._relay: _Relay | None = None
         self._sitl_ports: list[int] = []
-        self._ports: list[int] = [base_port + 10 * i for i in range(vehicles)]
+        # base_port 0: every instance gets its own ephemeral port (not 0, 10, 20...).
+        self._ports: list[int] = [base_port + 10 * i if base_port else 0 for i in range(vehicles)]
 
     @property
     def relayed(self) -> bool:
