@@ -16,7 +16,7 @@ from agent.autopilot.base import Autopilot
 from agent.config import AgentConfig, AgentSettings
 from agent.runtime import Agent
 from protocol.packets import Capabilities
-from protocol.settings_file import LoggingConfig, configure_logging
+from protocol.settings_file import LoggingConfig, configure_logging, package_version
 
 
 def split_host_port(text: str, default_port: int) -> tuple[str, int]:
@@ -137,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="agent", description="fleetgcs companion-computer agent")
     parser.add_argument("-v", "--verbose", action="store_true")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="connect an autopilot to the daemon")
     p.add_argument("--gcs", default="127.0.0.1:4396", help="daemon HOST:PORT (default %(default)s)")
@@ -229,7 +230,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    return int(args.run(args))
+    try:
+        return int(args.run(args))
+    except KeyboardInterrupt:
+        print(f"\nagent {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -6,8 +6,9 @@ handshake with the key, round-trip time), time sync (clock offset against the da
 ``server_time`` in the accept, NTP state) and clock drift (the offset measured twice,
 ``drift_interval_s`` apart). Exit code 0 when nothing failed.
 
-The handshake uses the agent's own identity by default: a running agent with that identity is
-replaced for a moment (stop the service first, or give ``--probe-identity``).
+The handshake uses the agent's own identity by default and is a *probe* (``probe: true`` in the
+type-0 request): the daemon authenticates it and answers without a CID, so the check never
+registers a fleet member and never replaces a running agent of that identity.
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ class Report:
 
 @dataclass
 class Handshake:
-    cid: int
+    cid: int | None  # None: the daemon answered the probe without a CID, as it should
     rtt_s: float
     offset_s: float  # daemon clock - our clock
 
@@ -185,7 +186,12 @@ async def handshake(config: AgentConfig, identity: str, timeout: float) -> Hands
     try:
         nonce = auth.new_nonce()
         writer.write(
-            encode(RequestCid(identity=identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce), 1)
+            encode(
+                RequestCid(
+                    identity=identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce, probe=True
+                ),
+                1,
+            )
         )
         await writer.drain()
         challenge = (await read()).body
@@ -205,6 +211,7 @@ async def handshake(config: AgentConfig, identity: str, timeout: float) -> Hands
                     client_nonce=nonce,
                     capabilities=config.capabilities,
                     proof=proof,
+                    probe=True,
                 ),
                 2,
             )
@@ -212,7 +219,7 @@ async def handshake(config: AgentConfig, identity: str, timeout: float) -> Hands
         await writer.drain()
         answer = (await read()).body
         received = time.time()
-        if not isinstance(answer, ResponseCid) or answer.outcome != "accepted" or answer.cid is None:
+        if not isinstance(answer, ResponseCid) or answer.outcome != "accepted":
             reason = answer.reason if isinstance(answer, ResponseCid) else getattr(answer, "message", "")
             raise HandshakeError(
                 f"refused: {reason}", "the key must be the daemon's fleet key (or this agent's own key)"
@@ -264,10 +271,11 @@ async def check_daemon(
         report.add("daemon link", "fail", str(exc), exc.hint)
         report.add("time sync", "skip", "needs the daemon link")
         return
+    joined = f"as cid {first.cid}" if first.cid is not None else "(probe: not a fleet member)"
     report.add(
         "daemon link",
         "ok",
-        f"{config.gcs_host}:{config.gcs_port} accepted {identity} as cid {first.cid}, "
+        f"{config.gcs_host}:{config.gcs_port} accepted {identity} {joined}, "
         f"round trip {first.rtt_s * 1000:.1f} ms",
     )
     off = first.offset_s

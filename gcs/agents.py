@@ -45,6 +45,10 @@ class HandshakeRefused(Exception):
     """The peer failed the handshake; the message goes back to it in the refusal."""
 
 
+class ProbeAnswered(ConnectionError):
+    """A probe (``agent doctor``) was authenticated and answered; the connection simply ends."""
+
+
 class RateLimited(Exception):
     """An authenticated peer sent frames faster than its allowance."""
 
@@ -235,7 +239,12 @@ class AgentManager:
         key = self._keys.key_for(request.identity)
         if key is None:
             raise HandshakeRefused(f"unknown agent {request.identity!r}: no key is configured for it")
-        if len(self.connected()) >= self.config.max_agents and request.identity not in self.sessions:
+        probing = request.probe
+        if (
+            not probing
+            and len(self.connected()) >= self.config.max_agents
+            and request.identity not in self.sessions
+        ):
             raise HandshakeRefused(f"fleet full: {self.config.max_agents} agents connected")
         server_nonce = auth.new_nonce()
         writer.write(encode(ResponseCid(outcome="challenge", server_nonce=server_nonce), 1))
@@ -249,6 +258,8 @@ class AgentManager:
         expected = auth.agent_proof(key, request.identity, server_nonce, request.client_nonce)
         if not auth.proofs_equal(proof_request.proof, expected):
             raise HandshakeRefused(f"authentication failed for {request.identity!r}: wrong key")
+        if probing or proof_request.probe:  # authenticated only: no CID, no session, never a member
+            await self._answer_probe(writer, request, key, server_nonce)
         cid = self._store.cid_for(request.identity, proof_request.capabilities.model_dump())
         session = AgentSession(
             identity=request.identity,
@@ -296,6 +307,25 @@ class AgentManager:
         for frame in backlog:
             await self._dispatch(session, frame)
         return session
+
+    async def _answer_probe(
+        self, writer: asyncio.StreamWriter, request: RequestCid, key: bytes, server_nonce: str
+    ) -> None:
+        parameters = self.config.agent_parameters.model_copy(
+            update={"status_period_s": self.config.status_period_s}
+        )
+        answer = ResponseCid(
+            outcome="accepted",
+            server_nonce=server_nonce,
+            server_proof=auth.daemon_proof(key, request.identity, request.client_nonce, server_nonce),
+            parameters=parameters,
+            server_time=time.time(),
+        )
+        writer.write(encode(answer, 2))
+        writer.write(encode(Close(reason=CloseReason.NORMAL, message="probe answered"), 3))
+        await writer.drain()
+        self._events.publish("agent_probe", f"{request.identity} probed from {_peer_name(writer)}")
+        raise ProbeAnswered(request.identity)
 
     async def _frame_loop(
         self, session: AgentSession, reader: asyncio.StreamReader, decoder: FrameDecoder

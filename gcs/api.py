@@ -35,6 +35,7 @@ from gcs.api_models import (
     MissionCreated,
     MissionGeometry,
     MissionSummary,
+    Retired,
     UiConfig,
 )
 from gcs.api_planning import DroneInfo, PlanningError, PlanPreview, PlanRequest, plan, task_paths
@@ -156,6 +157,26 @@ def create_app(daemon: Daemon) -> FastAPI:
         if session is None:
             raise ApiProblem(404, "no such agent", f"agent {identity!r} has never connected")
         return _agent_view(daemon, session)
+
+    @app.delete("/api/v1/agents/{identity}", dependencies=token)
+    async def retire(identity: str) -> Retired:
+        """Take a disconnected agent off the fleet list (a ghost, a drone gone for good).
+
+        Its CID stays reserved in the database, so if it ever comes back it re-joins as before.
+        """
+        session = daemon.agents.sessions.get(identity)
+        if session is None:
+            raise ApiProblem(404, "no such agent", f"agent {identity!r} is not on the fleet list")
+        if session.open:
+            raise ApiProblem(409, "agent connected", f"{identity} is connected: stop its agent first")
+        busy = [m for m in daemon.missions.active if identity in _members(m)]
+        if busy:
+            raise ApiProblem(409, "agent in a mission", f"{identity} flies mission {busy[0]}: abort it first")
+        daemon.agents.sessions.pop(identity, None)
+        daemon.agents.lost.discard(identity)
+        hub.history.pop(identity, None)
+        daemon.events.publish("agent_retired", f"{identity} (cid {session.cid}) retired", agent=identity)
+        return Retired(identity=identity, cid=session.cid)
 
     @app.get("/api/v1/agents/{identity}/history")
     async def history(

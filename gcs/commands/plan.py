@@ -18,7 +18,7 @@ from gcs.planning.areas import AreaFormatError, load_area
 from gcs.planning.camera import Camera, CameraError, Spacing, spacing_from_camera, spacing_from_swath
 from gcs.planning.division import DroneSpec, InsufficientCapabilityError
 from gcs.planning.planner import PlanConfig, SearchPlan, plan_search
-from gcs.planning.polygon import SelfIntersectionError
+from gcs.planning.polygon import SelfIntersectionError, as_ring, find_crossings
 
 _plan_targets: ModuleType | None
 try:  # target/missed-map planning lives in its own module; the area planner works without it
@@ -128,15 +128,38 @@ def run(args: argparse.Namespace) -> int:
         return int(_plan_targets.run(args))
     try:
         return _run_area(args)
+    except SelfIntersectionError as exc:
+        print(f"error: {_crossings_in_latlon(args.area) or exc}", file=sys.stderr)
+        return 1
     except (
         AreaFormatError,
-        SelfIntersectionError,
         CameraError,
         InsufficientCapabilityError,
         ValueError,
     ) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+
+
+def _crossings_in_latlon(area_file: str) -> str | None:
+    """The crossing edges of the area file's ring, in the file's own lat/lon and vertex numbers."""
+    vertices = load_area(area_file).vertices
+    ring = as_ring([(lon, lat) for lat, lon in vertices])  # x east, y north: crossings are the same
+    crossings = find_crossings(ring)
+    if not crossings or len(ring) != len(vertices):
+        return None
+    n = len(ring)
+
+    def where(i: int) -> str:
+        return f"vertex {i % n + 1} ({ring[i % n][1]:.6f}, {ring[i % n][0]:.6f})"
+
+    parts = [
+        f"the edge {where(c.edge_a)} -> {where(c.edge_a + 1)} crosses the edge {where(c.edge_b)} -> "
+        f"{where(c.edge_b + 1)} at ({c.point[1]:.6f}, {c.point[0]:.6f})"
+        for c in crossings[:3]
+    ]
+    more = f" and {len(crossings) - 3} more" if len(crossings) > 3 else ""
+    return "self-intersecting area (lat, lon): " + "; ".join(parts) + more
 
 
 def _spacing(args: argparse.Namespace) -> Spacing:
