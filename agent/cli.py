@@ -12,7 +12,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from agent.autopilot.base import Autopilot
+from agent.autopilot.base import Autopilot, LinkLost
 from agent.config import AgentConfig, AgentSettings
 from agent.runtime import Agent
 from protocol.packets import Capabilities
@@ -129,8 +129,15 @@ def run(args: argparse.Namespace) -> int:
     if log is not None:
         configure_logging(log, verbose=args.verbose)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops like Ctrl-C
-    with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(Agent(config, autopilot).run())
+    try:
+        with contextlib.suppress(KeyboardInterrupt):
+            asyncio.run(Agent(config, autopilot).run())
+    except LinkLost as exc:  # the autopilot could not be opened at all: say why in one line
+        from agent.doctor import serial_hint
+
+        hint = serial_hint(str(exc)) or "check it with `agent doctor`"
+        print(f"agent run: {exc} ({hint})", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -115,11 +115,13 @@ async def check_autopilot(report: Report, autopilot: Autopilot, timeout: float) 
     try:
         await asyncio.wait_for(autopilot.connect(timeout), timeout + 5)
     except Exception as exc:
+        cannot_open = serial_hint(str(exc))
         report.add(
             "autopilot link",
             "fail",
             f"no heartbeat: {type(exc).__name__}: {exc}",
-            "check the wiring (TX->RX, RX->TX, GND), the baud rate, SERIALn_PROTOCOL=2 on ArduPilot, "
+            cannot_open
+            or "check the wiring (TX->RX, RX->TX, GND), the baud rate, SERIALn_PROTOCOL=2 on ArduPilot, "
             "and that the serial console is off "
             "(raspi-config -> Interface -> Serial: login shell no, port yes)",
         )
@@ -148,6 +150,20 @@ async def check_autopilot(report: Report, autopilot: Autopilot, timeout: float) 
     finally:
         with contextlib.suppress(Exception):
             await autopilot.close()
+
+
+def serial_hint(error: str) -> str:
+    """What to check when a serial autopilot cannot be opened ('' when it is not that kind of error).
+
+    A device that does not exist or may not be opened is not a wiring problem: say what it is.
+    """
+    if "No such file or directory" in error:
+        return "no such device: is the flight controller connected? ls /dev/serial0 /dev/ttyACM* /dev/ttyUSB*"
+    if "Permission denied" in error:
+        return "permission denied: add the user to the dialout group (and see the unit's DeviceAllow=)"
+    if "No module named" in error:
+        return "a dependency is missing: reinstall fleetgcs (it brings pyserial)"
+    return ""
 
 
 async def handshake(config: AgentConfig, identity: str, timeout: float) -> Handshake:

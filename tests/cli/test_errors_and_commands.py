@@ -158,3 +158,17 @@ async def test_ctrl_c_in_gcs_run_and_the_examples(tmp_path: Path) -> None:
         assert code == 130 and one_line(err) == "watch_fleet: interrupted", out + err
 
         assert mission_id in fleet.daemon.missions.active
+
+
+def test_agent_with_a_serial_device_that_is_not_there(tmp_path: Path) -> None:
+    key = tmp_path / "key"
+    key.write_text("ab" * 32)
+    device = "/dev/ttyACM97"  # not there
+    common = ["--id", "pi-9", "--key-file", key, "--autopilot", f"{device}:115200", "--gcs", "127.0.0.1:9"]
+    agent = run(BIN / "agent", "run", *common)
+    line = one_line(agent.stderr)
+    assert agent.returncode == 1 and line.startswith(f"agent run: cannot open '{device}:115200'"), line
+    assert "no such device: is the flight controller connected?" in line
+    doctor = run(BIN / "agent", "doctor", *common, "--drift-interval", "0", "--timeout", "3")
+    assert doctor.returncode == 1 and "[FAIL] autopilot link" in doctor.stdout
+    assert "-> no such device" in doctor.stdout and "check the wiring" not in doctor.stdout, doctor.stdout
