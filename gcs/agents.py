@@ -259,7 +259,7 @@ class AgentManager:
         if not auth.proofs_equal(proof_request.proof, expected):
             raise HandshakeRefused(f"authentication failed for {request.identity!r}: wrong key")
         if probing or proof_request.probe:  # authenticated only: no CID, no session, never a member
-            await self._answer_probe(writer, request, key, server_nonce)
+            await _answer_probe(writer, request, key, server_nonce, self.config, self._events)
         cid = self._store.cid_for(request.identity, proof_request.capabilities.model_dump())
         session = AgentSession(
             identity=request.identity,
@@ -307,25 +307,6 @@ class AgentManager:
         for frame in backlog:
             await self._dispatch(session, frame)
         return session
-
-    async def _answer_probe(
-        self, writer: asyncio.StreamWriter, request: RequestCid, key: bytes, server_nonce: str
-    ) -> None:
-        parameters = self.config.agent_parameters.model_copy(
-            update={"status_period_s": self.config.status_period_s}
-        )
-        answer = ResponseCid(
-            outcome="accepted",
-            server_nonce=server_nonce,
-            server_proof=auth.daemon_proof(key, request.identity, request.client_nonce, server_nonce),
-            parameters=parameters,
-            server_time=time.time(),
-        )
-        writer.write(encode(answer, 2))
-        writer.write(encode(Close(reason=CloseReason.NORMAL, message="probe answered"), 3))
-        await writer.drain()
-        self._events.publish("agent_probe", f"{request.identity} probed from {_peer_name(writer)}")
-        raise ProbeAnswered(request.identity)
 
     async def _frame_loop(
         self, session: AgentSession, reader: asyncio.StreamReader, decoder: FrameDecoder
@@ -445,6 +426,29 @@ async def _close_raw(
         await asyncio.wait_for(writer.drain(), 1.0)
     with contextlib.suppress(Exception):
         writer.close()
+
+
+async def _answer_probe(
+    writer: asyncio.StreamWriter,
+    request: RequestCid,
+    key: bytes,
+    server_nonce: str,
+    config: DaemonConfig,
+    events: EventBus,
+) -> None:
+    """Answer an authenticated probe (``agent doctor``): accepted without a CID, then closed."""
+    answer = ResponseCid(
+        outcome="accepted",
+        server_nonce=server_nonce,
+        server_proof=auth.daemon_proof(key, request.identity, request.client_nonce, server_nonce),
+        parameters=config.agent_parameters.model_copy(update={"status_period_s": config.status_period_s}),
+        server_time=time.time(),
+    )
+    writer.write(encode(answer, 2))
+    writer.write(encode(Close(reason=CloseReason.NORMAL, message="probe answered"), 3))
+    await writer.drain()
+    events.publish("agent_probe", f"{request.identity} probed from {_peer_name(writer)}")
+    raise ProbeAnswered(request.identity)
 
 
 __all__ = ["AgentManager", "AgentSession", "HandshakeRefused", "PacketType"]
