@@ -17,6 +17,7 @@ from typing import Any
 from gcs.planning.areas import AreaFormatError, load_area
 from gcs.planning.camera import Camera, CameraError, Spacing, spacing_from_camera, spacing_from_swath
 from gcs.planning.division import DroneSpec, InsufficientCapabilityError
+from gcs.planning.geodesy import LocalFrame
 from gcs.planning.planner import PlanConfig, SearchPlan, plan_search
 from gcs.planning.polygon import SelfIntersectionError, as_ring, find_crossings
 
@@ -142,22 +143,32 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _crossings_in_latlon(area_file: str) -> str | None:
-    """The crossing edges of the area file's ring, in the file's own lat/lon and vertex numbers."""
+    """The crossing edges of the area file's ring, located in the file's own lat/lon.
+
+    Edges are numbered from 0 (edge i joins vertex i+1 to vertex i+2, counting vertices from 1).
+    """
     vertices = load_area(area_file).vertices
-    ring = as_ring([(lon, lat) for lat, lon in vertices])  # x east, y north: crossings are the same
+    frame = LocalFrame.centred_on([v[0] for v in vertices], [v[1] for v in vertices])
+    ring = as_ring(frame.points_to_local(vertices))
     crossings = find_crossings(ring)
     if not crossings or len(ring) != len(vertices):
         return None
-    n = len(ring)
+    n = len(vertices)
 
-    def where(i: int) -> str:
-        return f"vertex {i % n + 1} ({ring[i % n][1]:.6f}, {ring[i % n][0]:.6f})"
+    def vertex(i: int) -> str:
+        lat, lon = vertices[i % n]
+        return f"vertex {i % n + 1} ({lat:.6f}, {lon:.6f})"
 
-    parts = [
-        f"the edge {where(c.edge_a)} -> {where(c.edge_a + 1)} crosses the edge {where(c.edge_b)} -> "
-        f"{where(c.edge_b + 1)} at ({c.point[1]:.6f}, {c.point[0]:.6f})"
-        for c in crossings[:3]
-    ]
+    def edge(i: int) -> str:
+        return f"{vertex(i)} -> {vertex(i + 1)}"
+
+    parts = []
+    for c in crossings[:3]:
+        lat, lon = frame.points_to_geodetic([c.point])[0]
+        parts.append(
+            f"edge {c.edge_a} crosses edge {c.edge_b} at ({lat:.6f}, {lon:.6f}) "
+            f"[edge {c.edge_a}: {edge(c.edge_a)}; edge {c.edge_b}: {edge(c.edge_b)}]"
+        )
     more = f" and {len(crossings) - 3} more" if len(crossings) > 3 else ""
     return "self-intersecting area (lat, lon): " + "; ".join(parts) + more
 

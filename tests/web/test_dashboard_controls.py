@@ -103,21 +103,18 @@ async def test_empty_map_text_is_clear_of_the_tools_and_tracks_can_be_cleared(
     async with running_fleet(tmp_path / "flying", drones=1, speedup=5.0) as fleet:
         page = await open_dashboard(browser, fleet.base_url, "test-token")
         await page.locator("#map-empty").wait_for(state="hidden", timeout=10_000)
-        one = fleet.daemon.agents.session("drone-1")
-        assert one is not None
-        async with fleet.client() as http:  # take off and move, so there is a track to clear
-            await http.post("/api/v1/fleet/rtl", json={})
+        # an old track: 50 points a kilometre north, as if left over from an earlier mission
         await page.evaluate(
-            "() => { const a = window.fleetgcs.agents.get('drone-1');"
-            " a.track.push([a.status.position.lat + 1e-4, a.status.position.lon, null]); }"
+            "() => { const a = window.fleetgcs.agents.get('drone-1'); for (let i = 0; i < 50; i++)"
+            " a.track.unshift([a.status.position.lat + 0.01 + i * 1e-5, a.status.position.lon, 'old']); }"
         )
-        assert await _track_length(page) >= 1
+        assert await _old_points(page) == 50
         await page.click("#btn-clear-tracks")
-        assert await _track_length(page) == 0
-        await page.evaluate("() => window.fleetgcs.ws.close()")  # reconnect reloads history...
+        assert await _old_points(page) == 0 and await _track_length(page) <= 2  # new statuses may add one
+        await page.evaluate("() => window.fleetgcs.ws.close()")  # a reconnect reloads the history...
         await page.wait_for_function("window.fleetgcs.connected", timeout=10_000)
         await asyncio.sleep(1.0)
-        assert await _track_length(page) <= 20, "...but not the cleared part"  # 1 s of new statuses
+        assert await _track_length(page) <= 20, "...but not what was cleared"  # 1 s of new statuses
         assert page.errors == []
 
 
@@ -197,6 +194,12 @@ async def _count_is(page: Any, n: int) -> bool:
 
 async def _track_length(page: Any) -> int:
     return int(await page.evaluate("window.fleetgcs.agents.get('drone-1').track.length"))
+
+
+async def _old_points(page: Any) -> int:
+    return int(
+        await page.evaluate("window.fleetgcs.agents.get('drone-1').track.filter(p => p[2] === 'old').length")
+    )
 
 
 async def _true(value: bool) -> bool:
