@@ -21,7 +21,7 @@ def _kinds(fleet: Any, kind: str) -> list[Any]:
     return [e for e in fleet.daemon.events.history(0, kind, None, 1000) if e.kind == kind]
 
 
-async def test_per_drone_controls_and_status_columns(tmp_path: Path, browser: Any) -> None:
+async def test_per_drone_controls_and_status_columns(tmp_path: Path, browser: Any, artifacts: Path) -> None:
     async with running_fleet(tmp_path, drones=2, speedup=5.0) as fleet:
         page = await open_dashboard(browser, fleet.base_url, "test-token")
         await wait_until(lambda: _count_is(page, 2), 10, "two drones in the table")
@@ -34,6 +34,10 @@ async def test_per_drone_controls_and_status_columns(tmp_path: Path, browser: An
         assert 13.0 < float(cells["volt"].split()[0]) < 17.0, cells
         headers = await page.locator("#fleet-table thead th").all_inner_texts()
         assert {"alt", "gs", "volt", "control"} <= set(headers), headers
+        side = await page.locator("#side").bounding_box()
+        last = await row.locator("button[data-cmd='resume']").bounding_box()
+        assert side and last and last["x"] + last["width"] <= side["x"] + side["width"], "controls cut off"
+        await page.screenshot(path=str(artifacts / "dashboard-fleet-table.png"))
 
         one, two = (fleet.daemon.agents.session(f"drone-{i}") for i in (1, 2))
         assert one is not None and two is not None
