@@ -12,11 +12,11 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from agent.autopilot.base import Autopilot
+from agent.autopilot.base import Autopilot, LinkLost
 from agent.config import AgentConfig, AgentSettings
 from agent.runtime import Agent
 from protocol.packets import Capabilities
-from protocol.settings_file import LoggingConfig, configure_logging
+from protocol.settings_file import LoggingConfig, configure_logging, package_version
 
 
 def split_host_port(text: str, default_port: int) -> tuple[str, int]:
@@ -129,14 +129,22 @@ def run(args: argparse.Namespace) -> int:
     if log is not None:
         configure_logging(log, verbose=args.verbose)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # SIGTERM stops like Ctrl-C
-    with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(Agent(config, autopilot).run())
+    try:
+        with contextlib.suppress(KeyboardInterrupt):
+            asyncio.run(Agent(config, autopilot).run())
+    except LinkLost as exc:  # the autopilot could not be opened at all: say why in one line
+        from agent.doctor import serial_hint
+
+        hint = serial_hint(str(exc)) or "check it with `agent doctor`"
+        print(f"agent run: {exc} ({hint})", file=sys.stderr)
+        return 1
     return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="agent", description="fleetgcs companion-computer agent")
     parser.add_argument("-v", "--verbose", action="store_true")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="connect an autopilot to the daemon")
     p.add_argument("--gcs", default="127.0.0.1:4396", help="daemon HOST:PORT (default %(default)s)")
@@ -229,7 +237,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    return int(args.run(args))
+    try:
+        return int(args.run(args))
+    except KeyboardInterrupt:
+        print(f"\nagent {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -6,8 +6,9 @@ handshake with the key, round-trip time), time sync (clock offset against the da
 ``server_time`` in the accept, NTP state) and clock drift (the offset measured twice,
 ``drift_interval_s`` apart). Exit code 0 when nothing failed.
 
-The handshake uses the agent's own identity by default: a running agent with that identity is
-replaced for a moment (stop the service first, or give ``--probe-identity``).
+The handshake uses the agent's own identity by default and is a *probe* (``probe: true`` in the
+type-0 request): the daemon authenticates it and answers without a CID, so the check never
+registers a fleet member and never replaces a running agent of that identity.
 """
 
 from __future__ import annotations
@@ -72,7 +73,7 @@ class Report:
 
 @dataclass
 class Handshake:
-    cid: int
+    cid: int | None  # None: the daemon answered the probe without a CID, as it should
     rtt_s: float
     offset_s: float  # daemon clock - our clock
 
@@ -114,11 +115,13 @@ async def check_autopilot(report: Report, autopilot: Autopilot, timeout: float) 
     try:
         await asyncio.wait_for(autopilot.connect(timeout), timeout + 5)
     except Exception as exc:
+        cannot_open = serial_hint(str(exc))
         report.add(
             "autopilot link",
             "fail",
             f"no heartbeat: {type(exc).__name__}: {exc}",
-            "check the wiring (TX->RX, RX->TX, GND), the baud rate, SERIALn_PROTOCOL=2 on ArduPilot, "
+            cannot_open
+            or "check the wiring (TX->RX, RX->TX, GND), the baud rate, SERIALn_PROTOCOL=2 on ArduPilot, "
             "and that the serial console is off "
             "(raspi-config -> Interface -> Serial: login shell no, port yes)",
         )
@@ -147,6 +150,20 @@ async def check_autopilot(report: Report, autopilot: Autopilot, timeout: float) 
     finally:
         with contextlib.suppress(Exception):
             await autopilot.close()
+
+
+def serial_hint(error: str) -> str:
+    """What to check when a serial autopilot cannot be opened ('' when it is not that kind of error).
+
+    A device that does not exist or may not be opened is not a wiring problem: say what it is.
+    """
+    if "No such file or directory" in error:
+        return "no such device: is the flight controller connected? ls /dev/serial0 /dev/ttyACM* /dev/ttyUSB*"
+    if "Permission denied" in error:
+        return "permission denied: add the user to the dialout group (and see the unit's DeviceAllow=)"
+    if "No module named" in error:
+        return "a dependency is missing: reinstall fleetgcs (it brings pyserial)"
+    return ""
 
 
 async def handshake(config: AgentConfig, identity: str, timeout: float) -> Handshake:
@@ -185,7 +202,12 @@ async def handshake(config: AgentConfig, identity: str, timeout: float) -> Hands
     try:
         nonce = auth.new_nonce()
         writer.write(
-            encode(RequestCid(identity=identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce), 1)
+            encode(
+                RequestCid(
+                    identity=identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce, probe=True
+                ),
+                1,
+            )
         )
         await writer.drain()
         challenge = (await read()).body
@@ -205,6 +227,7 @@ async def handshake(config: AgentConfig, identity: str, timeout: float) -> Hands
                     client_nonce=nonce,
                     capabilities=config.capabilities,
                     proof=proof,
+                    probe=True,
                 ),
                 2,
             )
@@ -212,7 +235,7 @@ async def handshake(config: AgentConfig, identity: str, timeout: float) -> Hands
         await writer.drain()
         answer = (await read()).body
         received = time.time()
-        if not isinstance(answer, ResponseCid) or answer.outcome != "accepted" or answer.cid is None:
+        if not isinstance(answer, ResponseCid) or answer.outcome != "accepted":
             reason = answer.reason if isinstance(answer, ResponseCid) else getattr(answer, "message", "")
             raise HandshakeError(
                 f"refused: {reason}", "the key must be the daemon's fleet key (or this agent's own key)"
@@ -264,10 +287,11 @@ async def check_daemon(
         report.add("daemon link", "fail", str(exc), exc.hint)
         report.add("time sync", "skip", "needs the daemon link")
         return
+    joined = f"as cid {first.cid}" if first.cid is not None else "(probe: not a fleet member)"
     report.add(
         "daemon link",
         "ok",
-        f"{config.gcs_host}:{config.gcs_port} accepted {identity} as cid {first.cid}, "
+        f"{config.gcs_host}:{config.gcs_port} accepted {identity} {joined}, "
         f"round trip {first.rtt_s * 1000:.1f} ms",
     )
     off = first.offset_s

@@ -12,7 +12,7 @@ import argparse
 import asyncio
 
 from gcs.api_planning import SearchPlanRequest
-from gcs.client import FleetClient, read_token
+from gcs.client import FleetClient, read_token, run_script
 
 
 async def main(args: argparse.Namespace) -> int:
@@ -43,4 +43,4 @@ if __name__ == "__main__":
     parser.add_argument("--alt", type=float, default=15.0)
     parser.add_argument("--pattern", default="zigzag")
     parser.add_argument("--timeout", type=float, default=1800.0)
-    raise SystemExit(asyncio.run(main(parser.parse_args())))
+    raise SystemExit(run_script(main(parser.parse_args()), "fly_search"))

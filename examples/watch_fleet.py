@@ -6,9 +6,8 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 
-from gcs.client import FleetClient
+from gcs.client import FleetClient, run_script
 
 
 async def main(api: str) -> None:
@@ -31,4 +30,4 @@ async def main(api: str) -> None:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--api", default="http://127.0.0.1:8080")
-    asyncio.run(main(parser.parse_args().api))
+    raise SystemExit(run_script(main(parser.parse_args().api), "watch_fleet"))

@@ -52,6 +52,10 @@ class HandshakeRefused(Exception):
     """The peer failed the handshake; the message goes back to it in the refusal."""
 
 
+class ProbeAnswered(ConnectionError):
+    """A probe (``agent doctor``) was authenticated and answered; the connection simply ends."""
+
+
 class RateLimited(Exception):
     """An authenticated peer sent frames faster than its allowance."""
 
@@ -273,7 +277,12 @@ class AgentManager:
         key = self._keys.key_for(request.identity)
         if key is None:
             raise HandshakeRefused(f"unknown agent {request.identity!r}: no key is configured for it")
-        if len(self.connected()) >= self.config.max_agents and request.identity not in self.sessions:
+        probing = request.probe
+        if (
+            not probing
+            and len(self.connected()) >= self.config.max_agents
+            and request.identity not in self.sessions
+        ):
             raise HandshakeRefused(f"fleet full: {self.config.max_agents} agents connected")
         server_nonce = auth.new_nonce()
         writer.write(encode(ResponseCid(outcome="challenge", server_nonce=server_nonce), 1))
@@ -287,6 +296,8 @@ class AgentManager:
         expected = auth.agent_proof(key, request.identity, server_nonce, request.client_nonce)
         if not auth.proofs_equal(proof_request.proof, expected):
             raise HandshakeRefused(f"authentication failed for {request.identity!r}: wrong key")
+        if probing or proof_request.probe:  # authenticated only: no CID, no session, never a member
+            await _answer_probe(writer, request, key, server_nonce, self.config, self._events)
         cid = self._store.cid_for(request.identity, proof_request.capabilities.model_dump())
         outbox = Outbox(
             writer,
@@ -478,6 +489,29 @@ async def _close_raw(
         await asyncio.wait_for(writer.drain(), 1.0)
     with contextlib.suppress(Exception):
         writer.close()
+
+
+async def _answer_probe(
+    writer: asyncio.StreamWriter,
+    request: RequestCid,
+    key: bytes,
+    server_nonce: str,
+    config: DaemonConfig,
+    events: EventBus,
+) -> None:
+    """Answer an authenticated probe (``agent doctor``): accepted without a CID, then closed."""
+    answer = ResponseCid(
+        outcome="accepted",
+        server_nonce=server_nonce,
+        server_proof=auth.daemon_proof(key, request.identity, request.client_nonce, server_nonce),
+        parameters=config.agent_parameters.model_copy(update={"status_period_s": config.status_period_s}),
+        server_time=time.time(),
+    )
+    writer.write(encode(answer, 2))
+    writer.write(encode(Close(reason=CloseReason.NORMAL, message="probe answered"), 3))
+    await writer.drain()
+    events.publish("agent_probe", f"{request.identity} probed from {_peer_name(writer)}")
+    raise ProbeAnswered(request.identity)
 
 
 __all__ = ["AgentManager", "AgentSession", "HandshakeRefused", "PacketType"]

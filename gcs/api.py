@@ -12,6 +12,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
+import logging
+import sqlite3
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -19,6 +21,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from fastapi import Body, Depends, FastAPI, Header, Query, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import JSONResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -35,6 +38,7 @@ from gcs.api_models import (
     MissionCreated,
     MissionGeometry,
     MissionSummary,
+    Retired,
     UiConfig,
 )
 from gcs.api_planning import (
@@ -57,6 +61,7 @@ if TYPE_CHECKING:
     from gcs.agents import AgentSession
     from gcs.daemon import Daemon
 
+log = logging.getLogger("gcs.api")
 WEB_DIR = Path(__file__).parent / "web"
 PLAN_TIMEOUT_S = 60.0
 MAX_ID = 2**62
@@ -107,6 +112,8 @@ def create_app(daemon: Daemon) -> FastAPI:
         title="fleetgcs",
         version="0.2.0",
         description="Fleet ground control station API: fleet, missions, planning, stream. See docs/api.md.",
+        docs_url=None,  # served below from local Swagger UI files: no CDN, works offline
+        redoc_url=None,
     )
     app.state.hub = hub
     app.state.daemon = daemon
@@ -153,9 +160,23 @@ def create_app(daemon: Daemon) -> FastAPI:
 
     @app.get("/api/v1/ui-config")
     async def ui_config() -> UiConfig:
-        return UiConfig(
-            tile_url=getattr(daemon.config, "tile_url", None), status_period_s=daemon.config.status_period_s
-        )
+        tile_url = "/api/v1/tiles/{z}/{x}/{y}" if mbtiles is not None else daemon.config.tile_url
+        return UiConfig(tile_url=tile_url, status_period_s=daemon.config.status_period_s)
+
+    mbtiles = getattr(daemon.config, "tile_mbtiles", None)
+
+    @app.get("/api/v1/tiles/{z}/{x}/{y}", include_in_schema=False)
+    async def tile(z: int, x: int, y: int) -> Response:
+        """One map tile from the configured MBTiles file (XYZ numbering; MBTiles rows are TMS)."""
+        if mbtiles is None:
+            raise ApiProblem(404, "no tiles", "no tile_mbtiles file is configured")
+        data = await asyncio.to_thread(read_tile, mbtiles, z, x, y)
+        if data is None:
+            raise ApiProblem(404, "no such tile", f"{z}/{x}/{y} is not in {Path(mbtiles).name}")
+        kind = "image/png" if data[:4] == b"\x89PNG" else "image/jpeg"
+        if data[:4] == b"RIFF":
+            kind = "image/webp"
+        return Response(data, media_type=kind, headers={"Cache-Control": "max-age=86400"})
 
     @app.get("/api/v1/agents")
     async def agents() -> list[AgentView]:
@@ -167,6 +188,26 @@ def create_app(daemon: Daemon) -> FastAPI:
         if session is None:
             raise ApiProblem(404, "no such agent", f"agent {identity!r} has never connected")
         return _agent_view(daemon, session)
+
+    @app.delete("/api/v1/agents/{identity}", dependencies=token)
+    async def retire(identity: str) -> Retired:
+        """Take a disconnected agent off the fleet list (a ghost, a drone gone for good).
+
+        Its CID stays reserved in the database, so if it ever comes back it re-joins as before.
+        """
+        session = daemon.agents.sessions.get(identity)
+        if session is None:
+            raise ApiProblem(404, "no such agent", f"agent {identity!r} is not on the fleet list")
+        if session.open:
+            raise ApiProblem(409, "agent connected", f"{identity} is connected: stop its agent first")
+        busy = [m for m in daemon.missions.active if identity in _members(m)]
+        if busy:
+            raise ApiProblem(409, "agent in a mission", f"{identity} flies mission {busy[0]}: abort it first")
+        daemon.agents.sessions.pop(identity, None)
+        daemon.agents.lost.discard(identity)
+        hub.history.pop(identity, None)
+        daemon.events.publish("agent_retired", f"{identity} (cid {session.cid}) retired", agent=identity)
+        return Retired(identity=identity, cid=session.cid)
 
     @app.get("/api/v1/agents/{identity}/history", response_model=list[StatusSample])
     async def history(
@@ -475,7 +516,58 @@ def create_app(daemon: Daemon) -> FastAPI:
 
     if WEB_DIR.is_dir():
         app.mount("/ui", StaticFiles(directory=WEB_DIR, html=True), name="ui")
+    else:  # an install without package data: say so instead of a silent 404
+        log.warning("dashboard files missing (%s): / will answer 503", WEB_DIR)
+
+        @app.get("/ui/", include_in_schema=False)
+        async def no_dashboard() -> Response:
+            raise ApiProblem(503, "dashboard not installed", f"{WEB_DIR} is missing from this install")
+
+    _mount_docs(app)
     return app
+
+
+def _mount_docs(app: FastAPI) -> None:
+    """Swagger UI at /docs from the swagger-ui-bundle package's files, so it works offline."""
+    try:
+        from swagger_ui_bundle import swagger_ui_path
+    except ImportError:
+        swagger_ui_path = None
+    if swagger_ui_path is None or not Path(str(swagger_ui_path)).is_dir():
+
+        @app.get("/docs", include_in_schema=False)
+        async def docs_missing() -> Response:
+            return Response(
+                "Swagger UI is not installed (pip install swagger-ui-bundle-v2); "
+                "the API description is at /openapi.json",
+                media_type="text/plain",
+            )
+
+        return
+    app.mount("/docs-assets", StaticFiles(directory=str(swagger_ui_path)), name="docs-assets")
+
+    @app.get("/docs", include_in_schema=False)
+    async def docs() -> Response:
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url or "/openapi.json",
+            title="fleetgcs API",
+            swagger_js_url="/docs-assets/swagger-ui-bundle.js",
+            swagger_css_url="/docs-assets/swagger-ui.css",
+            swagger_favicon_url="/docs-assets/favicon-32x32.png",
+        )
+
+
+def read_tile(path: Path | str, z: int, x: int, y: int) -> bytes | None:
+    """The tile z/x/y (XYZ, as the dashboard asks) of an MBTiles file, or None."""
+    if not (0 <= z <= 24 and 0 <= x < 2**z and 0 <= y < 2**z):
+        return None
+    uri = f"{Path(path).resolve().as_uri()}?mode=ro"
+    with contextlib.closing(sqlite3.connect(uri, uri=True)) as db:
+        row = db.execute(
+            "SELECT tile_data FROM tiles WHERE zoom_level=? AND tile_column=? AND tile_row=?",
+            (z, x, (1 << z) - 1 - y),
+        ).fetchone()
+    return None if row is None else bytes(row[0])
 
 
 def _hub_for(daemon: Daemon) -> LiveHub:

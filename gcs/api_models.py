@@ -74,6 +74,13 @@ class Delivered(BaseModel):
     delivered: list[str]
 
 
+class Retired(BaseModel):
+    """An agent taken off the fleet list (``DELETE /api/v1/agents/{identity}``)."""
+
+    identity: str
+    cid: int
+
+
 class FleetCommand(BaseModel):
     """A fleet-wide order; ``agents`` narrows it (default: every connected agent)."""
 

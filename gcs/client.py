@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import sys
 import time
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Coroutine, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal, TypeVar
@@ -33,6 +34,7 @@ from gcs.api_models import (
     Health,
     MissionCreated,
     MissionSummary,
+    Retired,
 )
 from gcs.api_planning import PlanPreview, PsaPlanRequest, RsaPlanRequest, SearchPlanRequest
 from gcs.config import default_data_dir
@@ -62,6 +64,25 @@ class StatusMessage(BaseModel):
     cid: int
     received: float
     status: StatusReport
+
+
+def run_script(coroutine: Coroutine[Any, Any, int | None], prog: str) -> int:
+    """``asyncio.run(coroutine)`` for scripts: a refusal, an unreachable daemon, a missing token
+    file or Ctrl-C end in one line on stderr and an exit code, not a traceback."""
+    try:
+        return int(asyncio.run(coroutine) or 0)
+    except KeyboardInterrupt:
+        print(f"\n{prog}: interrupted", file=sys.stderr)
+        return 130
+    except ApiError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 2
+    except httpx.TransportError as exc:
+        print(f"{prog}: cannot reach the daemon ({exc or type(exc).__name__})", file=sys.stderr)
+        return 3
+    except OSError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return 2
 
 
 def read_token(data_dir: Path | None = None) -> str:
@@ -113,6 +134,10 @@ class FleetClient:
 
     async def agent(self, identity: str) -> AgentView:
         return await self._call("GET", f"/api/v1/agents/{identity}", AgentView)
+
+    async def retire(self, identity: str) -> Retired:
+        """Take a disconnected agent off the fleet list."""
+        return await self._call("DELETE", f"/api/v1/agents/{identity}", Retired)
 
     async def history(self, identity: str, since: float = 0.0, limit: int = 1000) -> list[StatusSample]:
         return await self._call(

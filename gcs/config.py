@@ -77,6 +77,9 @@ class DaemonConfig(BaseModel):
     tile_url: str | None = Field(
         default=None, max_length=500, description="dashboard background tiles, '{z}/{x}/{y}' template"
     )
+    tile_mbtiles: Path | None = Field(
+        default=None, description="dashboard background tiles from this MBTiles file (served by the daemon)"
+    )
     extensions: list[str] = Field(
         default_factory=list, description="extension modules 'pkg.mod' or 'pkg.mod:factory' (docs/api.md)"
     )

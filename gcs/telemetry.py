@@ -39,9 +39,11 @@ if TYPE_CHECKING:
 log = logging.getLogger("gcs.telemetry")
 
 CSV_COLUMNS = (
-    "time", "lat", "lon", "alt_rel", "alt_amsl", "vn", "ve", "vd", "heading_deg", "battery_pct", "voltage_v",
-    "current_a", "mode", "armed", "landed", "step", "mission_id",
+    "time", "gps_fix", "satellites", "lat", "lon", "alt_rel", "alt_amsl", "vn", "ve", "vd", "heading_deg",
+    "battery_pct", "voltage_v", "current_a", "mode", "armed", "landed", "step", "mission_id",
 )  # fmt: skip
+# gps_fix is the GPS fix type (0-1 none, 2 2D, 3 3D, 4 DGPS, 5 RTK float, 6 RTK fixed): a position
+# without a 3D fix is not a place the vehicle was, so readers can drop or flag those rows.
 
 
 def status_row(agent: str, status: StatusReport, received: float) -> tuple[Any, ...]:
@@ -277,7 +279,8 @@ def to_csv(samples: Iterable[dict[str, Any]]) -> str:
 def to_geojson(agent: str, flights: list[list[dict[str, Any]]]) -> dict[str, Any]:
     features = []
     for index, flight in enumerate(flights):
-        coordinates = [[s["lon"], s["lat"], s["alt_rel"]] for s in flight if s["gps_fix"] >= 3]
+        fixed = [s for s in flight if s["gps_fix"] >= 3 and s["lat"] is not None]
+        coordinates = [[s["lon"], s["lat"], s["alt_rel"]] for s in fixed]
         if len(coordinates) < 2:
             continue
         features.append(
@@ -290,6 +293,8 @@ def to_geojson(agent: str, flights: list[list[dict[str, Any]]]) -> dict[str, Any
                     "start": flight[0]["time"],
                     "end": flight[-1]["time"],
                     "missions": sorted({s["mission_id"] for s in flight if s["mission_id"]}),
+                    "gps_fix": [s["gps_fix"] for s in fixed],  # one per coordinate
+                    "samples_without_3d_fix": len(flight) - len(fixed),
                 },
             }
         )

@@ -84,6 +84,9 @@ class RequestCid(_Body):
 
     ``proof`` = hex HMAC-SHA256(key, "fleetgcs-agent-v1|" identity "|" server_nonce "|"
     client_nonce), where server_nonce is the challenge of the type-1 reply to the hello.
+
+    ``probe`` (optional, default false) asks only for authentication: a check such as
+    ``agent doctor`` gets an ``accepted`` without a CID and never becomes a fleet member.
     """
 
     identity: Identity
@@ -93,6 +96,7 @@ class RequestCid(_Body):
     home: GeoPoint | None = None
     proof: HexMac | None = None
     resume: Resume | None = None
+    probe: bool = False
 
 
 # --- type 1: response with connection ID -------------------------------------------------------

@@ -41,6 +41,16 @@ class LoggingConfig(BaseModel):
     backups: int = Field(default=5, ge=0, le=100, description="rotated files kept")
 
 
+def package_version() -> str:
+    """The installed fleetgcs version, for ``--version`` of gcs, agent and sitl."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("fleetgcs")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def read_toml(path: Path) -> dict[str, Any]:
     try:
         with open(path, "rb") as handle:

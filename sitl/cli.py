@@ -37,6 +37,7 @@ def _param(text: str) -> tuple[str, float]:
 def build_parser() -> argparse.ArgumentParser:
     """The ``sitl`` argument parser."""
     ap = argparse.ArgumentParser(prog="sitl", description="fleetgcs multi-vehicle MAVLink copter simulator")
+    ap.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = ap.add_subparsers(dest="cmd", required=True)
     run = sub.add_parser("run", help="start N simulated copters and serve MAVLink until interrupted")
     allow_negative_coordinates(run)  # --home -35.36,149.16,584
@@ -223,6 +224,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sitl: simulation failed: {fleet.error!r}", file=sys.stderr)
         return 1
     return 0
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("fleetgcs")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
 
 
 if __name__ == "__main__":

@@ -1,31 +1,55 @@
-"""`gcs agents`: the fleet as the daemon sees it."""
+"""`gcs agents`: the fleet as the daemon sees it; `gcs agents retire ID` takes a ghost off the list."""
 
 from __future__ import annotations
 
 import argparse
 
-import httpx
+from gcs.api_models import AgentView
+from gcs.commands._api import CommandError, api_arguments, call
 
-from gcs.commands.run import api_arguments
+
+def _row(agent: AgentView) -> str:
+    status = agent.status
+    link = "up" if agent.connected else ("lost" if agent.lost else "down")
+    battery = status.battery.pct if status is not None else None
+    position = getattr(status, "position", None)  # absent before the first GPS fix
+    alt = f"{position.alt_rel:6.1f}" if position is not None else f"{'-':>6}"
+    return (
+        f"{agent.cid:>4} {agent.identity:16} {link:5} {status.mode if status else '-':9} "
+        f"{status.armed if status else False!s:5} {battery if battery is not None else '-':>5} "
+        f"{alt} {status.step if status else -1:>4}"
+    )
 
 
-def run(args: argparse.Namespace) -> int:
-    response = httpx.get(f"{args.api}/api/v1/agents", timeout=10.0)
-    response.raise_for_status()
+def run_list(args: argparse.Namespace) -> int:
+    agents = call(args, lambda client: client.agents(), token=False)
     print(f"{'cid':>4} {'identity':16} {'link':5} {'mode':9} {'armed':5} {'batt%':>5} {'alt':>6} {'step':>4}")
-    for agent in response.json():
-        status = agent.get("status") or {}
-        link = "up" if agent["connected"] else ("lost" if agent["lost"] else "down")
-        battery = (status.get("battery") or {}).get("pct")
-        print(
-            f"{agent['cid']:>4} {agent['identity']:16} {link:5} {status.get('mode', '-'):9} "
-            f"{status.get('armed', False)!s:5} {battery if battery is not None else '-':>5} "
-            f"{(status.get('position') or {}).get('alt_rel', 0.0):6.1f} {status.get('step', -1):>4}"
-        )
+    for agent in agents:
+        print(_row(agent))
     return 0
 
 
+def run_retire(args: argparse.Namespace) -> int:
+    retired = call(args, lambda client: client.retire(args.identity))
+    print(f"{retired.identity} (cid {retired.cid}) retired: off the fleet list; its cid stays reserved")
+    return 0
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.action == "retire":
+        if not args.identity:
+            raise CommandError("give the identity: gcs agents retire ID")
+        return run_retire(args)
+    if args.identity:
+        raise CommandError(f"unexpected {args.identity!r}: gcs agents [list | retire ID]")
+    return run_list(args)
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("agents", help="list agents and their latest status")
+    parser = subparsers.add_parser(
+        "agents", help="list agents and their latest status (retire ID: take a ghost off the list)"
+    )
+    parser.add_argument("action", nargs="?", choices=["list", "retire"], default="list")
+    parser.add_argument("identity", nargs="?", help="retire: the agent to take off the fleet list")
     api_arguments(parser)
     parser.set_defaults(run=run)

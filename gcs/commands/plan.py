@@ -22,9 +22,10 @@ from typing import Any
 from gcs.planning.areas import AreaFormatError
 from gcs.planning.camera import Camera, CameraError, Spacing, spacing_from_camera, spacing_from_swath
 from gcs.planning.division import DroneSpec, InsufficientCapabilityError
+from gcs.planning.geodesy import LocalFrame
 from gcs.planning.interchange import EXPORT_FORMATS, QgcSurvey, export_files, load_area_text
 from gcs.planning.planner import PlanConfig, SearchPlan, plan_search
-from gcs.planning.polygon import SelfIntersectionError
+from gcs.planning.polygon import SelfIntersectionError, as_ring, find_crossings
 from protocol.geo import allow_negative_coordinates
 
 _plan_targets: ModuleType | None
@@ -150,15 +151,49 @@ def run(args: argparse.Namespace) -> int:
         return int(_plan_targets.run(args))
     try:
         return _run_area(args)
+    except SelfIntersectionError as exc:
+        print(f"error: {_crossings_in_latlon(args.area) or exc}", file=sys.stderr)
+        return 1
     except (
         AreaFormatError,
-        SelfIntersectionError,
         CameraError,
         InsufficientCapabilityError,
         ValueError,
     ) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+
+
+def _crossings_in_latlon(area_file: str) -> str | None:
+    """The crossing edges of the area file's ring, located in the file's own lat/lon.
+
+    Edges are numbered from 0 (edge i joins vertex i+1 to vertex i+2, counting vertices from 1).
+    """
+    path = Path(area_file)
+    vertices = load_area_text(path.read_text(), path.stem)[0].vertices
+    frame = LocalFrame.centred_on([v[0] for v in vertices], [v[1] for v in vertices])
+    ring = as_ring(frame.points_to_local(vertices))
+    crossings = find_crossings(ring)
+    if not crossings or len(ring) != len(vertices):
+        return None
+    n = len(vertices)
+
+    def vertex(i: int) -> str:
+        lat, lon = vertices[i % n]
+        return f"vertex {i % n + 1} ({lat:.6f}, {lon:.6f})"
+
+    def edge(i: int) -> str:
+        return f"{vertex(i)} -> {vertex(i + 1)}"
+
+    parts = []
+    for c in crossings[:3]:
+        lat, lon = frame.points_to_geodetic([c.point])[0]
+        parts.append(
+            f"edge {c.edge_a} crosses edge {c.edge_b} at ({lat:.6f}, {lon:.6f}) "
+            f"[edge {c.edge_a}: {edge(c.edge_a)}; edge {c.edge_b}: {edge(c.edge_b)}]"
+        )
+    more = f" and {len(crossings) - 3} more" if len(crossings) > 3 else ""
+    return "self-intersecting area (lat, lon): " + "; ".join(parts) + more
 
 
 def _spacing(args: argparse.Namespace, survey: QgcSurvey | None = None) -> Spacing:

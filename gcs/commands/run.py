@@ -10,28 +10,11 @@ from typing import Any
 
 import httpx
 
-from gcs.config import default_data_dir
+from gcs.commands._api import api_arguments, api_token, unreachable
 from protocol.taskfile import TaskFileError, load_task_text, task_warnings
 
 TERMINAL = {"completed", "aborted"}
-
-
-def api_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--api", default="http://127.0.0.1:8080", help="daemon HTTP API (default %(default)s)"
-    )
-    parser.add_argument("--token", help="API token (default: read DATA_DIR/api.token)")
-    parser.add_argument("--data-dir", type=Path, default=default_data_dir())
-
-
-def api_token(args: argparse.Namespace) -> str:
-    if args.token:
-        return str(args.token)
-    path = Path(args.data_dir) / "api.token"
-    try:
-        return path.read_text().strip()
-    except OSError as exc:
-        raise SystemExit(f"gcs: no API token: {exc} (pass --token)") from None
+__all__ = ["api_arguments", "api_token", "follow", "problem_text", "render_progress"]
 
 
 def problem_text(response: httpx.Response) -> str:
@@ -99,7 +82,17 @@ def run(args: argparse.Namespace) -> int:
             return 2
         mission_id = response.json()["mission_id"]
         print(f"mission {mission_id} started", flush=True)
-        progress = follow(client, mission_id, args.timeout)
+        try:
+            progress = follow(client, mission_id, args.timeout)
+        except KeyboardInterrupt:
+            print(
+                f"\ngcs run: stopped following; mission {mission_id} keeps flying on the daemon "
+                f"(`gcs mission pause|abort {mission_id}`, or `gcs fleet rtl`)",
+                file=sys.stderr,
+            )
+            return 130
+        except httpx.TransportError as exc:
+            raise unreachable(args.api, exc) from None
     state = progress.get("state", "unknown")
     print(f"mission {mission_id}: {state} - {progress.get('result')}")
     return 0 if state == "completed" else 1

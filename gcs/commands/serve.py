@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import errno
 import logging
 import signal
+import socket
 import sys
 from collections.abc import Coroutine
 from pathlib import Path
@@ -77,7 +79,42 @@ def run(args: argparse.Namespace) -> int:
         print(f"gcs serve: {exc}", file=sys.stderr)
         return 2
     configure_logging(log, verbose=logging.getLogger().level == logging.DEBUG)
-    return run_until_signalled(serve_forever(config, args.ready_file))
+    busy = [
+        f"{what} {host}:{port}"
+        for what, host, port in (
+            ("agent listener", config.listen_host, config.listen_port),
+            ("HTTP API", config.http_host, config.http_port),
+        )
+        if host is not None and port and not port_free(host, port)
+    ]
+    if busy:
+        print(
+            f"gcs serve: {' and '.join(busy)}: address already in use "
+            "(another `gcs serve` running? choose other ports with --listen / --http)",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        return run_until_signalled(serve_forever(config, args.ready_file))
+    except OSError as exc:
+        print(f"gcs serve: cannot start: {exc}", file=sys.stderr)
+        return 2
+
+
+def port_free(host: str, port: int) -> bool:
+    """Whether a server could bind ``host:port`` now (checked first so the operator gets one line)."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except OSError:
+        return True  # let the server report the bad address itself
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            return exc.errno != errno.EADDRINUSE
+    return True
 
 
 def resolve_config(args: argparse.Namespace) -> tuple[DaemonConfig, LoggingConfig]:

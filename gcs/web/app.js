@@ -9,6 +9,7 @@ const MAX_TRACK = 4000;
 
 const S = {
   agents: new Map(),      // identity -> {view, status, received, track: [[lat, lon]], color}
+  rows: new Map(),        // identity -> <tr> of the fleet table
   origin: null,           // [lat0, lon0] of the local projection
   view: { cx: 0, cy: 0, scale: 2 },  // map centre (m east/north) and pixels per metre
   mission: null,          // {id, name, progress, geometry, coverage}
@@ -24,6 +25,7 @@ const S = {
   connected: false,
   dirty: true,
   userMoved: false,
+  tracksSince: 0,         // server time of the last "clear tracks": older history is not redrawn
 };
 window.fleetgcs = S;      // for tests and the curious
 
@@ -115,12 +117,14 @@ function onStatus(msg) {
   const st = msg.status;
   a.status = st;
   a.received = msg.received;
-  if (!st.position) { S.tableDirty = true; return; } // no 3-D fix yet: in the table, not on the map
-  ensureOrigin(st.position.lat, st.position.lon);
-  const last = a.track[a.track.length - 1];
-  if (!last || last[0] !== st.position.lat || last[1] !== st.position.lon) {
-    a.track.push([st.position.lat, st.position.lon, st.mission_id || null]);
-    if (a.track.length > MAX_TRACK) a.track.splice(0, a.track.length - MAX_TRACK);
+  const pos = st.position;  // absent until the vehicle has a GPS fix
+  if (pos) {
+    ensureOrigin(pos.lat, pos.lon);
+    const last = a.track[a.track.length - 1];
+    if (!last || last[0] !== pos.lat || last[1] !== pos.lon) {
+      a.track.push([pos.lat, pos.lon, st.mission_id || null]);
+      if (a.track.length > MAX_TRACK) a.track.splice(0, a.track.length - MAX_TRACK);
+    }
   }
   S.dirty = true;
   S.tableDirty = true;
@@ -138,6 +142,11 @@ function onEvent(ev) {
     }
   }
   if (ev.kind === "geofence_sent") loadGeofence();
+  if (ev.kind === "agent_retired" && ev.agent) {
+    S.agents.delete(ev.agent);
+    renderDronePicks();
+    S.dirty = S.tableDirty = true;
+  }
 }
 
 // --- stream -----------------------------------------------------------------------------------------
@@ -167,8 +176,9 @@ function onHello(msg) {
     if (v.status) {
       a.status = v.status;
       a.received = msg.server_time - (v.link_age_s || 0);
-      if (v.status.position) ensureOrigin(v.status.position.lat, v.status.position.lon);
-      else if (v.home) ensureOrigin(v.home.lat, v.home.lon);
+    }
+    if (v.status && v.status.position) {
+      ensureOrigin(v.status.position.lat, v.status.position.lon);
     } else if (v.home) {
       ensureOrigin(v.home.lat, v.home.lon);
     }
@@ -186,7 +196,8 @@ function setLinkState() {
 async function loadTracks() {
   for (const a of S.agents.values()) {
     try {
-      const samples = await api("GET", `/api/v1/agents/${encodeURIComponent(a.identity)}/history?limit=1500`);
+      const since = S.tracksSince ? `&since=${S.tracksSince}` : "";
+      const samples = await api("GET", `/api/v1/agents/${encodeURIComponent(a.identity)}/history?limit=1500${since}`);
       const pts = samples.filter((s) => s.status.position)
         .map((s) => [s.status.position.lat, s.status.position.lon, s.status.mission_id || null]);
       a.track = pts.concat(a.track).slice(-MAX_TRACK);
@@ -332,23 +343,94 @@ async function startMission() {
 function fmtTime(s) { return s >= 60 ? `${Math.floor(s / 60)} min ${Math.round(s % 60)} s` : `${Math.round(s)} s`; }
 
 // --- fleet table & events ---------------------------------------------------------------------------
+const CONTROLS = [
+  ["rtl", "RTL", "return to launch (aborts this drone's mission)"],
+  ["land", "Land", "land where it is (aborts this drone's mission)"],
+  ["hold", "Hold", "stop where it is, queue kept"],
+  ["resume", "Resume", "continue after a hold"],
+];
+
+function tableRow(a) {
+  // one row per drone, built once and updated in place, so a click on its buttons is never lost
+  let tr = S.rows.get(a.identity);
+  if (tr) return tr;
+  tr = document.createElement("tr");
+  tr.dataset.agent = a.identity;
+  const cells = ["name", "mode", "armed", "alt num", "gs num", "batt num", "volt num", "gps", "step num", "link", "exc", "ctl"];
+  for (const c of cells) { const td = document.createElement("td"); td.className = c; tr.appendChild(td); }
+  tr.querySelector(".name").innerHTML = `<span style="color:${a.color}">&#9650;</span> `;
+  tr.querySelector(".name").append(a.identity);
+  const ctl = tr.querySelector(".ctl");
+  for (const [cmd, label, title] of CONTROLS) {
+    const b = document.createElement("button");
+    b.textContent = label;
+    b.title = title;
+    b.dataset.cmd = cmd;
+    b.className = cmd === "rtl" || cmd === "land" ? "danger" : cmd === "hold" ? "warn" : "";
+    b.onclick = () => droneCommand(a.identity, cmd, label);
+    ctl.appendChild(b);
+  }
+  S.rows.set(a.identity, tr);
+  return tr;
+}
+
 function renderTable() {
   const body = $("fleet-table").querySelector("tbody");
   const now = Date.now() / 1000 + S.clockOffset;
-  const rows = [];
-  for (const a of [...S.agents.values()].sort((x, y) => x.identity.localeCompare(y.identity))) {
+  const agents = [...S.agents.values()].sort((x, y) => x.identity.localeCompare(y.identity));
+  for (const [identity, tr] of S.rows) if (!S.agents.has(identity)) { tr.remove(); S.rows.delete(identity); }
+  agents.forEach((a, index) => {
+    const tr = tableRow(a);
+    if (body.children[index] !== tr) body.insertBefore(tr, body.children[index] || null);
     const st = a.status;
+    const pos = st && st.position;
+    const bat = st && st.battery;
     const age = a.received ? Math.max(0, now - a.received) : null;
-    const bat = st && st.battery && st.battery.pct != null ? st.battery.pct.toFixed(0) + " %" : "-";
-    const gps = st ? `${st.gps ? st.gps.fix : 0}/${st.gps ? st.gps.satellites : 0}` : "-";
-    const exc = st && st.exceptions ? st.exceptions.join("; ") : "";
-    rows.push(`<tr data-agent="${esc(a.identity)}"><td><span style="color:${a.color}">&#9650;</span> ${esc(a.identity)}</td>` +
-      `<td class="mode">${st ? esc(st.mode) + (st.paused ? " (held)" : "") : "-"}</td><td>${st ? (st.armed ? "yes" : "no") : "-"}</td>` +
-      `<td>${bat}</td><td>${gps}</td><td>${st ? st.step : "-"}</td>` +
-      `<td class="${age != null && age > 3 ? "exc" : ""}">${age == null ? "-" : age.toFixed(1) + " s"}</td><td class="exc">${esc(exc)}</td></tr>`);
-  }
-  body.innerHTML = rows.join("");
+    const speed = st && st.velocity ? Math.hypot(st.velocity.vn, st.velocity.ve) : null;
+    const set = (cls, text) => { const td = tr.querySelector("td." + cls.split(" ")[0]); if (td.textContent !== text) td.textContent = text; };
+    set("mode", st ? st.mode + (st.paused ? " (held)" : "") : "-");
+    set("armed", st ? (st.armed ? "yes" : "no") : "-");
+    set("alt", pos ? pos.alt_rel.toFixed(1) + " m" : "-");
+    set("gs", speed != null ? speed.toFixed(1) + " m/s" : "-");
+    set("batt", bat && bat.pct != null ? bat.pct.toFixed(0) + " %" : "-");
+    set("volt", bat && bat.voltage_v != null ? bat.voltage_v.toFixed(1) + " V" : "-");
+    set("gps", st ? `${st.gps ? st.gps.fix : 0}/${st.gps ? st.gps.satellites : 0}` : "-");
+    set("step", st ? String(st.step) : "-");
+    set("link", age == null ? "-" : age.toFixed(1) + " s");
+    tr.querySelector("td.link").classList.toggle("stale", age != null && age > 3);
+    set("exc", st && st.exceptions ? st.exceptions.join("; ") : "");
+  });
   $("fleet-count").textContent = `${S.agents.size} drones`;
+}
+
+async function droneCommand(identity, cmd, label) {
+  await act(`${label} ${identity}`, () => api("POST", `/api/v1/fleet/${cmd}`, { agents: [identity], reason: "dashboard" }));
+}
+
+// A modal question; resolves true only on Confirm (Escape and Cancel say no).
+function confirmAction(text) {
+  const dialog = $("confirm");
+  $("confirm-text").textContent = text;
+  return new Promise((resolve) => {
+    dialog.onclose = () => resolve(dialog.returnValue === "ok");
+    dialog.returnValue = "";
+    dialog.showModal();
+  });
+}
+
+async function fleetCommand(cmd, label, question) {
+  if (question) {
+    const now = Date.now() / 1000 + S.clockOffset;
+    const n = [...S.agents.values()].filter((a) => a.received && now - a.received < 5).length;
+    if (!(await confirmAction(question.replace("{n}", String(n))))) { toast(`${label}: cancelled`); return; }
+  }
+  await act(label, () => api("POST", `/api/v1/fleet/${cmd}`, {}));
+}
+
+function clearTracks() {
+  S.tracksSince = Date.now() / 1000 + S.clockOffset;
+  for (const a of S.agents.values()) a.track = [];
+  S.dirty = true;
 }
 
 function renderEvents() {
@@ -460,7 +542,7 @@ function drawGeofence() {
 
 function drawDrone(a) {
   const st = a.status;
-  if (!st || !st.position) return; // no 3-D fix yet: nothing to draw
+  if (!st || !st.position) return;
   const [x, y] = toScreen(st.position.lat, st.position.lon);
   const dpr = window.devicePixelRatio || 1;
   ctx.save();
@@ -485,7 +567,8 @@ function draw() {
   if (!S.dirty) return;
   S.dirty = false;
   ctx.clearRect(0, 0, canvas.width, canvas.height);
-  if (!S.origin) { ctx.fillStyle = "#66707a"; ctx.fillText("waiting for drones...", 20, 40); return; }
+  $("map-empty").classList.toggle("hidden", !!S.origin);
+  if (!S.origin) return;
   if ($("follow").checked && !S.userMoved) fitView();
   drawTiles();
   drawGrid();
@@ -598,10 +681,11 @@ $("btn-start").onclick = startMission;
 $("btn-pause").onclick = () => missionCommand("pause");
 $("btn-resume").onclick = () => missionCommand("resume");
 $("btn-abort").onclick = () => missionCommand("abort", "?then=hold");
-$("btn-hold-all").onclick = () => act("hold all", () => api("POST", "/api/v1/fleet/hold", {}));
-$("btn-resume-all").onclick = () => act("resume all", () => api("POST", "/api/v1/fleet/resume", {}));
-$("btn-rtl-all").onclick = () => act("RTL all", () => api("POST", "/api/v1/fleet/rtl", {}));
-$("btn-land-all").onclick = () => act("land all", () => api("POST", "/api/v1/fleet/land", {}));
+$("btn-hold-all").onclick = () => fleetCommand("hold", "hold all");
+$("btn-resume-all").onclick = () => fleetCommand("resume", "resume all");
+$("btn-rtl-all").onclick = () => fleetCommand("rtl", "RTL all", "Return all {n} drones to launch? Running missions are aborted.");
+$("btn-land-all").onclick = () => fleetCommand("land", "land all", "Land all {n} drones where they are? Running missions are aborted.");
+$("btn-clear-tracks").onclick = clearTracks;
 window.addEventListener("resize", () => { S.dirty = true; });
 
 async function init() {

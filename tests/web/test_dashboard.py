@@ -44,6 +44,12 @@ async def test_mission_planned_and_started_from_the_page_completes(
         assert progress is not None and progress.state == "completed"
         bars = await page.eval_on_selector_all(".progress", "els => els.map(e => e.dataset.pct)")
         assert bars == ["100", "100", "100"]
+        filled = await page.eval_on_selector_all(
+            ".progress",
+            "els => els.map(e => [e.querySelector('.fill').getBoundingClientRect().width,"
+            " e.querySelector('.bar').getBoundingClientRect().width])",
+        )
+        assert all(track > 0 and abs(fill - track) <= 1 for fill, track in filled), filled
         events = await page.eval_on_selector_all("#events li", "els => els.map(e => e.dataset.kind)")
         assert "mission_completed" in events
         await page.screenshot(path=str(artifacts / "dashboard-completed.png"))
@@ -88,6 +94,7 @@ async def test_abort_from_the_page_holds_the_fleet(tmp_path: Path, browser: Any,
         await page.screenshot(path=str(artifacts / "dashboard-abort-hold.png"))
         # the operator then brings everyone home from the page
         await page.click("#btn-rtl-all")
+        await page.click("#confirm-ok")  # fleet-wide RTL asks first
         await wait_until(
             lambda: _true(all(s.status and not s.status.paused for s in sessions)),
             10,
