@@ -9,61 +9,32 @@ priority undoing a higher one.
 from __future__ import annotations
 
 import asyncio
-import math
 import time
 from pathlib import Path
 
 import pytest
 
-from gcs.api_planning import DroneInfo, SearchPlanRequest, plan
+from gcs.api_planning import SearchPlanRequest, plan
 from gcs.cooperation.config import CollisionConfig, CooperationConfig
 from protocol.actions import Goto, Hold, Land, Takeoff
 from protocol.geo import distance_m
 from protocol.packets import Geofence
 from protocol.taskfile import AgentPlan, TaskFile
-from tests.cooperation.rig import HOME, SPEEDUP, Rig, at, rig, wait_for
+from tests.cooperation.rig import SPEEDUP, Rig, at, rig, wait_for
+from tests.scenarios.scenarios import (
+    H_MARGIN,
+    area,
+    barrier_task,
+    crossing_task,
+    head_on,
+    infos,
+    separation,
+)
 
 pytestmark = pytest.mark.slow
 
-H_MARGIN, V_MARGIN = 4.0, 2.0
 COOP = CooperationConfig(vehicle_time_scale=SPEEDUP)
 HOLD_BOUND_S = COOP.collision.max_hold_s + 5.0
-
-
-def separation(truth: list[list[tuple[float, ...]]], since: int = 0) -> tuple[float, int]:
-    """(min 3-D distance, samples with a pair inside the h x v cylinder), airborne pairs only."""
-    closest, inside = math.inf, 0
-    for row in truth[since:]:
-        for i in range(len(row)):
-            for j in range(i + 1, len(row)):
-                a, b = row[i], row[j]
-                if a[3] < 0.5 or b[3] < 0.5 or a[2] - HOME[2] < 0.5 or b[2] - HOME[2] < 0.5:
-                    continue  # on (or at) the ground
-                h = math.hypot(a[0] - b[0], a[1] - b[1])
-                v = abs(a[2] - b[2])
-                closest = min(closest, math.hypot(h, v))
-                inside += h < H_MARGIN and v < V_MARGIN
-    return closest, inside
-
-
-def infos(r: Rig) -> list[DroneInfo]:
-    out = []
-    for name in r.names:
-        session = r.daemon.agents.session(name)
-        assert session is not None
-        home = session.home
-        assert home is not None
-        out.append(DroneInfo(name=name, home=(home.lat, home.lon), status=session.status))
-    return out
-
-
-def area(north: float, east: float, size_n: float, size_e: float) -> list[tuple[float, float]]:
-    return [
-        at(north, east),
-        at(north + size_n, east),
-        at(north + size_n, east + size_e),
-        at(north, east + size_e),
-    ]
 
 
 async def fly_to_end(r: Rig, task: TaskFile, timeout: float) -> None:
@@ -96,25 +67,6 @@ async def test_four_drone_dashboard_search_completes(tmp_path: Path) -> None:
         assert r.daemon.authority.longest_hold() < HOLD_BOUND_S
         closest, inside = separation(r.truth)
         assert inside == 0, f"closest {closest:.2f} m"
-
-
-def crossing_task(names: list[str], alt: float = 12.0) -> TaskFile:
-    """Each drone takes off, then flies long legs that cross the others' (room for holds)."""
-    plans = []
-    for k, name in enumerate(names):
-        a, b = at(60, -40 + 25 * k), at(60 + 20 * k, 60 - 25 * k)
-        plans.append(
-            AgentPlan(
-                agent=name,
-                actions=[
-                    Takeoff(step=0, alt=alt, sync=True),
-                    Goto(step=1, lat=a[0], lon=a[1], alt=alt, speed=4.0),
-                    Goto(step=2, lat=b[0], lon=b[1], alt=alt, speed=4.0),
-                    Land(step=3),
-                ],
-            )
-        )
-    return TaskFile(name="crossing", plans=plans)
 
 
 async def _held_fleet(r: Rig) -> str:
@@ -178,27 +130,6 @@ async def test_land_all_from_a_stack_lands_in_sequence_apart(tmp_path: Path) -> 
         assert min(gaps) >= H_MARGIN - 0.5, gaps  # none landed on another
         closest, inside = separation(r.truth, start)
         assert inside == 0, f"closest {closest:.2f} m"
-
-
-def head_on(names: list[str], alt: float = 10.0) -> TaskFile:
-    east = 2.5
-    south, north = at(-25.0, east), at(25.0, east)
-    ends = [(south, north), (north, south)]
-    return TaskFile(
-        name="head-on",
-        plans=[
-            AgentPlan(
-                agent=name,
-                actions=[
-                    Takeoff(step=0, alt=alt, sync=True),
-                    Goto(step=1, lat=a[0], lon=a[1], alt=alt, speed=5.0, sync=True),
-                    Goto(step=2, lat=b[0], lon=b[1], alt=alt, speed=5.0, sync=True),
-                    Land(step=3),
-                ],
-            )
-            for name, (a, b) in zip(names, ends, strict=True)
-        ],
-    )
 
 
 async def test_battery_failsafe_during_a_collision_hold_still_lands(tmp_path: Path) -> None:
@@ -273,29 +204,6 @@ async def test_fence_emergency_hold_survives_a_collision_escape(tmp_path: Path) 
         delivered, _ = await r.daemon.operator.bring_down("land", ["drone-2"], "test")  # operator overrides
         assert delivered == ["drone-2"]
         await wait_for(lambda: r.landed("drone-2"), 60, "operator land overrides the failsafe hold")
-
-
-def barrier_task(names: list[str]) -> TaskFile:
-    """drone-1's leg to barrier 1 is short, drone-2's long: drone-1 waits there a while."""
-    near, far = at(5.0, 0.0), at(80.0, 5.0)
-    nxt = at(20.0, -20.0)
-    legs = {names[0]: near, names[1]: far}
-    return TaskFile(
-        name="barrier",
-        sync_timeout_s=300,
-        plans=[
-            AgentPlan(
-                agent=name,
-                actions=[
-                    Takeoff(step=0, alt=8.0 + 4 * k, sync=True),
-                    Goto(step=1, lat=legs[name][0], lon=legs[name][1], alt=8.0 + 4 * k, speed=3.0, sync=True),
-                    Goto(step=2, lat=nxt[0] + 1e-4 * k, lon=nxt[1], alt=8.0 + 4 * k, speed=5.0),
-                    Land(step=3),
-                ],
-            )
-            for k, name in enumerate(names)
-        ],
-    )
 
 
 async def test_agent_restarted_at_an_unreleased_barrier_waits_for_the_release(tmp_path: Path) -> None:
