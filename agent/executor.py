@@ -128,6 +128,9 @@ class ActionExecutor:
                 self.continuation = action.model_copy(update={"points": action.points[index:]})
                 await self._fly_to(point.lat, point.lon, point.alt, action.speed)
         elif isinstance(action, Land):
+            now = ap.telemetry()
+            if now.landed and not now.armed:
+                return  # already down (a stand-down sent to a drone that had not taken off)
             await ap.land(action.lat, action.lon)
             await self._until_disarmed()
         elif isinstance(action, ReturnToLaunch):

@@ -78,16 +78,24 @@ class ReturnCoordinator:
     active: dict[str, _Return] = field(default_factory=dict)
 
     def start(self, idents: list[str], kind: ReturnKind, owner: Owner, reason: str) -> list[str]:
-        """Send each airborne drone its return program; grounded ones need nothing. Returns who got one."""
+        """Send each airborne drone its return program; returns who got one.
+
+        A drone reported on the ground gets a stand-down (land: nothing to do if it is down, and
+        it lands if the report was stale and its take-off had begun), so no queued take-off flies.
+        """
         fleet = self.fleet()
+        stamp = time.strftime("%H%M%S")
+        mission_id = f"{RETURN_PREFIX}{kind}-{stamp}"
         views = {i: fleet[i] for i in idents if i in fleet}
         airborne = {i: v for i, v in views.items() if v.status.armed and not v.status.landed}
+        for ident in idents:
+            if ident not in airborne:
+                # Land, not an empty plan: its status may be stale and a take-off under way.
+                self.authority.replace(ident, owner, mission_id, [Land(step=0)], f"{reason} (on the ground)")
         if not airborne:
             return []
         first = next(iter(airborne.values())).position
         frame = LocalFrame(first.lat, first.lon)
-        stamp = time.strftime("%H%M%S")
-        mission_id = f"{RETURN_PREFIX}{kind}-{stamp}"
         returners = []
         for ident, view in airborne.items():
             here = frame.point(view.position.lat, view.position.lon)
