@@ -542,12 +542,13 @@ class MissionRunner:
             timer.cancel()
 
     def _working_on(self, mission: ActiveMission, identity: str) -> bool:
-        """True while the agent's reports show it flying an action or waiting at a barrier."""
+        """True while the agent's reports show it flying an action, waiting at a barrier, or held
+        by a pause (collision avoidance holds one agent at a time)."""
         session = self._agents.session(identity)
         status = session.status if session else None
         if status is None or status.mission_id != mission.id:
             return False
-        return status.step >= 0 or status.waiting_sync is not None
+        return status.step >= 0 or status.waiting_sync is not None or status.paused
 
     async def _watchdog_fired(self, mission: ActiveMission, step: int) -> None:
         self._watchdogs.pop(mission.id, None)
