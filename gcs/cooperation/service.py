@@ -639,7 +639,7 @@ class CooperationService:
         for ident in plans:
             session = self.daemon.agents.session(ident)
             status = session.status if session else None
-            if status is not None:
+            if status is not None and status.position is not None:
                 homes[ident] = (status.position.lat, status.position.lon, max(status.position.alt_rel, 0.0))
             elif session is not None and session.home is not None:
                 homes[ident] = (session.home.lat, session.home.lon, 0.0)
