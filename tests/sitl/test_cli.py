@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from gcs.cli import build_parser as gcs_parser
 from sitl.ardupilot import ArduPilotFleet
 from sitl.cli import build_parser
 from tests.ardupilot.binary import SKIP_REASON, ardupilot_binary
@@ -157,6 +158,9 @@ def test_ardupilot_command_line_layout() -> None:
 def test_cli_parses_negative_coordinates_and_rejects_what_ardupilot_cannot_do() -> None:
     args = build_parser().parse_args(["run", "--home", "-35.36,149.16,584", "--wind", "-2,1"])
     assert args.home == (-35.36, 149.16, 584.0) and args.wind == (-2.0, 1.0)
+    gcs = gcs_parser()
+    assert gcs.parse_args(["plan", "area.json", "--home", "-35.36,-149.16"]).home == (-35.36, -149.16)
+    assert gcs.parse_args(["demo", "--home", "-35.36,149.16,584"]).home == (-35.36, 149.16, 584.0)
     proc = subprocess.run(
         [sys.executable, "-m", "sitl", "run", "--ardupilot", "/nonexistent", "--fail", "1:link_drop@3+1"],
         cwd=ROOT,
