@@ -1,7 +1,8 @@
 """File formats of the fleet planners (documented in docs/fleet-planners.md), validated with pydantic.
 
 * target file (``"format": "fleetgcs-targets"``): targets as ``{lat, lon}`` or ``{x, y}`` metres
-  east/north of ``origin``, plus ``config`` (drones, link_range_m, speed_mps, alt_m);
+  east/north of ``origin``, plus ``config`` (drones, link_range_m, speed_mps, alt_m,
+  min_separation_m, track_margin_m);
 * missed map (``"format": "fleetgcs-missed-map"``): geo-referenced grid of 1 detected / 0 missed,
   inline ``rows`` (north first) or ``npy`` (path of a 2-D .npy next to the JSON), plus RSA options.
 """
@@ -54,6 +55,10 @@ class PsaConfig(BaseModel):
     link_range_m: float = Field(default=20.0, gt=0, le=10_000)
     speed_mps: float = Field(default=4.0, gt=0, le=100)
     alt_m: float = Field(default=20.0, gt=0, le=10_000)
+    min_separation_m: float | None = Field(
+        default=None, ge=0, le=10_000, description="None = the collision margin x release factor"
+    )
+    track_margin_m: float = Field(default=1.0, ge=0, le=10_000)
 
 
 class TargetFile(BaseModel):

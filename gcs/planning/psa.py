@@ -27,9 +27,46 @@ from gcs.planning._psa_geometry import (
 )
 from gcs.planning._psa_trajectory import FleetTrajectory, TrajectoryBuilder, formation, pivot
 
-__all__ = ["FleetTrajectory", "PlanReport", "PsaCosts", "PsaPlan", "PsaRound", "check_plan", "plan_psa"]
+__all__ = [
+    "FleetTrajectory",
+    "PlanReport",
+    "PsaCosts",
+    "PsaInfeasible",
+    "PsaPlan",
+    "PsaRound",
+    "check_plan",
+    "plan_psa",
+    "spacing_bounds",
+]
 
 SCAN_TOL = 1e-6  # targets closer than this along an edge share a scan line (the paper's F_s)
+# The narrowest formation is this much wider than the separation floor, so that formation turns
+# need sub-steps of at most 2 * arccos(1 / 1.0824) = 45 degrees (cos 22.5 degrees = 1 / 1.0824).
+TURN_SPACING_FACTOR = 1.0 / float(np.cos(np.pi / 8))
+
+
+class PsaInfeasible(ValueError):
+    """The link range cannot hold both the connectivity bound and the separation floor."""
+
+
+def spacing_bounds(link_range: float, min_separation: float, track_margin: float) -> tuple[float, float]:
+    """(narrowest, widest) formation spacing for a link range, a separation floor and a track margin.
+
+    Each flown track may stray ``track_margin`` from the plan, so neighbours must be planned at
+    most ``w - 2 track_margin`` apart (connectivity) and at least ``min_separation + 2
+    track_margin`` apart everywhere, turns included; the narrowest spacing leaves room for turns
+    in 45-degree sub-steps. Raises :class:`PsaInfeasible` when the two bounds cross.
+    """
+    widest = link_range - 2.0 * track_margin
+    floor = min_separation + 2.0 * track_margin
+    narrowest = floor * TURN_SPACING_FACTOR
+    if widest < narrowest - 1e-9 or widest <= 0:
+        raise PsaInfeasible(
+            f"PSA cannot keep neighbours within the link range w = {link_range:g} m and at least "
+            f"{min_separation:g} m apart (collision margin) with {track_margin:g} m of tracking error: "
+            f"it needs w >= {narrowest + 2.0 * track_margin:.1f} m, or a smaller separation or track margin"
+        )
+    return narrowest, widest
 
 
 @dataclass(frozen=True)
@@ -72,10 +109,33 @@ class PsaPlan:
     costs: PsaCosts
     link_range: float
     points: FloatArray = field(repr=False)
+    speed: float = 4.0
+    min_separation: float = 0.0
+    track_margin: float = 0.0
+
+    @property
+    def flown(self) -> FleetTrajectory:
+        """The tracks as the task file flies them (equal speed per leg, a barrier at each sync knot)."""
+        return self.trajectory.flown(self.speed)
 
     def check(self, sample_dt: float = 0.25) -> PlanReport:
-        """Re-verify connectivity and coverage on the produced trajectories."""
-        return check_plan(self.trajectory, self.points, self.link_range, sample_dt=sample_dt)
+        """Re-verify connectivity, separation and coverage on the tracks as they will be flown.
+
+        The bounds are the planning ones (``w - 2 track_margin`` and ``min_separation + 2
+        track_margin``), so any flight that stays within ``track_margin`` of its planned track
+        keeps every nearest neighbour within ``w`` and every pair ``min_separation`` apart.
+        """
+        return check_plan(
+            self.trajectory,
+            self.points,
+            self.link_range - 2.0 * self.track_margin,
+            sample_dt=sample_dt,
+            min_separation=self.min_separation + 2.0 * self.track_margin
+            if self.trajectory.drones > 1
+            else None,
+            flown_speed=self.speed,
+            max_speed=self.speed,
+        )
 
 
 def _split_rounds(points: FloatArray, w_max: float) -> list[tuple[FloatArray, np.ndarray]]:
@@ -152,6 +212,7 @@ class _RoundScanner:
     drones: int
     link_range: float
     min_spacing: float
+    min_separation: float = 0.0
     scan_cost: float = 0.0
     turn_cost: float = 0.0
 
@@ -175,7 +236,9 @@ class _RoundScanner:
         if self.drones > 1:
             old = self.spacing
             self.spacing = old if spacing is None else spacing
-            self.turn_cost += pivot(self.builder, anchor, self.normal_now(), normal, old, self.spacing)
+            self.turn_cost += pivot(
+                self.builder, anchor, self.normal_now(), normal, old, self.spacing, self.min_separation
+            )
         else:
             self.builder.move_to(anchor.reshape(1, 2))
         self._last_normal = normal
@@ -235,21 +298,31 @@ def plan_psa(
     link_range: float,
     speed: float = 4.0,
     *,
-    min_spacing: float = 5.0,
+    min_separation: float = 5.0,
+    track_margin: float = 0.0,
     adaptive_width: bool = True,
 ) -> PsaPlan:
     """Plan the fleet's timed trajectories visiting every target with a connected line formation.
 
-    ``adaptive_width`` narrows the formation (never below ``min_spacing`` metres, for collision
-    safety) when a ring's targets are all shallower than ``w_max``; ``False`` flies the paper's
-    fixed spacing ``link_range``.
+    Neighbours are planned at most ``link_range - 2 track_margin`` apart and every pair at least
+    ``min_separation + 2 track_margin`` apart at every instant of the flown tracks, formation
+    turns included (default floor 5 m: the collision service's 4 m horizontal margin times its
+    1.25 release factor). ``adaptive_width`` narrows the formation to a ring's deepest target
+    (never below what the separation floor needs); ``False`` flies the widest spacing.
+    Raises :class:`PsaInfeasible` when the link range cannot satisfy both bounds.
     """
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     if len(pts) == 0:
         raise ValueError("PSA needs at least one target")
-    if drones < 1 or link_range <= 0 or speed <= 0:
-        raise ValueError("PSA needs drones >= 1, link_range > 0 and speed > 0")
-    w_max = (drones - 1) * link_range
+    if drones < 1 or link_range <= 0 or speed <= 0 or min_separation < 0 or track_margin < 0:
+        raise ValueError("PSA needs drones >= 1, link_range > 0, speed > 0 and non-negative margins")
+    if drones > 1:
+        narrowest, widest = spacing_bounds(link_range, min_separation, track_margin)
+    else:
+        narrowest = widest = link_range
+    floor_sep = min_separation + 2.0 * track_margin if drones > 1 else 0.0
+    link_range_plan = widest
+    w_max = (drones - 1) * widest
     split = _split_rounds(pts, w_max)
     hulls = [h for h, _ in split]
     entries = _transfer_points(hulls)
@@ -257,9 +330,11 @@ def plan_psa(
     normal0 = (
         first_frame.normal[_edge_of(first_frame, entries[0])[0]] if first_frame else np.array([0.0, 1.0])
     )
-    floor = min_spacing if adaptive_width else link_range
-    builder = TrajectoryBuilder(formation(entries[0], -normal0, link_range, drones), speed)
-    scanner = _RoundScanner(builder, link_range, drones, link_range, floor, _last_normal=normal0)
+    floor = narrowest if adaptive_width else widest
+    builder = TrajectoryBuilder(formation(entries[0], -normal0, widest, drones), speed)
+    scanner = _RoundScanner(
+        builder, widest, drones, link_range_plan, floor, min_separation=floor_sep, _last_normal=normal0
+    )
     if first_frame is not None:  # start already at the first ring's width (no re-spacing cost)
         scanner.spacing = scanner.ring_spacing(locate(first_frame, pts[split[0][1]])[0])
         builder = TrajectoryBuilder(formation(entries[0], -normal0, scanner.spacing, drones), speed)
@@ -282,5 +357,12 @@ def plan_psa(
         fleet_length=float(trajectory.lengths().max()),
     )
     return PsaPlan(
-        trajectory=trajectory, rounds=tuple(rounds), costs=costs, link_range=link_range, points=pts
+        trajectory=trajectory,
+        rounds=tuple(rounds),
+        costs=costs,
+        link_range=link_range,
+        points=pts,
+        speed=speed,
+        min_separation=min_separation if drones > 1 else 0.0,
+        track_margin=track_margin,
     )
