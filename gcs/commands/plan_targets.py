@@ -103,6 +103,10 @@ def _run_psa(args: argparse.Namespace, out: Path) -> int:
     if separation < 0 or margin < 0:
         raise FleetFileError("--min-separation and --track-margin must not be negative")
     plan = plan_psa(pts, drones, link, speed, min_separation=separation, track_margin=margin)
+    if doc.homes is not None:
+        if len(doc.homes) != drones:
+            raise FleetFileError(f"the target file lists {len(doc.homes)} homes for {drones} drones")
+        plan = plan.from_homes(frame.points_to_local([(h.lat, h.lon) for h in doc.homes]))
     check = plan.check()
     traj = plan.trajectory
     names = [f"drone-{j + 1}" for j in range(drones)]
@@ -132,7 +136,18 @@ def _run_psa(args: argparse.Namespace, out: Path) -> int:
         "violations": [v.detail for v in check.violations[:20]],
     }
     _write(
-        out, psa_mission(traj, frame, alt, speed, names), geojson_lines(paths_ll, names, method="psa"), report
+        out,
+        psa_mission(
+            traj,
+            frame,
+            alt,
+            speed,
+            names,
+            assembly=None if plan.assembly is None else plan.assembly.trajectory,
+            assembly_speeds=None if plan.assembly is None else plan.assembly.speeds.tolist(),
+        ),
+        geojson_lines(paths_ll, names, method="psa"),
+        report,
     )
     hulls = [np.vstack([r.hull, r.hull[:1]]) for r in plan.rounds if len(r.hull) > 1]
     _plot(

@@ -2,7 +2,7 @@
 
 * target file (``"format": "fleetgcs-targets"``): targets as ``{lat, lon}`` or ``{x, y}`` metres
   east/north of ``origin``, plus ``config`` (drones, link_range_m, speed_mps, alt_m,
-  min_separation_m, track_margin_m);
+  min_separation_m, track_margin_m) and optional ``homes`` (one {lat, lon} per drone);
 * missed map (``"format": "fleetgcs-missed-map"``): geo-referenced grid of 1 detected / 0 missed,
   inline ``rows`` (north first) or ``npy`` (path of a 2-D .npy next to the JSON), plus RSA options.
 """
@@ -67,6 +67,9 @@ class TargetFile(BaseModel):
     origin: LatLon | None = None
     targets: list[Target] = Field(min_length=1, max_length=100_000)
     config: PsaConfig = PsaConfig()
+    homes: list[LatLon] | None = Field(
+        default=None, description="PSA: one per drone, in drone order; times the assembly flight"
+    )
 
     @model_validator(mode="after")
     def _origin_when_local(self) -> TargetFile:

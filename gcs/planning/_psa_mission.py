@@ -1,4 +1,4 @@
-"""PSA trajectories -> task file, with a barrier wherever the formation turns.
+"""PSA trajectories -> task file, with a barrier wherever the formation turns (every sub-step).
 
 ``gcs.planning.mission.mission_from_paths`` syncs only once at the end of the survey, which
 would let a line formation drift apart at corners; here every leg of the common-knot trajectory
@@ -42,19 +42,34 @@ def psa_mission(
     speed: float | None = None,
     names: Sequence[str] | None = None,
     name: str = "psa",
+    assembly: FleetTrajectory | None = None,
+    assembly_speeds: Sequence[Sequence[float]] | None = None,
 ) -> TaskFile:
-    """Takeoff (sync) -> goto formation start (sync) -> one synced Waypoints per leg -> land."""
+    """Takeoff (sync) -> goto formation start (sync) -> one synced Waypoints per leg -> land.
+
+    ``assembly`` and ``assembly_speeds[k][j]`` (from :func:`gcs.planning.psa.plan_assembly`)
+    replace the single goto by one synced goto per assembly sub-step, timed so that every drone
+    arrives together; without them all fly to the formation start at ``speed``.
+    Every leg, formation-turn sub-steps included, ends at a barrier: within a leg all drones fly
+    the same speed, which keeps the formation's shape only between barriers.
+    """
     m = trajectory.drones
     labels = list(names) if names is not None else [f"drone-{j + 1}" for j in range(m)]
-    start_lat, start_lon = frame.to_geodetic(trajectory.positions[:, 0, 0], trajectory.positions[:, 0, 1])
-    plans: list[list[Action]] = [
-        [
-            Takeoff(step=0, sync=True, alt=alt),
-            Goto(step=1, sync=True, lat=float(start_lat[j]), lon=float(start_lon[j]), alt=alt, speed=speed),
-        ]
-        for j in range(m)
-    ]
-    step = 2
+    plans: list[list[Action]] = [[Takeoff(step=0, sync=True, alt=alt)] for _ in range(m)]
+    if assembly is not None and assembly_speeds is not None:
+        knots = [assembly.positions[:, k] for k in range(1, assembly.positions.shape[1])]
+        speeds: list[list[float | None]] = [list(map(float, row)) for row in assembly_speeds]
+    else:
+        knots = [trajectory.positions[:, 0]]
+        speeds = [[speed] * m]
+    step = 1
+    for knot, row in zip(knots, speeds, strict=True):
+        lat, lon = frame.to_geodetic(knot[:, 0], knot[:, 1])
+        for j in range(m):
+            plans[j].append(
+                Goto(step=step, sync=True, lat=float(lat[j]), lon=float(lon[j]), alt=alt, speed=row[j])
+            )
+        step += 1
     for leg in _legs_latlon(trajectory, frame):
         chunks = max(1, max(-(-len(p) // MAX_WAYPOINTS_PER_ACTION) for p in leg))
         for c in range(chunks):

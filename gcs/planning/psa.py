@@ -11,7 +11,8 @@ Theorem 1's bound is not a bound on the optimum).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import itertools
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -28,6 +29,7 @@ from gcs.planning._psa_geometry import (
 from gcs.planning._psa_trajectory import FleetTrajectory, TrajectoryBuilder, formation, pivot
 
 __all__ = [
+    "Assembly",
     "FleetTrajectory",
     "PlanReport",
     "PsaCosts",
@@ -35,6 +37,7 @@ __all__ = [
     "PsaPlan",
     "PsaRound",
     "check_plan",
+    "plan_assembly",
     "plan_psa",
     "spacing_bounds",
 ]
@@ -101,6 +104,104 @@ class PsaCosts:
 
 
 @dataclass(frozen=True)
+class Assembly:
+    """The flight from the homes to the formation start, in synchronised sub-steps.
+
+    ``order[j]`` is the formation slot drone j takes; ``trajectory`` has one knot per sub-step
+    (homes first, formation start last), every knot a barrier, and ``speeds[k, j]`` is drone j's
+    speed on sub-step k: its distance over the sub-step's duration, so all drones arrive
+    together and each pair's offset moves in a straight line within a sub-step. The sub-steps
+    turn and stretch the homes' layout into the formation's about their centroid (a rigid
+    rotation when both are lines) so neighbours never cut across each other.
+    """
+
+    homes: FloatArray  # (m, 2)
+    order: np.ndarray  # (m,) int
+    speeds: FloatArray  # (K, m)
+    trajectory: FleetTrajectory  # K + 1 knots: homes ... formation start
+
+
+MIN_ASSEMBLY_SPEED = 0.2  # m/s; a drone already at its slot still gets a valid speed
+ASSEMBLY_ENUMERATE_UP_TO = 6  # drones: every slot order is tried up to this many (720 orders)
+ASSEMBLY_STEP_RAD = np.pi / 8  # the layout turns at most 22.5 degrees per sub-step
+
+
+def _pair_clearance(a: FloatArray, b: FloatArray) -> float:
+    """Closest approach of any pair whose offsets move linearly from rows of ``a`` to rows of ``b``."""
+    m = len(a)
+    if m < 2:
+        return float("inf")
+    jj, kk = np.triu_indices(m, 1)
+    ra, rb = a[jj] - a[kk], b[jj] - b[kk]
+    d = rb - ra
+    dd = (d * d).sum(-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(dd > 1e-18, np.clip(-(ra * d).sum(-1) / dd, 0.0, 1.0), 0.0)
+    closest = ra + f[:, None] * d
+    return float(np.hypot(closest[:, 0], closest[:, 1]).min())
+
+
+def _assembly_knots(homes: FloatArray, target: FloatArray) -> list[FloatArray]:
+    """Layouts from ``homes`` to ``target``: centroid moves straight, offsets turn and blend."""
+    ch, ct = homes.mean(axis=0), target.mean(axis=0)
+    h, f = homes - ch, target - ct
+    phi = float(np.arctan2((h[:, 0] * f[:, 1] - h[:, 1] * f[:, 0]).sum(), (h * f).sum()))
+    steps = max(1, int(np.ceil(abs(phi) / ASSEMBLY_STEP_RAD - 1e-9)))
+
+    def rot(a: float) -> FloatArray:
+        return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+    back = f @ rot(-phi).T  # the formation's offsets turned back onto the homes' orientation
+    knots = []
+    for i in range(steps + 1):
+        lam = i / steps
+        offsets = ((1.0 - lam) * h + lam * back) @ rot(lam * phi).T
+        knots.append((1.0 - lam) * ch + lam * ct + offsets)
+    knots[0], knots[-1] = homes.copy(), target.copy()
+    return knots
+
+
+def plan_assembly(homes: FloatArray, start: FloatArray, speed: float) -> Assembly:
+    """Assign formation slots to drones and time the assembly flight (see :class:`Assembly`).
+
+    The order maximises the closest approach during the assembly, then minimises the longest
+    flight; every order is tried for up to six drones, identity and reversed beyond.
+    """
+    homes = np.asarray(homes, dtype=float).reshape(-1, 2)
+    start = np.asarray(start, dtype=float).reshape(-1, 2)
+    m = len(start)
+    if len(homes) != m:
+        raise ValueError(f"{len(homes)} homes for {m} drones")
+    orders: list[tuple[int, ...]] = (
+        list(itertools.permutations(range(m)))
+        if m <= ASSEMBLY_ENUMERATE_UP_TO
+        else [tuple(range(m)), tuple(range(m - 1, -1, -1))]
+    )
+    best: tuple[float, float, tuple[int, ...]] | None = None
+    best_knots: list[FloatArray] = []
+    for o in orders:
+        knots = _assembly_knots(homes, start[list(o)])
+        clearance = min(_pair_clearance(a, b) for a, b in itertools.pairwise(knots))
+        length = float(sum(np.hypot(*(b - a).T).max() for a, b in itertools.pairwise(knots)))
+        key = (-round(clearance, 6), round(length, 6), o)
+        if best is None or key < best:
+            best, best_knots = key, knots
+    assert best is not None
+    times, speeds = [0.0], []
+    for a, b in itertools.pairwise(best_knots):
+        dist = np.hypot(*(b - a).T)
+        duration = max(float(dist.max()) / speed, 1e-6)
+        times.append(times[-1] + duration)
+        speeds.append(np.clip(dist / duration, MIN_ASSEMBLY_SPEED, speed))
+    traj = FleetTrajectory(
+        times=np.asarray(times),
+        positions=np.stack(best_knots, axis=1),
+        sync=np.ones(len(times), dtype=bool),
+    )
+    return Assembly(homes=homes, order=np.asarray(best[2]), speeds=np.asarray(speeds), trajectory=traj)
+
+
+@dataclass(frozen=True)
 class PsaPlan:
     """Trajectories, rounds and costs of a PSA plan."""
 
@@ -112,6 +213,16 @@ class PsaPlan:
     speed: float = 4.0
     min_separation: float = 0.0
     track_margin: float = 0.0
+    assembly: Assembly | None = None
+
+    def from_homes(self, homes: FloatArray) -> PsaPlan:
+        """This plan with drone j flying from ``homes[j]``: slots assigned, assembly timed.
+
+        The trajectory's rows are reordered so that row j is drone j's track.
+        """
+        assembly = plan_assembly(homes, self.trajectory.positions[:, 0], self.speed)
+        traj = replace(self.trajectory, positions=self.trajectory.positions[assembly.order])
+        return replace(self, trajectory=traj, assembly=assembly)
 
     @property
     def flown(self) -> FleetTrajectory:
@@ -125,16 +236,33 @@ class PsaPlan:
         track_margin``), so any flight that stays within ``track_margin`` of its planned track
         keeps every nearest neighbour within ``w`` and every pair ``min_separation`` apart.
         """
-        return check_plan(
+        sep = self.min_separation + 2.0 * self.track_margin if self.trajectory.drones > 1 else None
+        report = check_plan(
             self.trajectory,
             self.points,
             self.link_range - 2.0 * self.track_margin,
             sample_dt=sample_dt,
-            min_separation=self.min_separation + 2.0 * self.track_margin
-            if self.trajectory.drones > 1
-            else None,
+            min_separation=sep,
             flown_speed=self.speed,
             max_speed=self.speed,
+        )
+        if self.assembly is None:
+            return report
+        # The assembly starts from the real homes: checked against w and the bare separation.
+        first = check_plan(
+            self.assembly.trajectory,
+            np.zeros((0, 2)),
+            self.link_range,
+            sample_dt=sample_dt,
+            min_separation=self.min_separation if self.trajectory.drones > 1 else None,
+        )
+        return PlanReport(
+            violations=first.violations + report.violations,
+            samples=first.samples + report.samples,
+            max_neighbour_distance=max(first.max_neighbour_distance, report.max_neighbour_distance),
+            max_target_miss=report.max_target_miss,
+            lengths=report.lengths,
+            min_separation=min(first.min_separation, report.min_separation),
         )
 
 

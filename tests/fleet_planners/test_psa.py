@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -238,3 +241,67 @@ def test_paper_setting_with_default_margins_flies_within_w_and_clear_of_the_marg
     legs = [a for a in task.plans[0].actions if isinstance(a, Waypoints)]
     assert len(legs) == len(plan.trajectory.legs()) and all(a.sync for a in legs)
     assert {len(p.actions) for p in task.plans} == {len(task.plans[0].actions)}
+
+
+def test_assembly_from_homes_arrives_together_without_crossing() -> None:
+    pts = _paper_instance(30, seed=30)
+    plan = plan_psa(pts, 3, 20.0, 4.0, min_separation=5.0, track_margin=1.0)
+    start = plan.trajectory.positions[:, 0]
+    # homes 6 m apart on a line parallel to the formation but in the opposite order
+    axis = (start[2] - start[0]) / np.hypot(*(start[2] - start[0]))
+    homes = np.array([start[0] + (60 - 6 * j) * axis + np.array([40.0, -30.0]) for j in range(3)])
+    flown = plan.from_homes(homes)
+    assert flown.assembly is not None
+    assert flown.assembly.order.tolist() == [2, 1, 0]  # reversed: nobody crosses
+    np.testing.assert_allclose(flown.trajectory.positions[:, 0], start[[2, 1, 0]])
+    knots = flown.assembly.trajectory.positions
+    for k in range(knots.shape[1] - 1):  # every sub-step: all arrive together
+        dist = np.hypot(*(knots[:, k + 1] - knots[:, k]).T)
+        np.testing.assert_allclose(flown.assembly.speeds[k] / 4.0, np.maximum(dist / dist.max(), 0.05))
+    report = flown.check(sample_dt=0.1)
+    assert report.ok, report.violations[:3]
+    assert report.max_neighbour_distance <= 20.0 and report.min_separation >= 5.0
+    task = psa_mission(
+        flown.trajectory,
+        LocalFrame(47.0, 8.0),
+        20.0,
+        4.0,
+        assembly=flown.assembly.trajectory,
+        assembly_speeds=flown.assembly.speeds.tolist(),
+    )
+    gotos = [[a for a in p.actions if a.kind == "goto"] for p in task.plans]
+    assert all(len(g) == knots.shape[1] - 1 and all(a.sync for a in g) for g in gotos)
+    assert [g[0].speed for g in gotos] == pytest.approx(flown.assembly.speeds[0].tolist())
+
+
+def test_cli_refuses_a_link_range_too_short_for_the_margin(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from gcs.cli import main
+
+    f = tmp_path / "t.json"
+    f.write_text(
+        json.dumps(
+            {
+                "origin": {"lat": 47.0, "lon": 8.0},
+                "targets": [{"x": float(x), "y": float(y)} for x, y in _paper_instance(10, 2)],
+                "config": {"drones": 3, "link_range_m": 8},
+            }
+        )
+    )
+    assert main(["plan", "--targets", str(f), "--method", "psa", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("gcs plan: error: PSA cannot keep neighbours within the link range w = 8 m")
+    # with homes in the file the assembly is timed and certified too
+    doc = json.loads(f.read_text())
+    doc["config"]["link_range_m"] = 20
+    doc["homes"] = [{"lat": 47.0, "lon": 8.0 + k * 8e-5} for k in range(3)]
+    f.write_text(json.dumps(doc))
+    assert main(["plan", "--targets", str(f), "--method", "psa", "--out", str(tmp_path / "o")]) == 0
+    report = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert report["check_ok"] and report["planned_max_neighbour_m"] <= 20.0
+    assert report["planned_min_separation_m"] >= 5.0
+    doc["homes"] = doc["homes"][:2]
+    f.write_text(json.dumps(doc))
+    assert main(["plan", "--targets", str(f), "--method", "psa", "--out", str(tmp_path / "o")]) == 2
+    assert "2 homes for 3 drones" in capsys.readouterr().err
