@@ -14,7 +14,16 @@ import numpy as np
 
 from gcs.planning._psa_trajectory import FleetTrajectory
 from gcs.planning.geodesy import LocalFrame
-from protocol.actions import MAX_WAYPOINTS_PER_ACTION, Action, Goto, Land, Takeoff, Waypoint, Waypoints
+from protocol.actions import (
+    MAX_WAYPOINTS_PER_ACTION,
+    Action,
+    Goto,
+    Hold,
+    Land,
+    Takeoff,
+    Waypoint,
+    Waypoints,
+)
 from protocol.taskfile import AgentPlan, TaskFile
 
 
@@ -32,6 +41,29 @@ def _legs_latlon(trajectory: FleetTrajectory, frame: LocalFrame) -> list[list[li
             pts = [(float(ll[j, first + k, 0]), float(ll[j, first + k, 1])) for k in keep]
             leg.append(pts or [(float(ll[j, last, 0]), float(ll[j, last, 1]))])
         out.append(leg)
+    return out
+
+
+# Seconds a drone holds (brakes) at the far end of an excursion before the barrier: long enough to
+# stop from the ~3 m/s it still has at the acceptance radius (ArduCopter BRAKE decelerates hard).
+STOP_BEFORE_REVERSAL_S = 0.5
+
+
+def _reversals(trajectory: FleetTrajectory) -> set[int]:
+    """Legs after which some drone flies back the way it came (the far end of an excursion).
+
+    The agent completes a leg within its acceptance radius, still moving, so the last drone to
+    reach such a barrier must first stop and turn while the others, long hovering, already fly:
+    it lags its neighbours head-on along the formation line. A ``hold`` before the barrier stops
+    every drone first, so the next leg starts from rest for all (``hold`` time is the agent's
+    wall clock: a sped-up simulator stretches it, harmlessly).
+    """
+    out = set()
+    for index, (_, last) in enumerate(trajectory.legs()[:-1]):
+        into = trajectory.positions[:, last] - trajectory.positions[:, last - 1]
+        onward = trajectory.positions[:, last + 1] - trajectory.positions[:, last]
+        if np.any((into * onward).sum(axis=1) < -1e-9):
+            out.add(index)
     return out
 
 
@@ -70,8 +102,10 @@ def psa_mission(
                 Goto(step=step, sync=True, lat=float(lat[j]), lon=float(lon[j]), alt=alt, speed=row[j])
             )
         step += 1
-    for leg in _legs_latlon(trajectory, frame):
+    stops = _reversals(trajectory)
+    for index, leg in enumerate(_legs_latlon(trajectory, frame)):
         chunks = max(1, max(-(-len(p) // MAX_WAYPOINTS_PER_ACTION) for p in leg))
+        stop = index in stops
         for c in range(chunks):
             for j in range(m):
                 size = -(-len(leg[j]) // chunks)
@@ -79,11 +113,15 @@ def psa_mission(
                 plans[j].append(
                     Waypoints(
                         step=step,
-                        sync=c == chunks - 1,
+                        sync=c == chunks - 1 and not stop,
                         points=[Waypoint(lat=a, lon=b, alt=alt) for a, b in part],
                         speed=speed,
                     )
                 )
+            step += 1
+        if stop:
+            for j in range(m):
+                plans[j].append(Hold(step=step, sync=True, seconds=STOP_BEFORE_REVERSAL_S))
             step += 1
     for j in range(m):
         plans[j].append(Land(step=step))

@@ -375,7 +375,13 @@ class _RoundScanner:
     def fly_edge(
         self, frame: EdgeFrame, e: int, t_from: float, t_to: float, stops: list[tuple[float, FloatArray]]
     ) -> None:
-        """Along edge e from t_from to t_to, stopping for excursions at scan lines ``stops``."""
+        """Along edge e from t_from to t_to, stopping for excursions at scan lines ``stops``.
+
+        Every excursion runs along the formation line, so each of its ends is a barrier: a drone
+        that lags its neighbours there closes on them head-on (and the collision service sees a
+        conflict), while a lag along the edge only stretches the line a little. The drones stop
+        at both ends anyway (the excursion reverses), so the barriers cost almost nothing.
+        """
         inward = -frame.normal[e]
         for t, depths in sorted(stops, key=lambda s: s[0]):
             base = formation(frame.point(e, t), inward, self.spacing, self.drones)
@@ -383,8 +389,9 @@ class _RoundScanner:
             out, inn = excursion_shifts(depths, self.spacing, self.drones)
             for shift in (inn, -out):
                 if shift > 0 or shift < 0:
-                    self.builder.move_to(base + shift * inward)
-                    self.builder.move_to(base)
+                    self.builder.mark_sync()
+                    self.builder.move_to(base + shift * inward, sync=True)
+                    self.builder.move_to(base, sync=True)
                     self.scan_cost += 2.0 * abs(shift)
         self.builder.move_to(formation(frame.point(e, t_to), inward, self.spacing, self.drones))
         self.builder.mark_sync()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -16,7 +17,7 @@ from gcs.planning._psa_trajectory import FleetTrajectory, TrajectoryBuilder, for
 from gcs.planning.baselines import minmax_routes, route_lengths, split_tour, tsp_split_routes
 from gcs.planning.geodesy import LocalFrame
 from gcs.planning.psa import PsaInfeasible, check_plan, excursion_shifts, plan_psa, spacing_bounds
-from protocol.actions import Waypoints
+from protocol.actions import Hold, Waypoints
 
 
 def _paper_instance(n: int, seed: int) -> np.ndarray:
@@ -238,8 +239,14 @@ def test_paper_setting_with_default_margins_flies_within_w_and_clear_of_the_marg
     assert report.ok, report.violations[:3]
     assert report.max_neighbour_distance <= 18.0 + 1e-6 and report.min_separation >= 7.0 - 1e-6
     task = psa_mission(plan.trajectory, LocalFrame(47.0, 8.0), 20.0, 4.0)
-    legs = [a for a in task.plans[0].actions if isinstance(a, Waypoints)]
-    assert len(legs) == len(plan.trajectory.legs()) and all(a.sync for a in legs)
+    actions = task.plans[0].actions
+    legs = [a for a in actions if isinstance(a, Waypoints)]
+    assert len(legs) == len(plan.trajectory.legs())
+    # every leg ends at a barrier; where the line flies back (excursion ends) a hold stops it first
+    for a, b in itertools.pairwise(actions):
+        if isinstance(a, Waypoints):
+            assert a.sync or (isinstance(b, Hold) and b.sync and b.seconds > 0.0)
+    assert any(isinstance(a, Hold) for a in actions)
     assert {len(p.actions) for p in task.plans} == {len(task.plans[0].actions)}
 
 
