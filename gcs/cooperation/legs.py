@@ -200,11 +200,12 @@ class AgentPlanState:
         return math.hypot(pn - f * en, pe - f * ee)
 
     def _waypoint_start(self, action: Waypoints, k: int) -> Point | None:
-        """Planned start of segment k (the previous point), used to tell which segment a report is on."""
+        """Start of segment k (the previous point; for the first, where the step started), used to
+        tell which segment a report is on."""
         if k > 0:
             p = action.points[k - 1]
             return (p.lat, p.lon, p.alt)
-        return self._previous_target()
+        return self.step_start_pos if self.step_start_pos is not None else self._previous_target()
 
     def _leg_start(self) -> Point | None:
         """Where the running segment started as the agent flew it, else the planned previous target."""

@@ -249,3 +249,20 @@ def test_divergence_may_act_only_on_a_drone_flying_its_plan() -> None:
     assert not divergence_may_act(_status(exceptions=["fence_breach: outside the fence polygon"]))
     assert divergence_may_act(_status(exceptions=["gps_glitch_cleared"]))
     assert not divergence_may_act(_status(landed=True, armed=False))
+
+
+def test_waypoints_after_a_drifted_chain_are_tracked_from_where_the_step_started() -> None:
+    """The first waypoint segment starts where the drone is, not at the dead-reckoned plan."""
+    # first waypoint placed so that, seen from the dead-reckoned end of the chain, the drone
+    # looks nearer the second segment: a tracker starting there skips the first point
+    wps = [Waypoint(lat=p[0], lon=p[1], alt=10.0) for p in (at(130, 175), at(150, 110))]
+    actions: list[Action] = [
+        *_square_chain(24, side=12.0, sync_every=6, stairs=True)[:-1],
+        Waypoints(step=25, points=wps, speed=5.0),
+        Land(step=26),
+    ]
+    for report_dt in (0.1, 0.4, 1.0):
+        flight = Flight(report_dt=report_dt)
+        flight.run(actions)
+        verdicts, worst = judge_flight(actions, flight, radius=2.0)
+        assert verdicts == [] and worst < 5.0, (report_dt, verdicts, worst)
