@@ -45,7 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=float,
         metavar="M",
         help="PSA: how far a flown track may stray from the plan; the plan keeps w and the separation "
-        "with this much to spare on each drone (default 1 m)",
+        "with this much to spare on each drone (default 2 m: the agent's acceptance radius, since "
+        "each leg starts up to that far from its planned start)",
     )
     g.add_argument("--channel-spacing", type=float, metavar="M", help="RSA: channel spacing d_nbh")
     g.add_argument("--flight-distance", type=float, metavar="M", help="RSA: allowed flight distance d_flt")

@@ -58,7 +58,8 @@ class PsaConfig(BaseModel):
     min_separation_m: float | None = Field(
         default=None, ge=0, le=10_000, description="None = the collision margin x release factor"
     )
-    track_margin_m: float = Field(default=1.0, ge=0, le=10_000)
+    # a leg starts up to the agent's acceptance radius (default 2 m) from its planned start
+    track_margin_m: float = Field(default=2.0, ge=0, le=10_000)
 
 
 class TargetFile(BaseModel):

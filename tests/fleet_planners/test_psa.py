@@ -298,7 +298,11 @@ def test_cli_refuses_a_link_range_too_short_for_the_margin(
     )
     assert main(["plan", "--targets", str(f), "--method", "psa", "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[-1].startswith("gcs plan: error: PSA cannot keep neighbours within the link range w = 8 m")
+    assert err[-1] == (
+        "gcs plan: error: PSA cannot keep neighbours within the link range w = 8 m and at least 5 m "
+        "apart (collision margin) with 2 m of tracking error: it needs w >= 13.7 m, or a smaller "
+        "separation or track margin"
+    )
     # with homes in the file the assembly is timed and certified too
     doc = json.loads(f.read_text())
     doc["config"]["link_range_m"] = 20
