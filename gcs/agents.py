@@ -20,7 +20,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 from gcs.config import DaemonConfig
-from gcs.dispatch import ConsumerStats, HookDispatcher
+from gcs.dispatch import ConsumerStats, HookDispatcher, HookList
 from gcs.events import EventBus
 from gcs.keys import KeyRing
 from gcs.outbox import Outbox
@@ -160,10 +160,11 @@ class AgentManager:
         self._keys = keys
         self.sessions: dict[str, AgentSession] = {}
         self.lost: set[str] = set()
-        self.on_join: list[JoinHook] = []
-        self.on_status: list[StatusHook] = []
-        self.on_sync: list[SyncHook] = []
-        self.on_lost: list[LostHook] = []
+        # Plain lists to the services that append/remove hooks; HookList only counts changes.
+        self.on_join: HookList[JoinHook] = HookList()
+        self.on_status: HookList[StatusHook] = HookList()
+        self.on_sync: HookList[SyncHook] = HookList()
+        self.on_lost: HookList[LostHook] = HookList()
         self._hooks = HookDispatcher(
             {"join": self.on_join, "status": self.on_status, "sync": self.on_sync, "lost": self.on_lost}
         )

@@ -306,7 +306,7 @@ class Daemon:
         targets = agents if agents is not None else [s.identity for s in self.agents.connected()]
         delivered = []
         for identity in targets:
-            if await self.agents.send(identity, body):
+            if self.agents.post(identity, body):  # each agent's own outbox: no one waits for the slowest
                 delivered.append(identity)
         if body.geofence is not None or body.clear_geofence:
             for identity in delivered:

@@ -21,9 +21,9 @@ import asyncio
 import collections
 import logging
 import time
-from collections.abc import Awaitable, Callable, Mapping, Sequence
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, Self, SupportsIndex, TypeVar
 
 log = logging.getLogger("gcs.dispatch")
 
@@ -31,8 +31,64 @@ HookKind = Literal["join", "status", "sync", "lost"]
 Hook = Callable[..., Awaitable[None]]
 
 DEFAULT_CAPACITY = 10_000
-YIELD_EVERY = 64  # a long backlog of quick hooks still lets the loop breathe
+STEP_BUDGET_S = 0.02
+"""A consumer with a backlog runs hooks for this long before letting the loop go round: long
+enough to keep pace with frame loops that decode a whole 64 KiB read per step, short enough that
+a backlog of quick hooks never stalls the loop."""
 SLOW_HOOK_S = 0.5  # a hook call longer than this is logged (once per consumer per minute)
+
+
+_H = TypeVar("_H")
+
+
+class HookList(list[_H]):
+    """A plain list of hooks (services append and remove as before) that counts its changes.
+
+    The dispatcher caches which consumer serves each hook and checks "still registered?" by
+    comparing versions instead of searching the list for every event.
+    """
+
+    version: int = 0
+
+    def _changed(self) -> None:
+        self.version += 1
+
+    def append(self, hook: _H) -> None:
+        super().append(hook)
+        self._changed()
+
+    def extend(self, hooks: Iterable[_H]) -> None:
+        super().extend(hooks)
+        self._changed()
+
+    def insert(self, index: SupportsIndex, hook: _H) -> None:
+        super().insert(index, hook)
+        self._changed()
+
+    def remove(self, hook: _H) -> None:
+        super().remove(hook)
+        self._changed()
+
+    def pop(self, index: SupportsIndex = -1) -> _H:
+        hook = super().pop(index)
+        self._changed()
+        return hook
+
+    def clear(self) -> None:
+        super().clear()
+        self._changed()
+
+    def __setitem__(self, index: Any, value: Any) -> None:
+        super().__setitem__(index, value)
+        self._changed()
+
+    def __delitem__(self, index: Any) -> None:
+        super().__delitem__(index)
+        self._changed()
+
+    def __iadd__(self, hooks: Iterable[_H]) -> Self:  # type: ignore[override,misc]
+        self.extend(hooks)
+        return self
 
 
 @dataclass(eq=False, slots=True)
@@ -41,6 +97,7 @@ class _Item:
     hook: Hook
     agent: str
     args: tuple[Any, ...]
+    version: int  # of the hook list when published: unchanged means still registered
     live: bool = True
 
 
@@ -61,7 +118,7 @@ class Consumer:
 
     name: str
     owner: object
-    registered: Callable[[HookKind, Hook], bool]
+    lists: Mapping[HookKind, HookList[Hook]]
     capacity: int = DEFAULT_CAPACITY
     delivered: int = 0
     coalesced: int = 0
@@ -73,6 +130,7 @@ class Consumer:
     _latest: dict[str, _Item] = field(default_factory=dict)  # agent -> its newest queued item
     _wakeup: asyncio.Event = field(default_factory=asyncio.Event)
     _idle: asyncio.Event = field(default_factory=asyncio.Event)
+    _awake: bool = False  # the task is running or already woken: no Event calls per event
     _task: asyncio.Task[None] | None = None
     _last_slow_log: float = 0.0
 
@@ -99,8 +157,10 @@ class Consumer:
         self._queue.append(item)
         self._size += 1
         self._latest[item.agent] = item
-        self._idle.clear()
-        self._wakeup.set()
+        if not self._awake:
+            self._awake = True
+            self._idle.clear()
+            self._wakeup.set()
 
     def _drop_oldest_status(self) -> bool:
         for queued in self._queue:
@@ -113,22 +173,25 @@ class Consumer:
         return False
 
     async def _run(self) -> None:
-        since_yield = 0
+        queue, latest, lists = self._queue, self._latest, self.lists
+        step_started = started = time.monotonic()
         while True:
-            if not self._queue:
+            if not queue:
+                self._awake = False
                 self._idle.set()
                 self._wakeup.clear()
                 await self._wakeup.wait()
+                step_started = started = time.monotonic()
                 continue
-            item = self._queue.popleft()
+            item = queue.popleft()
             if not item.live:
                 continue
             self._size -= 1
-            if self._latest.get(item.agent) is item:
-                del self._latest[item.agent]
-            if not self.registered(item.kind, item.hook):
+            if latest.get(item.agent) is item:
+                del latest[item.agent]
+            hooks = lists[item.kind]
+            if item.version != hooks.version and item.hook not in hooks:
                 continue  # the service removed its hook (stopped) after the event was queued
-            started = time.monotonic()
             try:
                 await item.hook(*item.args)
                 self.delivered += 1
@@ -138,16 +201,16 @@ class Consumer:
                 self.failed += 1
                 if self.failed <= 10 or self.failed % 1000 == 0:
                     log.exception("%s hook of %s failed (%d failures)", item.kind, self.name, self.failed)
-            elapsed = time.monotonic() - started
-            if elapsed > SLOW_HOOK_S and started - self._last_slow_log > 60.0:
+            now = time.monotonic()
+            if now - started > SLOW_HOOK_S and started - self._last_slow_log > 60.0:
                 self._last_slow_log = started
                 log.warning(
-                    "%s hook of %s took %.2f s (%d queued)", item.kind, self.name, elapsed, self._size
+                    "%s hook of %s took %.2f s (%d queued)", item.kind, self.name, now - started, self._size
                 )
-            since_yield += 1
-            if since_yield >= YIELD_EVERY:
-                since_yield = 0
+            started = now
+            if now - step_started > STEP_BUDGET_S:
                 await asyncio.sleep(0)
+                step_started = started = time.monotonic()
 
     async def stop(self) -> None:
         if self._task is not None:
@@ -163,19 +226,21 @@ class Consumer:
 class HookDispatcher:
     """Publishes agent events to the consumer of every hook registered for their kind."""
 
-    def __init__(self, hooks: Mapping[HookKind, Sequence[Hook]], capacity: int = DEFAULT_CAPACITY) -> None:
+    def __init__(self, hooks: Mapping[HookKind, HookList[Hook]], capacity: int = DEFAULT_CAPACITY) -> None:
         self._hooks = hooks  # the manager's own lists: services append/remove hooks at any time
         self.capacity = capacity
         self._consumers: dict[int, Consumer] = {}
         self._names: collections.Counter[str] = collections.Counter()
+        self._routes: dict[HookKind, tuple[int, list[tuple[Hook, Consumer]]]] = {}
 
     def publish(self, kind: HookKind, agent: str, *args: Any) -> None:
         """Queue ``hook(*args)`` for every hook of ``kind``; never blocks, never raises for a hook."""
-        for hook in self._hooks[kind]:
-            self._consumer(hook).offer(_Item(kind, hook, agent, args))
-
-    def _registered(self, kind: HookKind, hook: Hook) -> bool:
-        return hook in self._hooks[kind]
+        version = self._hooks[kind].version
+        route = self._routes.get(kind)
+        if route is None or route[0] != version:
+            route = self._routes[kind] = (version, [(h, self._consumer(h)) for h in self._hooks[kind]])
+        for hook, consumer in route[1]:
+            consumer.offer(_Item(kind, hook, agent, args, version))
 
     def _consumer(self, hook: Hook) -> Consumer:
         owner = _owner(hook)
@@ -185,7 +250,7 @@ class HookDispatcher:
             base = type(owner).__name__ if bound else str(getattr(hook, "__name__", "hook"))
             self._names[base] += 1
             name = base if self._names[base] == 1 else f"{base}#{self._names[base]}"
-            consumer = Consumer(name, owner, self._registered, self.capacity)
+            consumer = Consumer(name, owner, self._hooks, self.capacity)
             self._consumers[id(owner)] = consumer
         return consumer
 
@@ -222,11 +287,14 @@ class HookDispatcher:
         live = {id(_owner(hook)) for hooks in self._hooks.values() for hook in hooks}
         idle = [k for k, c in self._consumers.items() if k not in live and c._idle.is_set()]
         stopped = [c for c in (self._consumers.pop(k, None) for k in idle) if c is not None]
+        if stopped:
+            self._routes.clear()
         for consumer in stopped:
             await consumer.stop()
 
     async def close(self) -> None:
         consumers, self._consumers = list(self._consumers.values()), {}
+        self._routes.clear()
         for consumer in consumers:
             await consumer.stop()
 
@@ -236,4 +304,4 @@ def _owner(hook: Hook) -> object:
     return hook.__self__ if hasattr(hook, "__self__") else hook
 
 
-__all__ = ["ConsumerStats", "HookDispatcher", "HookKind"]
+__all__ = ["ConsumerStats", "HookDispatcher", "HookKind", "HookList"]
