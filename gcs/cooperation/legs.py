@@ -129,6 +129,8 @@ class AgentPlanState:
         self._targets = planned_targets(self.actions, self.home)
 
     def update(self, status: StatusReport) -> None:
+        if status.position is None:
+            return  # no fix: nothing to place on the plan
         pos = (status.position.lat, status.position.lon, status.position.alt_rel)
         if status.paused and status.step < 0:
             self._last_pos, self._last_target = pos, None  # held in place: resumes from here
