@@ -298,17 +298,21 @@ class CollisionAvoider:
     def _effective_all(self, drones: list[DroneState]) -> FloatArray:
         """The velocity each drone is judged by (numpy; this runs every tick).
 
-        A held drone is judged by where it wants to go (its ~zero velocity would say "clear" the
-        moment it stops, and it would be released straight back into the conflict); the others
-        by their actual velocity. Nobody is predicted past its leg target: a drone that stops
-        there within the horizon is slowed so that it just reaches it.
+        A held drone, or one about to start a leg (nearly still, with a leg to fly), is judged by
+        where it wants to go: its ~zero velocity would say "clear" the moment it stops, and it
+        would be released straight back into the conflict. The others by their actual velocity.
+        Nobody is predicted past its leg target: a drone that stops there within the horizon is
+        slowed so that it just reaches it (formation flight ends legs a few metres apart).
         """
         actual = np.array([d.velocity for d in drones], dtype=float)
         zero = (0.0, 0.0, 0.0)
         desired = np.array([d.desired or zero for d in drones], dtype=float)
+        has_desired = np.array([d.desired is not None for d in drones], dtype=bool)
         held = np.array([d.ident in self.holds for d in drones], dtype=bool)
         escaping = np.array([d.ident in self.escaping for d in drones], dtype=bool)
-        vel = np.where((held & ~escaping)[:, None], desired, actual)
+        slow = np.linalg.norm(actual, axis=1) < STATIONARY_MPS
+        use_desired = ~escaping & (held | (slow & has_desired))
+        vel = np.where(use_desired[:, None], desired, actual)
         remaining = np.array([np.inf if d.remaining_m is None else d.remaining_m for d in drones])
         reach = np.linalg.norm(vel, axis=1) * self.config.horizon_s
         factor = np.where(reach > remaining, remaining / np.maximum(reach, _EPS), 1.0)
