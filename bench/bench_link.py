@@ -37,33 +37,11 @@ from gcs.daemon import Daemon
 from gcs.live import LiveHub
 from gcs.store import Store
 from gcs.telemetry import TelemetryWriter
+from tests.backbone.helpers import telemetry_row
 from tests.link.test_history import LoopLag, fill_log
 
 RESULTS = Path(__file__).resolve().parent / "results"
-ROW = (
-    "bench",
-    0.0,
-    0.0,
-    47.0,
-    8.0,
-    1.0,
-    400.0,
-    0,
-    0,
-    0,
-    0,
-    50.0,
-    12.0,
-    3.0,
-    "GUIDED",
-    1,
-    0,
-    3,
-    10,
-    2,
-    "m",
-    0,
-)
+ROW = telemetry_row("bench", 0.0, 0.0)
 
 
 def _percentiles(values: list[float]) -> dict[str, float]:
