@@ -481,7 +481,8 @@ _SAMPLE_JSON = """json_object(
   'step', step,
   'completed_step', -1, 'queue_depth', 0, 'waiting_sync', NULL, 'paused', json('false'),
   'exceptions', json('[]'), 'autopilot_link', json('true'),
-  'buffered', json(CASE WHEN buffered THEN 'true' ELSE 'false' END), 'failsafe', json('null')))"""
+  'buffered', json(CASE WHEN buffered THEN 'true' ELSE 'false' END),
+  'failsafe', json('null'), 'failure', json('null'), 'vehicle_time', json('null')))"""
 
 
 def telemetry_page_json(
