@@ -52,6 +52,21 @@ class DaemonConfig(BaseModel):
     )
     max_body_bytes: int = Field(default=DEFAULT_MAX_BODY, ge=1024, le=64 << 20)
     max_agents: int = Field(default=1000, ge=1)
+    max_handshakes: int = Field(
+        default=64, ge=1, description="connections allowed to be in the handshake at once; more are refused busy"
+    )
+    enroll_new_agents: bool = Field(
+        default=True,
+        description="give a CID to identities the database has never seen; off = only known identities join",
+    )
+    banned_agents: list[str] = Field(default_factory=list, description="identities refused with code banned")
+    replay_frames_per_s: float = Field(
+        default=100.0, gt=0.0, description="buffered status reports/s an agent may replay after an outage"
+    )
+    replay_burst: int = Field(default=400, ge=1, description="buffered status reports it may send at once")
+    max_exception_events: int = Field(
+        default=30, ge=1, description="agent_exception events per agent per minute; more are counted, not logged"
+    )
     max_frames_per_s: float = Field(
         default=200.0, gt=0.0, description="sustained frames/s one agent may send (status at 10 Hz is 10)"
     )

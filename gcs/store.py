@@ -19,6 +19,11 @@ from pathlib import Path
 from typing import Any
 
 SCHEMA_VERSION = 3
+MAX_CID = 65_535  # the wire's cid range (docs/protocol.md, type 1)
+
+
+class CidExhausted(Exception):
+    """Every connection ID is taken: a new identity is refused, never given a duplicate."""
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -166,6 +171,11 @@ class Store:
 
     # --- agents ---------------------------------------------------------------------------------
 
+    def cid_of(self, identity: str) -> int | None:
+        """The connection ID ``identity`` already has, or None if it never joined (not enrolled)."""
+        row = self._db.execute("SELECT cid FROM agents WHERE identity=?", (identity,)).fetchone()
+        return None if row is None else int(row[0])
+
     def cid_for(self, identity: str, capabilities: dict[str, Any]) -> int:
         """The stable connection ID of ``identity``, allocating the next free one on first contact."""
         now = time.time()
@@ -177,6 +187,10 @@ class Store:
             )
             return int(row[0])
         next_cid = self._db.execute("SELECT COALESCE(MAX(cid), 0) + 1 FROM agents").fetchone()[0]
+        if next_cid > MAX_CID:
+            raise CidExhausted(
+                f"all {MAX_CID} connection IDs are taken; retire identities (gcs agents retire) first"
+            )
         self._db.execute(
             "INSERT INTO agents(identity, cid, first_seen, last_seen, capabilities) VALUES (?,?,?,?,?)",
             (identity, next_cid, now, now, json.dumps(capabilities)),

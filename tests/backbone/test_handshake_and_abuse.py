@@ -27,7 +27,7 @@ from protocol.packets import (
     ResponseCid,
     StatusReport,
 )
-from protocol.wire import HEADER, MAGIC, Frame, FrameDecoder, encode
+from protocol.wire import FRAME_VERSION, HEADER, MAGIC, Frame, FrameDecoder, encode
 from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
 
 
@@ -126,7 +126,7 @@ async def test_wrong_key_is_refused_and_logged(tmp_path: Path) -> None:
         assert isinstance(answer, ResponseCid) and answer.outcome == "refused"
         assert "wrong key" in (answer.reason or "")
         rest = await client.receive_all_until_closed()
-        assert rest == [Close(reason=CloseReason.REFUSED, message=answer.reason or "")]
+        assert rest == [Close(reason=CloseReason.REFUSED, message=answer.reason or "", code="wrong_key")]
         assert daemon.events.history(kind="agent_refused")
         assert daemon.agents.session("intruder") is None
 
@@ -178,9 +178,10 @@ async def test_wrong_protocol_version_is_refused(tmp_path: Path) -> None:
     key = new_key()
     async with running_daemon(tmp_path, key) as daemon:
         client = await RawClient.connect(daemon.listen_port)
-        answer, _, _ = await client.handshake("future", key, version=2)
+        answer, _, _ = await client.handshake("future", key, version=9)
         assert isinstance(answer, ResponseCid) and answer.outcome == "refused"
-        assert "protocol version 2 not supported" in (answer.reason or "")
+        assert "protocol version(s) [9] not supported" in (answer.reason or "")
+        assert answer.code == "version_unsupported"
 
 
 async def test_silent_connection_is_cut_after_handshake_timeout(tmp_path: Path) -> None:
@@ -189,7 +190,9 @@ async def test_silent_connection_is_cut_after_handshake_timeout(tmp_path: Path) 
         client = await RawClient.connect(daemon.listen_port)
         await client.send_raw(MAGIC)  # a slow-loris: two bytes, then nothing
         bodies = await client.receive_all_until_closed(timeout=3.0)
-        assert bodies == [Close(reason=CloseReason.PROTOCOL_ERROR, message="handshake timeout")]
+        assert bodies == [
+            Close(reason=CloseReason.PROTOCOL_ERROR, message="handshake timeout", code="handshake_timeout")
+        ]
         assert daemon.events.history(kind="handshake_timeout")
 
 
@@ -258,7 +261,7 @@ async def test_malformed_input_never_disturbs_a_running_mission(tmp_path: Path) 
             abusers: list[tuple[str, bytes]] = [
                 ("garbage", secrets.token_bytes(4096)),
                 ("http", b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"),
-                ("oversized", HEADER.pack(MAGIC, PROTOCOL_VERSION, 2, 1, 512 << 20, 0)),
+                ("oversized", HEADER.pack(MAGIC, FRAME_VERSION, 2, 1, 512 << 20, 0)),
                 ("wrong version", HEADER.pack(MAGIC, 99, 0, 1, 2, 0) + b"{}"),
                 ("invalid body", encode(Close(reason=CloseReason.NORMAL), 1)[:16] + b"{nope}"),
                 ("truncated", encode(Close(reason=CloseReason.NORMAL), 1)[:10]),
