@@ -253,35 +253,14 @@ def worker_main(conn: Connection, port: int, key_hex: str, identities: list[str]
 
 
 async def _handshake(client: Client, key: bytes) -> None:
-    from protocol import auth
-    from protocol.packets import PROTOCOL_VERSION, RequestCid, ResponseCid
-    from protocol.wire import FrameDecoder, encode
+    """The shared client handshake (protocol/session.py over protocol/stream.py)."""
+    from protocol.session import ClientHandshake
+    from protocol.stream import FramedStream, client_handshake
 
     assert client.reader is not None and client.writer is not None
-    decoder = FrameDecoder()
-    nonce = auth.new_nonce()
-    client.writer.write(
-        encode(RequestCid(identity=client.identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce), 1)
-    )
-    frames: list[Any] = []
-    for _ in range(100):
-        if frames:
-            break
-        frames += list(decoder.feed(await client.reader.read(65_536)))
-    challenge = frames.pop(0).body
-    assert isinstance(challenge, ResponseCid) and challenge.server_nonce, challenge
-    proof = auth.agent_proof(key, client.identity, challenge.server_nonce, nonce)
-    request = RequestCid(
-        identity=client.identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce, proof=proof
-    )
-    client.writer.write(encode(request, 2))
-    for _ in range(100):
-        if frames:
-            break
-        frames += list(decoder.feed(await client.reader.read(65_536)))
-    accepted = frames.pop(0).body
-    assert isinstance(accepted, ResponseCid) and accepted.outcome == "accepted", accepted
-    client.seq = 2
+    stream = FramedStream(client.reader, client.writer)
+    await client_handshake(stream, ClientHandshake(client.identity, key), timeout=60.0)
+    client.seq = stream.seq
 
 
 async def _client_reader(client: Client) -> None:

@@ -24,8 +24,7 @@ from gcs.dispatch import ConsumerStats, HookDispatcher
 from gcs.events import EventBus
 from gcs.keys import KeyRing
 from gcs.outbox import Outbox
-from gcs.store import Store
-from gcs.store import CidExhausted
+from gcs.store import CidExhausted, Store
 from protocol.packets import (
     PROTOCOL_VERSION,
     AgentParameters,
@@ -239,7 +238,8 @@ class AgentManager:
         except Refused as exc:
             if exc.code != Code.BUSY or self.busy_refusals == 1 or self.busy_refusals % 100 == 0:
                 self._events.publish("agent_refused", f"{peer}: {exc} ({exc.code})", severity="warning")
-            code = Code(exc.code) if exc.code in Code.__members__.values() else Code.PROTOCOL_ERROR
+            known = {c.value for c in Code}
+            code = Code(exc.code) if exc.code in known else Code.PROTOCOL_ERROR
             await stream.close(*handshake.refusal(code, str(exc), exc.retry_after_s))
         except RateLimited as exc:
             assert session is not None
@@ -342,7 +342,9 @@ class AgentManager:
         accepted = handshake.accept(cid, self._parameters(), time.time(), lost=was_lost)
         previous = self.sessions.get(request.identity)
         if previous is not None and previous.open:
-            await previous.close(CloseReason.REPLACED, f"replaced by a new session from {peer}", code=Code.REPLACED)
+            await previous.close(
+                CloseReason.REPLACED, f"replaced by a new session from {peer}", code=Code.REPLACED
+            )
             self._events.publish(
                 "agent_replaced", f"session from {previous.peer} replaced by {peer}", agent=request.identity
             )
@@ -352,7 +354,8 @@ class AgentManager:
         self.lost.discard(request.identity)
         self._events.publish(
             "agent_joined",
-            f"cid {cid} from {peer}, protocol v{stream.version}" + (" (back after being lost)" if was_lost else ""),
+            f"cid {cid} from {peer}, protocol v{stream.version}"
+            + (" (back after being lost)" if was_lost else ""),
             agent=request.identity,
             data={
                 "cid": cid,
@@ -365,7 +368,9 @@ class AgentManager:
         return session
 
     def _parameters(self) -> AgentParameters:
-        return self.config.agent_parameters.model_copy(update={"status_period_s": self.config.status_period_s})
+        return self.config.agent_parameters.model_copy(
+            update={"status_period_s": self.config.status_period_s}
+        )
 
     async def _frame_loop(self, session: AgentSession, stream: FramedStream) -> None:
         """Frames of an authenticated session; frames that came right behind the proof come first.

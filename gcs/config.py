@@ -53,7 +53,9 @@ class DaemonConfig(BaseModel):
     max_body_bytes: int = Field(default=DEFAULT_MAX_BODY, ge=1024, le=64 << 20)
     max_agents: int = Field(default=1000, ge=1)
     max_handshakes: int = Field(
-        default=64, ge=1, description="connections allowed to be in the handshake at once; more are refused busy"
+        default=64,
+        ge=1,
+        description="connections allowed to be in the handshake at once; more are refused busy",
     )
     enroll_new_agents: bool = Field(
         default=True,
@@ -65,7 +67,9 @@ class DaemonConfig(BaseModel):
     )
     replay_burst: int = Field(default=400, ge=1, description="buffered status reports it may send at once")
     max_exception_events: int = Field(
-        default=30, ge=1, description="agent_exception events per agent per minute; more are counted, not logged"
+        default=30,
+        ge=1,
+        description="agent_exception events per agent per minute; more are counted, not logged",
     )
     max_frames_per_s: float = Field(
         default=200.0, gt=0.0, description="sustained frames/s one agent may send (status at 10 Hz is 10)"

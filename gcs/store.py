@@ -25,6 +25,7 @@ MAX_CID = 65_535  # the wire's cid range (docs/protocol.md, type 1)
 class CidExhausted(Exception):
     """Every connection ID is taken: a new identity is refused, never given a duplicate."""
 
+
 _MIGRATIONS: dict[int, str] = {
     1: """
     CREATE TABLE agents (

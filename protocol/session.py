@@ -309,12 +309,15 @@ class ServerHandshake:
             self.version = 2 if max(offered_versions(body)) >= 2 else 1  # a newer peer reads codes
             raise Refused(
                 Code.VERSION_UNSUPPORTED,
-                f"protocol version(s) {offered_versions(body)} not supported (daemon speaks {list(self.supported)})",
+                f"protocol version(s) {offered_versions(body)} not supported "
+                f"(daemon speaks {list(self.supported)})",
             )
         self.version = version
         key = self._key_for(body.identity)
         if key is None:
-            raise Refused(Code.UNKNOWN_IDENTITY, f"unknown agent {body.identity!r}: no key is configured for it")
+            raise Refused(
+                Code.UNKNOWN_IDENTITY, f"unknown agent {body.identity!r}: no key is configured for it"
+            )
         self._key = key
         self.state = "proof"
         return ResponseCid(

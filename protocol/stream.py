@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ssl as ssl_module
 from collections import deque
 from collections.abc import AsyncIterator
 
@@ -113,7 +114,7 @@ async def open_client(
     port: int,
     handshake: ClientHandshake,
     *,
-    ssl: object = None,
+    ssl: ssl_module.SSLContext | None = None,
     server_hostname: str | None = None,
     timeout: float = 5.0,
     home: GeoPoint | None = None,
@@ -122,7 +123,10 @@ async def open_client(
     """Connect and run the client handshake (benches, tests); the caller closes the stream."""
     async with asyncio.timeout(timeout):
         reader, writer = await asyncio.open_connection(
-            host, port, ssl=ssl, server_hostname=server_hostname  # type: ignore[arg-type]
+            host,
+            port,
+            ssl=ssl,
+            server_hostname=server_hostname,
         )
     stream = FramedStream(reader, writer)
     try:
