@@ -79,10 +79,11 @@ class AgentConfig(BaseModel):
     limits: SanityLimits = SanityLimits()
     status_buffer: int = Field(default=1200, ge=1, description="status reports kept while offline")
     replay_max_reports: int = Field(
-        default=300, ge=2, description="buffered reports sent after an outage (thinned, state changes kept)"
-    )
-    replay_rate_hz: float = Field(
-        default=50.0, gt=0.0, le=100.0, description="pace of the replay (the daemon allows 100/s for it)"
+        default=300,
+        ge=2,
+        le=400,
+        description="buffered reports sent after an outage (thinned, state changes kept); the daemon "
+        "takes a burst of 400",
     )
     arm_deadline_s: float = Field(default=60.0, gt=0.0)
     takeoff_tolerance: float = Field(default=0.95, gt=0.5, le=1.0, description="fraction of target altitude")

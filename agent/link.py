@@ -6,10 +6,10 @@ version-1 daemon refuses the v2 hello without a code, and the link then speaks v
 
 While the link is down, status reports go into a bounded buffer (oldest dropped first) and
 control packets (sync "finished") into an unbounded one. After the next ``accepted`` the agent
-sends, in this order (docs/protocol.md section 2): a fresh status report at once, the control
-packets in order, then the buffered reports oldest first, thinned to ``replay_max_reports`` (state
-changes kept) and paced at ``replay_rate_hz`` alongside the live reports, so a long outage never
-trips the daemon's rate limit.
+sends, in this order (docs/protocol.md section 2): the buffered reports oldest first, thinned to
+``replay_max_reports`` (state changes kept), the control packets in order, then a fresh status
+report, all before its first status period. The daemon counts replayed reports apart from live
+frames (its replay allowance has a burst of 400), so a long outage never trips the rate limit.
 
 Refusal and close codes decide what happens next (:data:`protocol.session.ACTIONS`): ``retry``
 waits the daemon's ``retry_after_s`` (at least ``REFUSED_BACKOFF_S``), ``reconnect`` uses the
@@ -104,10 +104,11 @@ def thin_replay(reports: Sequence[StatusReport], limit: int) -> list[StatusRepor
         keep.update(changes[int(k * stride)] for k in range(limit - 1))
     else:
         keep.update(changes)
-        spare = limit - len(keep)
-        stride = len(reports) / max(1, spare)
-        for k in range(spare):
-            keep.add(min(len(reports) - 1, int(k * stride)))
+    spare = limit - len(keep)
+    if spare > 0:  # evenly spaced among the rest (stride >= 1, so the picks are distinct)
+        rest = [i for i in range(len(reports)) if i not in keep]
+        stride = len(rest) / spare
+        keep.update(rest[int(k * stride)] for k in range(spare))
     return [reports[i] for i in sorted(keep)][:limit]
 
 
@@ -282,10 +283,12 @@ class DaemonLink:
             self.version,
             " (the daemon had marked us lost)" if accepted.lost else "",
         )
-        if self._current_status is not None:  # at once, on the period the daemon just sent
-            await self._send(self._current_status())
+        # Right after accepted, in time order: the buffered reports (thinned), the buffered
+        # control packets, then the current state, before the first period has passed.
+        await self._replay()
         await self._flush_control()
-        replay = asyncio.create_task(self._replay(), name="status-replay")
+        if self._current_status is not None and self.connected:
+            await self._send(self._current_status())
         try:
             async for frame in stream.frames(idle_timeout=self.config.daemon_silence_s):
                 self.last_contact = time.monotonic()
@@ -294,10 +297,6 @@ class DaemonLink:
                     return
         except TimeoutError:  # a silent partition: TCP open, nothing flowing (the daemon keeps alive)
             raise ConnectionError(f"nothing from the daemon for {self.config.daemon_silence_s:g} s") from None
-        finally:
-            replay.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await replay
 
     async def _flush_control(self) -> None:
         while self._control_backlog and self.connected:
@@ -306,25 +305,22 @@ class DaemonLink:
             self._control_backlog.pop(0)
 
     async def _replay(self) -> None:
-        """Send the buffered reports (thinned, paced); what is not sent stays buffered."""
+        """Send the buffered reports, thinned to ``replay_max_reports``, oldest first.
+
+        The thinned replay fits the daemon's separate replay allowance (docs/protocol.md), so it
+        goes out at once; what cannot be sent stays buffered for the next session.
+        """
         if not self._status_backlog:
             return
         reports = thin_replay(list(self._status_backlog), self.config.replay_max_reports)
         self.thinned += len(self._status_backlog) - len(reports)
         self._status_backlog.clear()
-        pending = deque(reports)
-        period = 1.0 / self.config.replay_rate_hz
-        try:
-            while pending and self.connected:
-                if not await self._send(pending[0]):
-                    break
-                pending.popleft()
-                self.replayed += 1
-                await asyncio.sleep(period)
-        finally:  # cut short: keep the rest (ahead of what was buffered since) for the next session
-            newer = list(self._status_backlog)
-            self._status_backlog.clear()
-            self._status_backlog.extend([*pending, *newer][-self.config.status_buffer :])
+        self._status_backlog.extend(reports)
+        while self._status_backlog and self.connected:
+            if not await self._send(self._status_backlog[0]):
+                return
+            self._status_backlog.popleft()
+            self.replayed += 1
 
     async def _dispatch(self, frame: Frame) -> None:
         body = frame.body

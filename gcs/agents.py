@@ -400,11 +400,11 @@ class AgentManager:
         body = frame.body
         if isinstance(body, StatusReport):
             self._exception_events(session, body)
+            session.status_count += 1
             if body.buffered:  # history: it never overwrites the newer live state
                 session.replayed_count += 1
             else:
                 session.status = body
-                session.status_count += 1
             self._hooks.publish("status", session.identity, session, body)
         elif isinstance(body, SyncSignal):
             if body.kind != "finished":

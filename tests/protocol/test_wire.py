@@ -32,7 +32,16 @@ from protocol.packets import (
     SyncSignal,
     VelocityNed,
 )
-from protocol.wire import FRAME_VERSION, HEADER, HEADER_SIZE, MAGIC, FrameDecoder, ProtocolError, decode_one, encode
+from protocol.wire import (
+    FRAME_VERSION,
+    HEADER,
+    HEADER_SIZE,
+    MAGIC,
+    FrameDecoder,
+    ProtocolError,
+    decode_one,
+    encode,
+)
 
 finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e6, max_value=1e6)
 lat = st.floats(min_value=-90, max_value=90, allow_nan=False)
@@ -170,7 +179,10 @@ def test_header_is_sixteen_bytes_big_endian() -> None:
             r"invalid type 5 \(SYNC\) body at step",
         ),
         (_frame(5, b'{"mission_id":"m","step":1,"kind":"finished","step":2}'), "duplicate key 'step'"),
-        (_frame(4, b'{"mission_id":"m","actions":[{"kind":"hold","step":1,"seconds":1,"x":1}]}'), "at actions"),
+        (
+            _frame(4, b'{"mission_id":"m","actions":[{"kind":"hold","step":1,"seconds":1,"x":1}]}'),
+            "at actions",
+        ),
         (_frame(2, b'{"time": 1, "position": 5}'), "body at position"),  # position is optional
         (_frame(4, b'{"mission_id":"m","actions":[{"kind":"teleport","step":1}]}'), "body at actions"),
         (_frame(5, b"[" * 100_000 + b"]" * 100_000), "UTF-8 JSON|nests too deeply"),
