@@ -36,6 +36,13 @@ class DaemonConfig(BaseModel):
     listen_port: int = Field(default=4396, ge=0, le=65_535)
     http_host: str | None = "127.0.0.1"
     http_port: int = Field(default=8080, ge=0, le=65_535)
+    http_allowed_hosts: list[str] = Field(
+        default_factory=list,
+        description="DNS names the API may be addressed by besides loopback and http_host (Host, Origin)",
+    )
+    max_api_body_bytes: int = Field(
+        default=16 << 20, ge=1024, description="largest HTTP request body, enforced while reading"
+    )
     data_dir: Path = Field(default_factory=default_data_dir)
     database: Path | None = Field(default=None, description="default: DATA_DIR/fleetgcs.sqlite")
     fleet_key_hex: str | None = Field(default=None, description="shared key; default: DATA_DIR/fleet.key")
