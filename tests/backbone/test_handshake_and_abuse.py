@@ -16,6 +16,7 @@ from agent.link import DaemonLink
 from protocol import auth
 from protocol.packets import (
     PROTOCOL_VERSION,
+    SUPPORTED_VERSIONS,
     Body,
     Close,
     CloseReason,
@@ -27,18 +28,18 @@ from protocol.packets import (
     ResponseCid,
     StatusReport,
 )
+from protocol.session import ClientHandshake, Refused
+from protocol.stream import FramedStream
 from protocol.wire import FRAME_VERSION, HEADER, MAGIC, Frame, FrameDecoder, encode
 from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
 
 
 class RawClient:
-    """A hand-driven protocol peer, to send exactly the bytes a test needs."""
+    """A hand-driven protocol peer on the shared framed stream, to send exactly what a test needs."""
 
     def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.reader, self.writer = reader, writer
-        self.decoder = FrameDecoder()
-        self.frames: list[Frame] = []
-        self.seq = 0
+        self.stream = FramedStream(reader, writer, version=PROTOCOL_VERSION)
 
     @classmethod
     async def connect(cls, port: int) -> RawClient:
@@ -46,26 +47,18 @@ class RawClient:
         return cls(reader, writer)
 
     async def send(self, body: Body) -> None:
-        self.seq += 1
-        self.writer.write(encode(body, self.seq))
-        await self.writer.drain()
+        await self.stream.send(body)
 
     async def send_raw(self, data: bytes) -> None:
         self.writer.write(data)
         await self.writer.drain()
 
     async def receive(self, timeout: float = 5.0) -> Frame | None:
-        """Next frame, or None when the daemon closed the connection."""
-        async with asyncio.timeout(timeout):
-            while not self.frames:
-                try:
-                    data = await self.reader.read(65_536)
-                except ConnectionResetError:  # closed with our unread bytes in its buffer: an RST
-                    return None
-                if not data:
-                    return None
-                self.frames.extend(self.decoder.feed(data))
-        return self.frames.pop(0)
+        """Next frame, or None when the daemon closed the connection (an RST included)."""
+        try:
+            return await self.stream.read_frame(timeout)
+        except ConnectionError:
+            return None
 
     async def receive_all_until_closed(self, timeout: float = 5.0) -> list[Body]:
         bodies: list[Body] = []
@@ -77,22 +70,22 @@ class RawClient:
         raise AssertionError("daemon kept talking instead of closing")
 
     async def handshake(
-        self, identity: str, key_hex: str, version: int = PROTOCOL_VERSION
+        self, identity: str, key_hex: str, version: int | None = None
     ) -> tuple[Body, str, str]:
-        client_nonce = auth.new_nonce()
-        await self.send(RequestCid(identity=identity, protocol_version=version, client_nonce=client_nonce))
+        """The shared client handshake, step by step; returns (last answer, server nonce, client nonce)."""
+        versions = [version] if version is not None else list(SUPPORTED_VERSIONS)
+        session = ClientHandshake(identity, bytes.fromhex(key_hex), versions=versions)
+        await self.send(session.hello())
         challenge = await self.receive()
         assert challenge is not None
-        if not isinstance(challenge.body, ResponseCid) or challenge.body.outcome != "challenge":
-            return challenge.body, "", client_nonce
-        server_nonce = challenge.body.server_nonce or ""
-        proof = auth.agent_proof(bytes.fromhex(key_hex), identity, server_nonce, client_nonce)
-        await self.send(
-            RequestCid(identity=identity, protocol_version=version, client_nonce=client_nonce, proof=proof)
-        )
+        try:
+            proof = session.on_challenge(challenge.body)
+        except Refused:
+            return challenge.body, "", session.client_nonce
+        await self.send(proof)
         answer = await self.receive()
         assert answer is not None
-        return answer.body, server_nonce, client_nonce
+        return answer.body, session.server_nonce or "", session.client_nonce
 
     def close(self) -> None:
         self.writer.close()
