@@ -27,8 +27,8 @@ from agent.autopilot.base import Autopilot
 from agent.config import AgentConfig
 from agent.link import client_tls_context
 from protocol import auth
-from protocol.packets import Close, CloseReason
-from protocol.session import ClientHandshake, Refused
+from protocol.packets import SUPPORTED_VERSIONS, Close, CloseReason
+from protocol.session import V1_DAEMON, ClientHandshake, Refused
 from protocol.stream import FramedStream
 from protocol.wire import ProtocolError
 
@@ -169,7 +169,21 @@ def serial_hint(error: str) -> str:
 
 
 async def handshake(config: AgentConfig, identity: str, timeout: float) -> Handshake:
-    """One full authenticated handshake (a probe); measures round trip and clock offset (midpoint method)."""
+    """One full authenticated handshake (a probe); measures round trip and clock offset (midpoint method).
+
+    A version-1 daemon refuses the v2 hello without a code; the probe is then repeated in v1.
+    """
+    try:
+        return await _probe(config, identity, timeout, SUPPORTED_VERSIONS)
+    except _OldDaemon:
+        return await _probe(config, identity, timeout, (1,))
+
+
+class _OldDaemon(Exception):
+    pass
+
+
+async def _probe(config: AgentConfig, identity: str, timeout: float, versions: tuple[int, ...]) -> Handshake:
     key = auth.parse_key(config.key_hex)
     tls = client_tls_context(config)
     try:
@@ -187,7 +201,7 @@ async def handshake(config: AgentConfig, identity: str, timeout: float) -> Hands
             "and is the port open in the firewall?",
         ) from None
     stream = FramedStream(reader, writer)
-    session = ClientHandshake(identity, key, capabilities=config.capabilities, probe=True)
+    session = ClientHandshake(identity, key, versions=versions, capabilities=config.capabilities, probe=True)
     try:
         stream.version = max(session.versions)
         async with asyncio.timeout(timeout):
@@ -204,6 +218,8 @@ async def handshake(config: AgentConfig, identity: str, timeout: float) -> Hands
         await stream.close(Close(reason=CloseReason.NORMAL, message="agent doctor"))
         return Handshake(cid=accepted.cid, rtt_s=received - sent, offset_s=offset)
     except Refused as exc:
+        if exc.code == V1_DAEMON and versions != (1,):
+            raise _OldDaemon from None
         hints = {
             "unknown_identity": "is this identity listed in the daemon's agent keys?",
             "wrong_key": "the key must be the daemon's fleet key (or this agent's own key)",
