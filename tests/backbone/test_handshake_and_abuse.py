@@ -302,7 +302,7 @@ async def test_flooding_agent_is_cut_off_and_others_keep_flying(tmp_path: Path) 
             # The close may be lost to a TCP reset (the flooder's unread frames); the event is not.
             assert all(isinstance(b, ResponseCid | StatusReport) for b in bodies[:-1])
             if bodies and isinstance(bodies[-1], Close):
-                assert "frames/s" in bodies[-1].message
+                assert "frames/s" in bodies[-1].message and bodies[-1].code == "rate_limited"
             cut = daemon.events.history(kind="agent_cut_off")
             assert [e.agent for e in cut] == ["flooder"]
             before = daemon.agents.session("steady").status_count  # type: ignore[union-attr]

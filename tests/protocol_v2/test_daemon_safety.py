@@ -16,6 +16,7 @@ from protocol.packets import StatusReport
 from protocol.session import ClientHandshake
 from protocol.stream import open_client
 from tests.backbone.helpers import new_key, running_daemon, start_agent, wait_for
+from tests.faults.common import hover_mission
 
 BIN = Path(sys.executable).parent
 
@@ -79,7 +80,8 @@ async def test_exception_events_are_bounded_per_agent(tmp_path: Path) -> None:
     async with running_daemon(tmp_path, key, max_exception_events=20) as daemon:
         flying = start_agent("steady", daemon.listen_port, key)
         try:
-            await wait_for(lambda: daemon.agents.session("steady") is not None, 10, "agent joined")
+            await wait_for(lambda: (s := daemon.agents.session("steady")) and s.status, 10, "agent joined")
+            mission_id = await daemon.missions.submit(hover_mission("steady", seconds=60.0))
             stream, _ = await open_client(
                 "127.0.0.1", daemon.listen_port, ClientHandshake("noisy", bytes.fromhex(key))
             )
@@ -93,7 +95,7 @@ async def test_exception_events_are_bounded_per_agent(tmp_path: Path) -> None:
             assert 20 <= len(logged) <= 25  # the bucket refills at 20/min during the test
             assert daemon.events.history(kind="agent_exceptions_suppressed", agent="noisy")
             steady = daemon.agents.session("steady")
-            assert steady is not None and steady.open
+            assert steady is not None and steady.open and mission_id in daemon.missions.active
             await stream.close()
         finally:
             await flying.kill()

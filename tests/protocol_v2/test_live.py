@@ -15,6 +15,7 @@ from protocol.session import ClientHandshake, Code, Refused, ServerHandshake
 from protocol.stream import FramedStream, open_client
 from protocol.wire import FRAME_VERSION, HEADER, MAGIC
 from tests.backbone.helpers import new_key, running_daemon, start_agent, survey_mission, wait_for
+from tests.faults.common import hover_mission
 from tests.protocol_v2.stdlib_agent import StdlibAgent
 
 pytestmark = pytest.mark.timeout(120)
@@ -157,7 +158,8 @@ async def test_pre_auth_frames_are_small_and_handshakes_are_capped(tmp_path: Pat
         port = daemon.listen_port
         running = start_agent("flying", port, key)
         try:
-            await wait_for(lambda: daemon.agents.session("flying") is not None, 10, "agent joined")
+            await wait_for(lambda: (s := daemon.agents.session("flying")) and s.status, 10, "agent joined")
+            mission_id = await daemon.missions.submit(hover_mission("flying", seconds=60.0))
             # a 2 KiB "hello" is refused from its header before the body is read
             reader, writer = await asyncio.open_connection("127.0.0.1", port)
             writer.write(HEADER.pack(MAGIC, FRAME_VERSION, 0, 1, 2048, 0))
@@ -174,7 +176,8 @@ async def test_pre_auth_frames_are_small_and_handshakes_are_capped(tmp_path: Pat
             for _, w in holders:
                 w.close()
             before = daemon.agents.session("flying")
-            assert before is not None and before.open  # the running agent was never disturbed
+            assert before is not None and before.open  # the flying agent was never disturbed
+            assert mission_id in daemon.missions.active
             count = before.status_count
             await asyncio.sleep(0.5)
             assert before.status_count > count
