@@ -63,9 +63,6 @@ def client_tls_context(config: AgentConfig) -> ssl.SSLContext | None:
     return context
 
 
-HandshakeFailed = Refused  # the old name
-
-
 def _milestone(report: StatusReport) -> tuple[object, ...]:
     failure = report.failure.time if report.failure else None
     return (

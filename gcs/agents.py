@@ -1,9 +1,12 @@
 """Agent manager: TCP sessions, the authenticated handshake, CIDs, liveness, frame routing.
 
 One read task per connection and one writer task per session (gcs/outbox.py: a bounded
-outbound queue with an urgent lane). A connection must complete the type-0/1 handshake within
-``handshake_timeout_s``; until then no other packet is accepted. Any protocol error closes
-only that connection (type 6 ``protocol_error`` first), never the daemon or other agents.
+outbound queue with an urgent lane). Frames are read through the shared
+:class:`protocol.stream.FramedStream` and the handshake is :class:`protocol.session.ServerHandshake`
+(versions negotiated, refusals with codes). A connection must complete it within
+``handshake_timeout_s`` with frames under 1 KiB, and at most ``max_handshakes`` run at once;
+until then no other packet is accepted. Any protocol error closes only that connection (type 6
+``protocol_error`` first), never the daemon or other agents.
 
 Nothing is awaited on the read path: the frame loop decodes, records (``session.status``...)
 and publishes to the hook consumers (gcs/dispatch.py), which run ``on_join`` / ``on_status`` /
@@ -45,8 +48,6 @@ from protocol.stream import FramedStream
 from protocol.wire import PRE_AUTH_MAX_BODY, Frame, ProtocolError
 
 log = logging.getLogger("gcs.agents")
-
-HandshakeRefused = Refused  # the old name, for callers that catch it
 
 
 class ProbeAnswered(ConnectionError):
@@ -556,4 +557,4 @@ def _peer_name(writer: asyncio.StreamWriter) -> str:
     return str(peer)
 
 
-__all__ = ["AgentManager", "AgentSession", "HandshakeRefused", "PacketType", "certificate_identities"]
+__all__ = ["AgentManager", "AgentSession", "PacketType", "certificate_identities"]
