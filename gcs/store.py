@@ -496,7 +496,7 @@ def telemetry_page(
 _SAMPLE_JSON = """json_object(
  'received', received,
  'status', json_object(
-  'time', time,
+  'time', time, 'vehicle_time', json('null'),
   'position', json_object('lat', lat, 'lon', lon, 'alt_rel', alt_rel, 'alt_amsl', alt_amsl),
   'velocity', json_object('vn', vn, 've', ve, 'vd', vd),
   'heading_deg', heading_deg,
@@ -509,7 +509,8 @@ _SAMPLE_JSON = """json_object(
   'step', step,
   'completed_step', -1, 'queue_depth', 0, 'waiting_sync', NULL, 'paused', json('false'),
   'exceptions', json('[]'), 'autopilot_link', json('true'),
-  'buffered', json(CASE WHEN buffered THEN 'true' ELSE 'false' END), 'failsafe', json('null')))"""
+  'buffered', json(CASE WHEN buffered THEN 'true' ELSE 'false' END), 'failsafe', json('null'),
+  'failure', json('null')))"""
 
 
 def telemetry_page_json(
