@@ -13,7 +13,7 @@ import pytest
 
 from gcs.store import Store, StoreError
 from protocol.packets import StatusReport
-from protocol.session import ClientHandshake
+from protocol.session import ClientHandshake, Refused
 from protocol.stream import open_client
 from tests.backbone.helpers import new_key, running_daemon, start_agent, wait_for
 from tests.faults.common import hover_mission
@@ -53,7 +53,7 @@ def test_damaged_database_stops_gcs_serve_at_start_with_one_line(tmp_path: Path)
     assert "Traceback" not in result.stderr
 
 
-def test_keygen_issues_per_agent_keys_that_the_daemon_accepts(tmp_path: Path) -> None:
+async def test_keygen_issues_per_agent_keys_that_the_daemon_accepts(tmp_path: Path) -> None:
     keys_file = tmp_path / "agents.json"
     made = subprocess.run(
         [BIN / "gcs", "keygen", "--agent", "drone-1", "--agent", "drone-2", "--agent-keys", keys_file],
@@ -73,6 +73,19 @@ def test_keygen_issues_per_agent_keys_that_the_daemon_accepts(tmp_path: Path) ->
         check=True,
     )
     assert again.stdout.split() == ["drone-1", printed["drone-1"]]  # kept unless --rotate
+    fleet_key = new_key()
+    async with running_daemon(
+        tmp_path, fleet_key, agent_keys_file=keys_file, allow_unlisted_agents=False
+    ) as daemon:
+        own = ClientHandshake("drone-1", bytes.fromhex(printed["drone-1"]))
+        stream, accepted = await open_client("127.0.0.1", daemon.listen_port, own)
+        assert accepted.cid == 1
+        await stream.close()
+        with pytest.raises(Refused) as caught:  # the fleet key does not open a listed identity
+            await open_client(
+                "127.0.0.1", daemon.listen_port, ClientHandshake("drone-2", bytes.fromhex(fleet_key))
+            )
+        assert caught.value.code == "wrong_key"
 
 
 async def test_exception_events_are_bounded_per_agent(tmp_path: Path) -> None:
