@@ -18,7 +18,12 @@ from __future__ import annotations
 
 import random
 import sys
+import tempfile
 import time
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script: make the repository importable
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 try:
     import atheris
@@ -154,6 +159,11 @@ def mutation_loop(seconds: float, seed: int = 0, max_cases: int = 10**9) -> int:
 
 def main(argv: list[str]) -> int:
     if atheris is not None:
+        if not [a for a in argv[1:] if not a.startswith("-")]:  # no corpus given: start from the seeds
+            corpus = Path(tempfile.mkdtemp(prefix="fuzz-handshake-"))
+            for number, case in enumerate(seed_cases()):
+                (corpus / f"seed-{number}").write_bytes(case)
+            argv = [*argv, str(corpus)]
         atheris.Setup(argv, test_one_input)
         atheris.Fuzz()
         return 0
