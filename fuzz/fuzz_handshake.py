@@ -16,10 +16,8 @@ proofs. Mutations are those of fuzz/fuzz_decoder.py.
 
 from __future__ import annotations
 
-import random
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 if __package__ in (None, ""):  # run as a script: make the repository importable
@@ -42,7 +40,8 @@ else:
     from protocol.session import ClientHandshake, Refused, ServerHandshake
     from protocol.wire import PRE_AUTH_MAX_BODY, FrameDecoder, ProtocolError, encode
 
-from fuzz.fuzz_decoder import fix_crcs, mutate
+from fuzz.fuzz_decoder import mutation_loop as decoder_mutation_loop
+from fuzz.fuzz_decoder import split_case
 
 KEY = bytes(range(32))
 CLIENT_NONCE = "c1" * 16
@@ -95,9 +94,7 @@ def test_one_input(data: bytes) -> None:
     """One case; raises AssertionError (or whatever escaped) on a contract breach."""
     if not data:
         return
-    control, payload = data[0], data[1:]
-    if control & 0x80:
-        payload = fix_crcs(payload)
+    control, payload = split_case(data)
     try:
         bodies = [f.body for f in FrameDecoder(PRE_AUTH_MAX_BODY).feed(payload)][:2]
     except ProtocolError:
@@ -143,18 +140,8 @@ def _client(bodies: list[Body]) -> None:
 
 
 def mutation_loop(seconds: float, seed: int = 0, max_cases: int = 10**9) -> int:
-    """Mutated seed cases until ``seconds`` or ``max_cases``; returns the number run."""
-    corpus = seed_cases()
-    rng = random.Random(seed)
-    deadline = time.monotonic() + seconds
-    cases = 0
-    while cases < max_cases and time.monotonic() < deadline:
-        case = rng.choice(corpus)
-        for _ in range(rng.randint(1, 3)):
-            case = mutate(case, rng, corpus)
-        test_one_input(bytes([case[0] & 0x81 | (rng.random() < 0.9) << 7]) + case[1:])
-        cases += 1
-    return cases
+    """Mutated seed cases (the decoder target's mutations) until ``seconds`` or ``max_cases``."""
+    return decoder_mutation_loop(seed_cases(), seconds, seed, max_cases, target=test_one_input)
 
 
 def main(argv: list[str]) -> int:
