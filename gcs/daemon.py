@@ -102,7 +102,7 @@ class Daemon:
 
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config
-        self.store = Store(config.database_path)
+        self.store = Store(config.database_path, allow_new=config.new_database)
         self.events = EventBus(self.store)
         fleet_key = (
             parse_key(config.fleet_key_hex)

@@ -11,7 +11,9 @@ beside the writer. Bulk statements are chunked so no transaction holds the write
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import sqlite3
 import threading
 import time
@@ -20,6 +22,16 @@ from pathlib import Path
 from typing import Any
 
 SCHEMA_VERSION = 3
+MAX_CID = 65_535  # the wire's cid range (docs/protocol.md, type 1)
+
+
+class StoreError(RuntimeError):
+    """The database cannot be used safely (damaged, or missing where one existed)."""
+
+
+class CidExhausted(Exception):
+    """Every connection ID is taken: a new identity is refused, never given a duplicate."""
+
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -145,19 +157,50 @@ class StoredEvent:
 class Store:
     """Thin, explicit SQL over one connection; every public method is one transaction."""
 
-    def __init__(self, path: Path | str) -> None:
+    def __init__(self, path: Path | str, *, allow_new: bool = False) -> None:
+        """Open (or create) the database at ``path``.
+
+        Refuses (:class:`StoreError`) a damaged database, and a missing one where one existed
+        before (its ``.created`` marker is there): a new database would hand out the connection
+        IDs again, so a task file addressed by CID would command other vehicles. ``allow_new``
+        (``gcs serve --new-database``) is the operator saying an empty database is what they want.
+        The directory is created 0700 and the database files are 0600.
+        """
         self.path = str(path)
         if self.path != ":memory:":
-            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+            file = Path(self.path)
+            marker = file.with_name(file.name + ".created")
+            if not file.parent.exists():
+                file.parent.mkdir(mode=0o700, parents=True)
+            if not file.exists():
+                if marker.exists() and not allow_new:
+                    raise StoreError(
+                        f"{file} is missing but a database existed there (marker {marker.name}); restore it "
+                        "from a backup, or start with --new-database to begin with an empty one "
+                        "(connection IDs will be assigned anew)"
+                    )
+                os.close(os.open(file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+                marker.write_text("fleetgcs database created here; see docs/security.md\n")
+            with contextlib.suppress(OSError):
+                os.chmod(file, 0o600)  # the WAL and shared-memory files take the database's mode
         self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
         # Held around every write transaction in this process (the loop's small ones and the
         # telemetry writer's chunks): a writer waiting here is woken the moment the other is
         # done, where SQLite's own busy handler would sleep in growing steps (up to 100 ms).
         self.write_lock = threading.Lock()
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=NORMAL")
-        self._db.execute("PRAGMA foreign_keys=ON")
-        self._migrate()
+        try:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            check = self._db.execute("PRAGMA quick_check").fetchone()[0]
+            if check != "ok":
+                raise sqlite3.DatabaseError(check)
+            self._migrate()
+        except sqlite3.DatabaseError as exc:
+            self._db.close()
+            raise StoreError(
+                f"{self.path} is damaged or not a fleetgcs database ({exc}); restore it from a backup"
+            ) from None
 
     def _migrate(self) -> None:
         version = self._db.execute("PRAGMA user_version").fetchone()[0]
@@ -171,6 +214,11 @@ class Store:
 
     # --- agents ---------------------------------------------------------------------------------
 
+    def cid_of(self, identity: str) -> int | None:
+        """The connection ID ``identity`` already has, or None if it never joined (not enrolled)."""
+        row = self._db.execute("SELECT cid FROM agents WHERE identity=?", (identity,)).fetchone()
+        return None if row is None else int(row[0])
+
     def cid_for(self, identity: str, capabilities: dict[str, Any]) -> int:
         """The stable connection ID of ``identity``, allocating the next free one on first contact."""
         now = time.time()
@@ -183,6 +231,10 @@ class Store:
                 )
                 return int(row[0])
             next_cid = self._db.execute("SELECT COALESCE(MAX(cid), 0) + 1 FROM agents").fetchone()[0]
+            if next_cid > MAX_CID:
+                raise CidExhausted(
+                    f"all {MAX_CID} connection IDs are taken; retire identities (gcs agents retire) first"
+                )
             self._db.execute(
                 "INSERT INTO agents(identity, cid, first_seen, last_seen, capabilities) VALUES (?,?,?,?,?)",
                 (identity, next_cid, now, now, json.dumps(capabilities)),
@@ -468,7 +520,7 @@ def telemetry_page(
 _SAMPLE_JSON = """json_object(
  'received', received,
  'status', json_object(
-  'time', time,
+  'time', time, 'vehicle_time', json('null'),
   'position', json_object('lat', lat, 'lon', lon, 'alt_rel', alt_rel, 'alt_amsl', alt_amsl),
   'velocity', json_object('vn', vn, 've', ve, 'vd', vd),
   'heading_deg', heading_deg,
