@@ -75,7 +75,7 @@ ACTIONS: dict[str, Action] = {
     Code.STARTING: "retry",
     Code.BUSY: "retry",
     Code.CID_EXHAUSTED: "retry",
-    Code.SHUTDOWN: "retry",
+    Code.SHUTDOWN: "reconnect",  # a daemon stopping is usually restarting: come back soon
     Code.HANDSHAKE_TIMEOUT: "retry",
     Code.WRONG_KEY: "stop",
     Code.UNKNOWN_IDENTITY: "stop",
