@@ -169,12 +169,17 @@ class AgentManager:
         )
         self._tasks: set[asyncio.Task[None]] = set()
         self._pending_handshakes = 0
+        # Cluster mode (gcs/cluster): agents linked to other daemons, and the shared CID registry.
+        self.remote: dict[str, AgentSession] = {}
+        self.assign_cid: Callable[[str], Awaitable[int]] | None = None
 
     # --- queries --------------------------------------------------------------------------------
 
     def session(self, identity: str) -> AgentSession | None:
         session = self.sessions.get(identity)
-        return session if session is not None and session.open else None
+        if session is not None and session.open:
+            return session
+        return self.remote.get(identity)  # linked to another daemon of the cluster (or None)
 
     def connected(self) -> list[AgentSession]:
         return [s for s in self.sessions.values() if s.open]
@@ -298,6 +303,8 @@ class AgentManager:
             raise HandshakeRefused(f"authentication failed for {request.identity!r}: wrong key")
         if probing or proof_request.probe:  # authenticated only: no CID, no session, never a member
             await _answer_probe(writer, request, key, server_nonce, self.config, self._events)
+        if self.assign_cid is not None:
+            await self.assign_cid(request.identity)
         cid = self._store.cid_for(request.identity, proof_request.capabilities.model_dump())
         outbox = Outbox(
             writer,

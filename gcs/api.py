@@ -524,6 +524,10 @@ def create_app(daemon: Daemon) -> FastAPI:
             raise ApiProblem(503, "dashboard not installed", f"{WEB_DIR} is missing from this install")
 
     _mount_docs(app)
+    if daemon.cluster is not None:  # whole-fleet routes of a clustered daemon (docs/cluster.md)
+        from gcs.cluster.api import cluster_router
+
+        app.include_router(cluster_router(daemon, token))
     return app
 
 

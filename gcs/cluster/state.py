@@ -1,0 +1,297 @@
+"""Fleet state shared by daemons through NATS JetStream (key-value buckets and two streams).
+
+What lives where (docs/cluster.md):
+
+==================  ===================================  =====================================
+bucket / stream     key                                  value / rule
+==================  ===================================  =====================================
+fleet_agents        identity                             {cid, daemon}: registry, who holds the link
+fleet_cids          c<CID>                               identity; ``create``: a CID is assigned once
+fleet_missions      mission id                           accepted mission (task, state, paused)
+fleet_progress      <mission>.<agent>                    {completed, excluded}
+fleet_barriers      <mission>.<step>.arrived.<agent>     an arrival (written by the link's daemon)
+                    <mission>.<step>.released            ``create``: a barrier is released once
+fleet_holds         <agent>.<owner>                      {agent, owner, reason}: operator holds
+fleet_leases        <mission>                            daemon id; bucket TTL: the leader's lease
+FLEET_EVENTS        fleet.events.<daemon>                the event log (limits: count, age)
+FLEET_TELEMETRY     fleet.status.<identity>              live status (plain subject) kept with limits
+==================  ===================================  =====================================
+
+Reads come from in-memory mirrors kept current by one KV watcher per bucket, so the daemon's
+synchronous code (the mission runner, the store interface) never waits on the network. Writes go
+through one ordered queue (retried, bounded); the few writes that must not race (a CID, a barrier
+release, a lease) are awaited compare-and-set calls.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import nats
+import nats.errors
+import nats.js.errors
+from nats.aio.client import Client
+from nats.js.client import JetStreamContext
+from nats.js.kv import KV_DEL, KV_PURGE, KeyValue
+
+log = logging.getLogger("gcs.cluster")
+
+BUCKETS = ("agents", "cids", "missions", "progress", "barriers", "holds", "leases")
+EVENTS_STREAM = "FLEET_EVENTS"
+TELEMETRY_STREAM = "FLEET_TELEMETRY"
+EVENT_LIMIT = 200_000
+EVENT_MAX_AGE_S = 7 * 86_400.0
+TELEMETRY_MAX_AGE_S = 3_600.0
+TELEMETRY_MAX_BYTES = 256 << 20
+WRITE_ATTEMPTS = 20
+CID_ATTEMPTS = 64
+MIRROR_LOAD_TIMEOUT_S = 10.0
+
+Write = Callable[[], Awaitable[object]]
+
+
+class ClusterUnavailable(RuntimeError):
+    """NATS could not be reached or JetStream is not enabled there."""
+
+
+class ClusterState:
+    """One daemon's connection to the shared fleet state."""
+
+    def __init__(self, servers: list[str], daemon_id: str, replicas: int, lease_ttl_s: float) -> None:
+        self.servers = servers
+        self.daemon_id = daemon_id
+        self.replicas = replicas
+        self.lease_ttl_s = lease_ttl_s
+        self.nc: Client | None = None
+        self.js: JetStreamContext | None = None
+        self.kv: dict[str, KeyValue] = {}
+        self.mirror: dict[str, dict[str, bytes]] = {name: {} for name in BUCKETS}
+        self.on_change: list[Callable[[str, str, bytes | None], None]] = []
+        self._watchers: list[Any] = []
+        self._tasks: list[asyncio.Task[None]] = []
+        self._writes: asyncio.Queue[Write] = asyncio.Queue()
+        self.write_failures = 0
+
+    # --- connection ------------------------------------------------------------------------------
+
+    async def connect(self) -> None:
+        try:
+            self.nc = await nats.connect(
+                servers=self.servers,
+                name=self.daemon_id,
+                connect_timeout=2,
+                reconnect_time_wait=0.25,
+                max_reconnect_attempts=-1,
+                allow_reconnect=True,
+            )
+        except Exception as exc:
+            raise ClusterUnavailable(f"cannot reach NATS at {','.join(self.servers)}: {exc!r}") from exc
+        self.js = self.nc.jetstream(timeout=5.0)
+        try:
+            for name in BUCKETS:
+                self.kv[name] = await self._bucket(name)
+            await self._stream(
+                EVENTS_STREAM, ["fleet.events.>"], max_msgs=EVENT_LIMIT, max_age=EVENT_MAX_AGE_S
+            )
+            await self._stream(
+                TELEMETRY_STREAM,
+                ["fleet.status.>"],
+                max_age=TELEMETRY_MAX_AGE_S,
+                max_bytes=TELEMETRY_MAX_BYTES,
+                storage="memory",
+            )
+        except (nats.errors.Error, nats.js.errors.Error) as exc:
+            await self.close()
+            raise ClusterUnavailable(f"JetStream not usable at {','.join(self.servers)}: {exc!r}") from exc
+        for name in BUCKETS:
+            if name != "leases":  # leases expire without a marker on 2.9: always read them fresh
+                await self._follow(name)
+        self._tasks.append(asyncio.create_task(self._writer(), name="cluster-writer"))
+
+    async def _bucket(self, name: str) -> KeyValue:
+        assert self.js is not None
+        bucket = f"fleet_{name}"
+        with contextlib.suppress(nats.js.errors.BucketNotFoundError):
+            return await self.js.key_value(bucket)
+        ttl = self.lease_ttl_s if name == "leases" else None
+        return await self.js.create_key_value(bucket=bucket, history=1, replicas=self.replicas, ttl=ttl)
+
+    async def _stream(self, name: str, subjects: list[str], storage: str = "file", **limits: Any) -> None:
+        from nats.js.api import StorageType, StreamConfig
+
+        assert self.js is not None
+        config = StreamConfig(
+            name=name,
+            subjects=subjects,
+            num_replicas=self.replicas,
+            storage=StorageType.MEMORY if storage == "memory" else StorageType.FILE,
+            **limits,
+        )
+        try:
+            await self.js.stream_info(name)
+        except nats.js.errors.NotFoundError:
+            with contextlib.suppress(nats.js.errors.BadRequestError):  # another daemon made it first
+                await self.js.add_stream(config)
+
+    async def _follow(self, name: str) -> None:
+        """Load the bucket into its mirror, then keep the mirror current in the background."""
+        watcher = await self.kv[name].watchall()
+        self._watchers.append(watcher)
+        mirror = self.mirror[name]
+        deadline = time.monotonic() + MIRROR_LOAD_TIMEOUT_S
+        while time.monotonic() < deadline:
+            entry = await watcher.updates(timeout=max(0.1, deadline - time.monotonic()))
+            if entry is None:
+                break
+            self._apply(name, mirror, entry)
+
+        async def follow() -> None:
+            async for entry in watcher:
+                if entry is not None:
+                    self._apply(name, mirror, entry)
+
+        self._tasks.append(asyncio.create_task(follow(), name=f"cluster-watch-{name}"))
+
+    def _apply(self, name: str, mirror: dict[str, bytes], entry: Any) -> None:
+        value = None if entry.operation in (KV_DEL, KV_PURGE) else entry.value
+        if value is None:
+            mirror.pop(entry.key, None)
+        else:
+            mirror[entry.key] = value
+        for callback in self.on_change:
+            try:
+                callback(name, entry.key, value)
+            except Exception:
+                log.exception("cluster change callback failed")
+
+    async def close(self) -> None:
+        if self.nc is not None and self.nc.is_connected:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self.flush_writes(), 5.0)
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        self._tasks.clear()
+        if self.nc is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self.nc.close(), 5.0)
+
+    # --- ordered writes --------------------------------------------------------------------------
+
+    def enqueue(self, write: Write) -> None:
+        """Run ``write`` after every write queued before it (retried; never blocks the caller)."""
+        self._writes.put_nowait(write)
+
+    def put_json(self, bucket: str, key: str, value: dict[str, Any]) -> None:
+        data = json.dumps(value, separators=(",", ":")).encode()
+        self.mirror[bucket][key] = data
+        self.enqueue(lambda: self.kv[bucket].put(key, data))
+
+    def delete(self, bucket: str, key: str) -> None:
+        self.mirror[bucket].pop(key, None)
+        self.enqueue(lambda: self.kv[bucket].delete(key))
+
+    def publish(self, subject: str, payload: bytes) -> None:
+        """Core publish (no ack): the stream on that subject keeps it within its limits."""
+        if self.nc is not None and not self.nc.is_closed:
+            self.enqueue(lambda: self.nc.publish(subject, payload))  # type: ignore[union-attr]
+
+    async def flush_writes(self) -> None:
+        await self._writes.join()
+
+    async def _writer(self) -> None:
+        while True:
+            write = await self._writes.get()
+            try:
+                for attempt in range(WRITE_ATTEMPTS):
+                    try:
+                        await write()
+                        break
+                    except (nats.errors.Error, nats.js.errors.Error, TimeoutError) as exc:
+                        if isinstance(exc, nats.js.errors.KeyWrongLastSequenceError):
+                            break  # a compare-and-set lost: someone else wrote first, which is fine
+                        await asyncio.sleep(min(2.0, 0.1 * (attempt + 1)))
+                else:
+                    self.write_failures += 1
+                    log.error("cluster write failed %d times; dropped", WRITE_ATTEMPTS)
+            finally:
+                self._writes.task_done()
+
+    # --- compare-and-set -------------------------------------------------------------------------
+
+    async def create(self, bucket: str, key: str, value: bytes) -> bool:
+        """Write ``key`` only if it does not exist; False if someone else holds it."""
+        try:
+            await self.kv[bucket].create(key, value)
+        except nats.js.errors.KeyWrongLastSequenceError:
+            with contextlib.suppress(Exception):
+                entry = await self.kv[bucket].get(key)
+                if entry.value is not None and bucket != "leases":
+                    self.mirror[bucket][key] = entry.value
+            return False
+        if bucket != "leases":
+            self.mirror[bucket][key] = value
+        return True
+
+    async def assign_cid(self, identity: str) -> int:
+        """The agent's CID: its registered one, else the lowest free one (claimed with create)."""
+        known = self.agent_record(identity)
+        if known is not None:
+            return int(known["cid"])
+        for _ in range(CID_ATTEMPTS):
+            used = [int(k[1:]) for k in self.mirror["cids"] if k[1:].isdigit()]
+            cid = max(used, default=0) + 1
+            if await self.create("cids", f"c{cid}", identity.encode()):
+                record = {"cid": cid, "daemon": self.daemon_id}
+                if await self.create("agents", identity, json.dumps(record).encode()):
+                    return cid
+                self.delete("cids", f"c{cid}")  # registered meanwhile by another daemon: use theirs
+                theirs = self.agent_record(identity)
+                if theirs is not None:
+                    return int(theirs["cid"])
+        raise RuntimeError(f"could not assign a connection ID to {identity} after {CID_ATTEMPTS} tries")
+
+    def agent_record(self, identity: str) -> dict[str, Any] | None:
+        raw = self.mirror["agents"].get(identity)
+        return None if raw is None else json.loads(raw)
+
+    def json_values(self, bucket: str, prefix: str = "") -> dict[str, dict[str, Any]]:
+        return {k: json.loads(v) for k, v in list(self.mirror[bucket].items()) if k.startswith(prefix)}
+
+    # --- leases ----------------------------------------------------------------------------------
+
+    async def lease_holder(self, mission_id: str) -> tuple[str | None, int]:
+        """(daemon holding the mission's lease, revision); (None, 0) when it expired or never was."""
+        try:
+            entry = await self.kv["leases"].get(mission_id)
+        except (nats.js.errors.KeyNotFoundError, nats.js.errors.KeyDeletedError):
+            return None, 0
+        return (entry.value or b"").decode() or None, int(entry.revision or 0)
+
+    async def take_lease(self, mission_id: str) -> bool:
+        return await self.create("leases", mission_id, self.daemon_id.encode())
+
+    async def renew_lease(self, mission_id: str) -> bool:
+        """Extend our lease; False if it is no longer ours (expired and taken by another daemon)."""
+        holder, revision = await self.lease_holder(mission_id)
+        if holder is None:
+            return await self.take_lease(mission_id)
+        if holder != self.daemon_id:
+            return False
+        try:
+            await self.kv["leases"].update(mission_id, self.daemon_id.encode(), last=revision)
+        except nats.js.errors.KeyWrongLastSequenceError:
+            return False
+        return True
+
+    async def drop_lease(self, mission_id: str) -> None:
+        with contextlib.suppress(Exception):
+            await self.kv["leases"].delete(mission_id)
