@@ -196,6 +196,7 @@ class ClusterNode:
 
     async def _take_over(self, mission_id: str) -> None:
         missions = self.daemon.missions
+        await self.state.resync()  # the freshest shared records, whatever our watchers missed
         mission = missions.restore_one(mission_id)
         if mission is None:
             return
@@ -220,7 +221,7 @@ class ClusterNode:
                 await self._nudge(session, session.status)
 
     async def _claim_release(self, mission_id: str, step: int) -> bool:
-        return await self.state.create("barriers", f"{mission_id}.{step}.released", b"%f" % time.time())
+        return await self.state.create("barriers", f"{mission_id}.{step}.released", self.state.unique())
 
     def _led_elsewhere(self, mission_id: str) -> bool:
         stored = self.store.mission(mission_id)
@@ -261,7 +262,8 @@ class ClusterNode:
         key = f"{signal.mission_id}.{signal.step}.arrived.{session.identity}"
         if key not in self.state.mirror["barriers"]:
             self.state.mirror["barriers"][key] = b"1"
-            self.state.enqueue(lambda: self.state.create("barriers", key, b"%f" % time.time()))
+            value = self.state.unique()
+            self.state.enqueue(lambda: self.state.create("barriers", key, value))
         self._up(session, "sync", _frame(signal))
 
     async def _local_lost(self, identity: str) -> None:

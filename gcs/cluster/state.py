@@ -52,6 +52,8 @@ TELEMETRY_MAX_BYTES = 256 << 20
 WRITE_ATTEMPTS = 20
 CID_ATTEMPTS = 64
 MIRROR_LOAD_TIMEOUT_S = 10.0
+SETUP_TIMEOUT_S = 20.0
+CAS_TIMEOUT_S = 10.0
 
 Write = Callable[[], Awaitable[object]]
 
@@ -73,7 +75,7 @@ class ClusterState:
         self.kv: dict[str, KeyValue] = {}
         self.mirror: dict[str, dict[str, bytes]] = {name: {} for name in BUCKETS}
         self.on_change: list[Callable[[str, str, bytes | None], None]] = []
-        self._watchers: list[Any] = []
+        self._followers: dict[str, tuple[Any, asyncio.Task[None]]] = {}
         self._tasks: list[asyncio.Task[None]] = []
         self._writes: asyncio.Queue[Write] = asyncio.Queue()
         self.write_failures = 0
@@ -89,30 +91,40 @@ class ClusterState:
                 reconnect_time_wait=0.25,
                 max_reconnect_attempts=-1,
                 allow_reconnect=True,
+                reconnected_cb=self._reconnected,
             )
         except Exception as exc:
             raise ClusterUnavailable(f"cannot reach NATS at {','.join(self.servers)}: {exc!r}") from exc
         self.js = self.nc.jetstream(timeout=5.0)
-        try:
-            for name in BUCKETS:
-                self.kv[name] = await self._bucket(name)
-            await self._stream(
-                EVENTS_STREAM, ["fleet.events.>"], max_msgs=EVENT_LIMIT, max_age=EVENT_MAX_AGE_S
-            )
-            await self._stream(
-                TELEMETRY_STREAM,
-                ["fleet.status.>"],
-                max_age=TELEMETRY_MAX_AGE_S,
-                max_bytes=TELEMETRY_MAX_BYTES,
-                storage="memory",
-            )
-        except (nats.errors.Error, nats.js.errors.Error) as exc:
-            await self.close()
-            raise ClusterUnavailable(f"JetStream not usable at {','.join(self.servers)}: {exc!r}") from exc
+        deadline = time.monotonic() + SETUP_TIMEOUT_S
+        while True:  # a NATS cluster just started elects its JetStream leader first: retry, bounded
+            try:
+                await self._setup()
+                break
+            except (nats.errors.Error, nats.js.errors.Error, TimeoutError) as exc:
+                if time.monotonic() > deadline:
+                    await self.close()
+                    raise ClusterUnavailable(
+                        f"JetStream not usable at {','.join(self.servers)}: {exc!r}"
+                    ) from exc
+                await asyncio.sleep(0.5)
         for name in BUCKETS:
             if name != "leases":  # leases expire without a marker on 2.9: always read them fresh
                 await self._follow(name)
         self._tasks.append(asyncio.create_task(self._writer(), name="cluster-writer"))
+
+    async def _setup(self) -> None:
+        for name in BUCKETS:
+            if name not in self.kv:
+                self.kv[name] = await self._bucket(name)
+        await self._stream(EVENTS_STREAM, ["fleet.events.>"], max_msgs=EVENT_LIMIT, max_age=EVENT_MAX_AGE_S)
+        await self._stream(
+            TELEMETRY_STREAM,
+            ["fleet.status.>"],
+            max_age=TELEMETRY_MAX_AGE_S,
+            max_bytes=TELEMETRY_MAX_BYTES,
+            storage="memory",
+        )
 
     async def _bucket(self, name: str) -> KeyValue:
         assert self.js is not None
@@ -142,21 +154,43 @@ class ClusterState:
     async def _follow(self, name: str) -> None:
         """Load the bucket into its mirror, then keep the mirror current in the background."""
         watcher = await self.kv[name].watchall()
-        self._watchers.append(watcher)
-        mirror = self.mirror[name]
+        snapshot: dict[str, bytes] = {}
         deadline = time.monotonic() + MIRROR_LOAD_TIMEOUT_S
         while time.monotonic() < deadline:
             entry = await watcher.updates(timeout=max(0.1, deadline - time.monotonic()))
             if entry is None:
                 break
-            self._apply(name, mirror, entry)
+            self._apply(name, snapshot, entry)
+        mirror = self.mirror[name]
+        mirror.clear()
+        mirror.update(snapshot)
+        old = self._followers.pop(name, None)
+        self._followers[name] = (
+            watcher,
+            asyncio.create_task(self._run(name, watcher), name=f"cluster-{name}"),
+        )
+        if old is not None:
+            old[1].cancel()
+            with contextlib.suppress(Exception):
+                await old[0].stop()
 
-        async def follow() -> None:
-            async for entry in watcher:
-                if entry is not None:
-                    self._apply(name, mirror, entry)
+    async def _run(self, name: str, watcher: Any) -> None:
+        async for entry in watcher:
+            if entry is not None:
+                self._apply(name, self.mirror[name], entry)
 
-        self._tasks.append(asyncio.create_task(follow(), name=f"cluster-watch-{name}"))
+    async def resync(self, names: tuple[str, ...] = ("missions", "progress", "barriers", "holds")) -> None:
+        """Reload mirrors from a fresh snapshot (after a reconnect, before taking over a mission):
+        a watcher whose consumer sat on a NATS node that died is silent until it resets itself."""
+        for name in names:
+            await self._follow(name)
+
+    async def _reconnected(self) -> None:
+        log.info(
+            "NATS reconnected to %s; reloading the shared state", self.nc.connected_url if self.nc else "?"
+        )
+        with contextlib.suppress(Exception):
+            await self.resync(tuple(n for n in BUCKETS if n != "leases"))
 
     def _apply(self, name: str, mirror: dict[str, bytes], entry: Any) -> None:
         value = None if entry.operation in (KV_DEL, KV_PURGE) else entry.value
@@ -174,9 +208,11 @@ class ClusterState:
         if self.nc is not None and self.nc.is_connected:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self.flush_writes(), 5.0)
-        for task in self._tasks:
+        tasks = self._tasks + [task for _, task in self._followers.values()]
+        self._followers.clear()
+        for task in tasks:
             task.cancel()
-        for task in self._tasks:
+        for task in tasks:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
         self._tasks.clear()
@@ -228,18 +264,35 @@ class ClusterState:
     # --- compare-and-set -------------------------------------------------------------------------
 
     async def create(self, bucket: str, key: str, value: bytes) -> bool:
-        """Write ``key`` only if it does not exist; False if someone else holds it."""
-        try:
-            await self.kv[bucket].create(key, value)
-        except nats.js.errors.KeyWrongLastSequenceError:
-            with contextlib.suppress(Exception):
+        """Write ``key`` only if it does not exist; False if someone else holds it.
+
+        Retried (bounded) while NATS fails over; a retry that finds our own value there means the
+        earlier try went through and only its answer was lost, so it counts as won. Callers make
+        ``value`` unique to them (daemon id, time) for that reason.
+        """
+        deadline = time.monotonic() + CAS_TIMEOUT_S
+        while True:
+            try:
+                await self.kv[bucket].create(key, value)
+                break
+            except nats.js.errors.KeyWrongLastSequenceError:
                 entry = await self.kv[bucket].get(key)
+                if entry.value == value:
+                    break
                 if entry.value is not None and bucket != "leases":
                     self.mirror[bucket][key] = entry.value
-            return False
+                return False
+            except (nats.errors.Error, nats.js.errors.Error, TimeoutError):
+                if time.monotonic() > deadline:
+                    raise
+                await asyncio.sleep(0.2)
         if bucket != "leases":
             self.mirror[bucket][key] = value
         return True
+
+    def unique(self) -> bytes:
+        """A value only this daemon writes, now (see :meth:`create`)."""
+        return f"{self.daemon_id} {time.time():.6f}".encode()
 
     async def assign_cid(self, identity: str) -> int:
         """The agent's CID: its registered one, else the lowest free one (claimed with create)."""
@@ -249,8 +302,8 @@ class ClusterState:
         for _ in range(CID_ATTEMPTS):
             used = [int(k[1:]) for k in self.mirror["cids"] if k[1:].isdigit()]
             cid = max(used, default=0) + 1
-            if await self.create("cids", f"c{cid}", identity.encode()):
-                record = {"cid": cid, "daemon": self.daemon_id}
+            if await self.create("cids", f"c{cid}", identity.encode() + b" " + self.unique()):
+                record = {"cid": cid, "daemon": self.daemon_id, "since": time.time()}
                 if await self.create("agents", identity, json.dumps(record).encode()):
                     return cid
                 self.delete("cids", f"c{cid}")  # registered meanwhile by another daemon: use theirs
@@ -274,10 +327,11 @@ class ClusterState:
             entry = await self.kv["leases"].get(mission_id)
         except (nats.js.errors.KeyNotFoundError, nats.js.errors.KeyDeletedError):
             return None, 0
-        return (entry.value or b"").decode() or None, int(entry.revision or 0)
+        holder = (entry.value or b"").decode().split(" ", 1)[0]
+        return holder or None, int(entry.revision or 0)
 
     async def take_lease(self, mission_id: str) -> bool:
-        return await self.create("leases", mission_id, self.daemon_id.encode())
+        return await self.create("leases", mission_id, self.unique())
 
     async def renew_lease(self, mission_id: str) -> bool:
         """Extend our lease; False if it is no longer ours (expired and taken by another daemon)."""
@@ -287,7 +341,7 @@ class ClusterState:
         if holder != self.daemon_id:
             return False
         try:
-            await self.kv["leases"].update(mission_id, self.daemon_id.encode(), last=revision)
+            await self.kv["leases"].update(mission_id, self.unique(), last=revision)
         except nats.js.errors.KeyWrongLastSequenceError:
             return False
         return True

@@ -33,7 +33,7 @@ class ClusterStore(Store):
 
     def identity_for_cid(self, cid: int) -> str | None:
         raw = self.state.mirror["cids"].get(f"c{cid}")
-        return None if raw is None else raw.decode()
+        return None if raw is None else raw.decode().split(" ", 1)[0]
 
     def known_agents(self) -> dict[str, int]:
         return {k: int(v["cid"]) for k, v in self.state.json_values("agents").items()}

@@ -24,7 +24,9 @@ pytestmark = pytest.mark.slow
 
 
 @contextlib.asynccontextmanager
-async def two_daemons(tmp_path: Path, servers: str, key: str) -> AsyncIterator[tuple[Daemon, Daemon]]:
+async def two_daemons(
+    tmp_path: Path, servers: str, key: str, **overrides: object
+) -> AsyncIterator[tuple[Daemon, Daemon]]:
     daemons = []
     try:
         for name in ("a", "b"):
@@ -36,6 +38,7 @@ async def two_daemons(tmp_path: Path, servers: str, key: str) -> AsyncIterator[t
                 http_host="127.0.0.1",
                 http_port=0,
                 api_token="t",
+                **overrides,
             )
             daemon = Daemon(config)
             await daemon.start()
