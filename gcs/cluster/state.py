@@ -53,12 +53,13 @@ WRITE_ATTEMPTS = 20
 CID_ATTEMPTS = 64
 MIRROR_LOAD_TIMEOUT_S = 10.0
 SETUP_TIMEOUT_S = 20.0
+CONNECT_TIMEOUT_S = 5.0
 CAS_TIMEOUT_S = 10.0
 
 Write = Callable[[], Awaitable[object]]
 
 
-class ClusterUnavailable(RuntimeError):
+class ClusterUnavailable(ConnectionError):
     """NATS could not be reached or JetStream is not enabled there."""
 
 
@@ -84,17 +85,11 @@ class ClusterState:
 
     async def connect(self) -> None:
         try:
-            self.nc = await nats.connect(
-                servers=self.servers,
-                name=self.daemon_id,
-                connect_timeout=2,
-                reconnect_time_wait=0.25,
-                max_reconnect_attempts=-1,
-                allow_reconnect=True,
-                reconnected_cb=self._reconnected,
-            )
+            self.nc = await asyncio.wait_for(self._connect(), CONNECT_TIMEOUT_S)
         except Exception as exc:
-            raise ClusterUnavailable(f"cannot reach NATS at {','.join(self.servers)}: {exc!r}") from exc
+            raise ClusterUnavailable(
+                f"cannot reach NATS at {','.join(self.servers)} within {CONNECT_TIMEOUT_S:.0f} s: {exc!r}"
+            ) from exc
         self.js = self.nc.jetstream(timeout=5.0)
         deadline = time.monotonic() + SETUP_TIMEOUT_S
         while True:  # a NATS cluster just started elects its JetStream leader first: retry, bounded
@@ -112,6 +107,24 @@ class ClusterState:
             if name != "leases":  # leases expire without a marker on 2.9: always read them fresh
                 await self._follow(name)
         self._tasks.append(asyncio.create_task(self._writer(), name="cluster-writer"))
+
+    async def _connect(self) -> Client:
+        """Connect; the first connection tries every server in turn, reconnects never give up."""
+        return await nats.connect(
+            servers=self.servers,
+            name=self.daemon_id,
+            connect_timeout=2,
+            reconnect_time_wait=0.25,
+            max_reconnect_attempts=-1,
+            allow_reconnect=True,
+            reconnected_cb=self._reconnected,
+            error_cb=self._nats_error,
+        )
+
+    async def _nats_error(self, exc: Exception) -> None:
+        """One line per client error (nats-py would log a traceback); quiet until first connected."""
+        level = logging.WARNING if self.js is not None else logging.DEBUG
+        log.log(level, "NATS: %r", exc)
 
     async def _setup(self) -> None:
         for name in BUCKETS:
