@@ -241,6 +241,13 @@ class ClusterNode:
 
     async def _local_join(self, session: AgentSession, resume: Resume | None) -> None:
         self.daemon.agents.remote.pop(session.identity, None)
+        authority = self.daemon.authority
+        held = [(o, r) for a, o, r in self.store.holds() if a == session.identity]
+        for owner, reason in held:  # an operator hold given while it was linked to another daemon
+            if not authority.is_held(session.identity, owner):
+                authority.restore_hold(session.identity, owner, reason)
+        if held:
+            authority.reassert(session.identity)
         self.state.put_json("agents", session.identity, {"cid": session.cid, "daemon": self.daemon_id})
         join = {
             "resume": resume.model_dump(mode="json") if resume else None,

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import logging
 import time
@@ -80,6 +81,7 @@ class ClusterState:
         self._tasks: list[asyncio.Task[None]] = []
         self._writes: asyncio.Queue[Write] = asyncio.Queue()
         self.write_failures = 0
+        self._serial = itertools.count()
 
     # --- connection ------------------------------------------------------------------------------
 
@@ -305,7 +307,7 @@ class ClusterState:
 
     def unique(self) -> bytes:
         """A value only this daemon writes, now (see :meth:`create`)."""
-        return f"{self.daemon_id} {time.time():.6f}".encode()
+        return f"{self.daemon_id} {time.time():.6f} {next(self._serial)}".encode()
 
     async def assign_cid(self, identity: str) -> int:
         """The agent's CID: its registered one, else the lowest free one (claimed with create)."""

@@ -32,7 +32,9 @@ async def test_cid_assigned_once_when_daemons_race(nats_server: NatsServer) -> N
 async def test_release_claimed_exactly_once(nats_server: NatsServer) -> None:
     a, b = await _state(nats_server, "a"), await _state(nats_server, "b")
     try:
-        wins = await asyncio.gather(*(s.create("barriers", "m1.3.released", b"x") for s in (a, b, a, b)))
+        wins = await asyncio.gather(
+            *(s.create("barriers", "m1.3.released", s.unique()) for s in (a, b, a, b))
+        )
         assert sum(wins) == 1
         await wait_for(lambda: "m1.3.released" in b.mirror["barriers"], 5, "mirror update")
     finally:
