@@ -105,6 +105,12 @@ def _agent_view(daemon: Daemon, s: AgentSession) -> AgentView:
     )
 
 
+def _fleet_sessions(daemon: Daemon) -> list[AgentSession]:
+    """This daemon's sessions, and in cluster mode the other daemons' agents (docs/cluster.md)."""
+    own = daemon.agents.sessions
+    return [*own.values(), *(s for i, s in daemon.agents.remote.items() if i not in own and s.open)]
+
+
 def create_app(daemon: Daemon) -> FastAPI:
     """The API of ``daemon``; installs a :class:`LiveHub` (rings, stream, metrics) on first call."""
     hub = _hub_for(daemon)
@@ -180,7 +186,7 @@ def create_app(daemon: Daemon) -> FastAPI:
 
     @app.get("/api/v1/agents")
     async def agents() -> list[AgentView]:
-        return [_agent_view(daemon, s) for s in sorted(daemon.agents.sessions.values(), key=lambda s: s.cid)]
+        return [_agent_view(daemon, s) for s in sorted(_fleet_sessions(daemon), key=lambda s: s.cid)]
 
     @app.get("/api/v1/agents/{identity}")
     async def agent(identity: str) -> AgentView:
@@ -274,9 +280,7 @@ def create_app(daemon: Daemon) -> FastAPI:
         snapshot = {
             "type": "hello",
             "server_time": time.time(),
-            "agents": [
-                _agent_view(daemon, s).model_dump(mode="json") for s in daemon.agents.sessions.values()
-            ],
+            "agents": [_agent_view(daemon, s).model_dump(mode="json") for s in _fleet_sessions(daemon)],
         }
         hub.subscribe(client)
         reader = asyncio.create_task(_drain_incoming(websocket))

@@ -318,6 +318,11 @@ class ClusterNode:
             return
         remote.status = status
         remote.status_count += 1
+        from gcs.live import LiveHub
+
+        for hub in self.daemon.services:  # the dashboard's stream and history show the whole fleet
+            if isinstance(hub, LiveHub):
+                await hub._on_status(remote, status)
         missions = self.daemon.missions
         await missions._on_status(remote, status)
         await self._nudge(remote, status)

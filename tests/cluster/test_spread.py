@@ -11,6 +11,7 @@ import pytest
 
 from gcs.cluster.natsrun import NatsServer
 from gcs.daemon import Daemon
+from gcs.live import LiveHub
 from tests.backbone.helpers import (
     daemon_config,
     new_key,
@@ -84,6 +85,10 @@ async def test_mission_spread_over_two_daemons(tmp_path: Path, nats_server: Nats
                     "d1": "gcs-b",
                     "d2": "gcs-b",
                 }
+                listed = (await api.get("/api/v1/agents")).json()  # what the dashboard lists
+                assert sorted(a["identity"] for a in listed) == ["d0", "d1", "d2"]
+                hub = next(s for s in b.services if isinstance(s, LiveHub))
+                await wait_for(lambda: "d0" in hub.history, 5, "d0 in b's live history (dashboard)")
             task = survey_mission(["d0", "d1", "d2"], sync_legs=2)
             mission_id = await a.missions.submit(task)
             await wait_for(lambda: b.missions.led_elsewhere(mission_id), 5, "b to see a's mission")
