@@ -82,6 +82,8 @@ class ClusterState:
         self._writes: asyncio.Queue[Write] = asyncio.Queue()
         self.write_failures = 0
         self._serial = itertools.count()
+        self._seen: dict[str, int] = {}  # bucket -> newest revision applied to its mirror
+        self._behind: dict[str, int] = {}  # bucket -> stream sequence it lagged at the last check
 
     # --- connection ------------------------------------------------------------------------------
 
@@ -200,6 +202,25 @@ class ClusterState:
         for name in names:
             await self._follow(name)
 
+    async def check_followers(self) -> None:
+        """Reload a mirror still behind what its bucket held at the previous check.
+
+        An ordered consumer whose NATS server died (without our connection moving) is silent
+        until its heartbeat check resets it; the bucket's last sequence shows the lag.
+        """
+        assert self.js is not None
+        for name in list(self._followers):
+            info = await self.js.stream_info(f"KV_fleet_{name}")
+            last = int(info.state.last_seq or 0)
+            before = self._behind.pop(name, None)
+            if before is not None and self._seen.get(name, 0) < before:
+                log.warning(
+                    "mirror of %s stalled at %d (bucket at %d); reloading", name, self._seen[name], last
+                )
+                await self._follow(name)
+            elif last > self._seen.get(name, 0):
+                self._behind[name] = last
+
     async def _reconnected(self) -> None:
         log.info(
             "NATS reconnected to %s; reloading the shared state", self.nc.connected_url if self.nc else "?"
@@ -208,6 +229,7 @@ class ClusterState:
             await self.resync(tuple(n for n in BUCKETS if n != "leases"))
 
     def _apply(self, name: str, mirror: dict[str, bytes], entry: Any) -> None:
+        self._seen[name] = max(self._seen.get(name, 0), int(entry.revision or 0))
         value = None if entry.operation in (KV_DEL, KV_PURGE) else entry.value
         if value is None:
             mirror.pop(entry.key, None)
