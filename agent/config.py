@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from protocol.packets import AgentParameters, Capabilities
 
@@ -53,6 +53,15 @@ class SanityLimits(BaseModel):
     max_hold_s: float = Field(default=3600.0, gt=0.0, le=86_400.0)
 
 
+def _host_port(text: str, default_port: int) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        return text, default_port
+    if not port.isdigit() or not 0 < int(port) < 65_536:
+        raise ValueError(f"daemon address {text!r}: bad port")
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
 class AgentConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -60,6 +69,11 @@ class AgentConfig(BaseModel):
     gcs_host: str = "127.0.0.1"
     gcs_port: int = Field(default=4396, ge=1, le=65_535)
     key_hex: str
+    daemons: list[str] = Field(
+        default_factory=list,
+        description="more daemons HOST:PORT of a cluster (docs/cluster.md): on failure the link "
+        "moves to the next one, same identity and CID",
+    )
     capabilities: Capabilities = Capabilities()
     settings: AgentSettings = AgentSettings()
     reconnect_min_s: float = Field(default=0.2, gt=0.0)
@@ -89,3 +103,14 @@ class AgentConfig(BaseModel):
     takeoff_tolerance: float = Field(default=0.95, gt=0.5, le=1.0, description="fraction of target altitude")
     resend_target_s: float = Field(default=3.0, gt=0.0, description="re-send unacknowledged position targets")
     monitor_period_s: float = Field(default=0.25, gt=0.0)
+
+    @field_validator("daemons")
+    @classmethod
+    def _check_daemons(cls, value: list[str]) -> list[str]:
+        for text in value:
+            _host_port(text, 4396)
+        return value
+
+    def daemon_addresses(self) -> list[tuple[str, int]]:
+        """Every daemon to try, in order: ``gcs_host:gcs_port`` first, then ``daemons``."""
+        return [(self.gcs_host, self.gcs_port)] + [_host_port(d, self.gcs_port) for d in self.daemons]

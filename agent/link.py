@@ -148,6 +148,8 @@ class DaemonLink:
         self._control_backlog: list[Body] = []
         self._send_lock = asyncio.Lock()
         self._stopping = False
+        self._addresses = config.daemon_addresses()
+        self._address = 0  # index of the daemon tried next; moves on after each failure
 
     # --- sending --------------------------------------------------------------------------------
 
@@ -185,17 +187,17 @@ class DaemonLink:
         delay = self.config.reconnect_min_s
         while not self._stopping:
             backoff: float | None = None
+            host, port = self._addresses[self._address % len(self._addresses)]
+            self._address += 1  # a cluster: the next attempt goes to the next daemon
             try:
                 tls = client_tls_context(self.config)
-                server_name = (self.config.tls_server_name or self.config.gcs_host) if tls else None
+                server_name = (self.config.tls_server_name or host) if tls else None
                 async with asyncio.timeout(self.config.handshake_timeout_s):
                     reader, writer = await asyncio.open_connection(
-                        self.config.gcs_host, self.config.gcs_port, ssl=tls, server_hostname=server_name
+                        host, port, ssl=tls, server_hostname=server_name
                     )
             except (OSError, TimeoutError) as exc:  # ssl.SSLError is an OSError
-                self.last_error = (
-                    f"cannot reach daemon {self.config.gcs_host}:{self.config.gcs_port}: {exc!r}"
-                )
+                self.last_error = f"cannot reach daemon {host}:{port}: {exc!r}"
             else:
                 try:
                     await self._session(FramedStream(reader, writer))
@@ -221,8 +223,11 @@ class DaemonLink:
             if self._stopping:
                 return
             wait = backoff if backoff is not None else delay * (0.75 + 0.5 * random.random())
+            if backoff is None and self._address % len(self._addresses):
+                wait = self.config.reconnect_min_s  # other daemons left to try in this round
             await asyncio.sleep(wait)
-            delay = min(self.config.reconnect_max_s, delay * 2)
+            if self._address % len(self._addresses) == 0:
+                delay = min(self.config.reconnect_max_s, delay * 2)
 
     def _refused(self, exc: Refused) -> float | None:
         """Act on a refusal or coded close; returns the backoff (None: the usual one)."""

@@ -179,12 +179,17 @@ class AgentManager:
         self._pending_handshakes = 0
         self.busy_refusals = 0
         self.accepting = True  # False: handshakes are refused with code `starting`
+        # Cluster mode (gcs/cluster): agents linked to other daemons, and the shared CID registry.
+        self.remote: dict[str, AgentSession] = {}
+        self.assign_cid: Callable[[str], Awaitable[int]] | None = None
 
     # --- queries --------------------------------------------------------------------------------
 
     def session(self, identity: str) -> AgentSession | None:
         session = self.sessions.get(identity)
-        return session if session is not None and session.open else None
+        if session is not None and session.open:
+            return session
+        return self.remote.get(identity)  # linked to another daemon of the cluster (or None)
 
     def connected(self) -> list[AgentSession]:
         return [s for s in self.sessions.values() if s.open]
@@ -318,6 +323,8 @@ class AgentManager:
             await stream.send(answer, close_for(Code.NORMAL, "probe answered"))
             self._events.publish("agent_probe", f"{request.identity} probed from {peer}")
             raise ProbeAnswered(request.identity)
+        if self.assign_cid is not None:  # cluster mode: the shared registry assigns CIDs once
+            await self.assign_cid(request.identity)
         cid = self._allocate_cid(request)
         stream.decoder.max_body = self.config.max_body_bytes  # authenticated: mission-sized frames
         outbox = Outbox(

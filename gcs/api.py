@@ -106,6 +106,12 @@ def _agent_view(daemon: Daemon, s: AgentSession) -> AgentView:
     )
 
 
+def _fleet_sessions(daemon: Daemon) -> list[AgentSession]:
+    """This daemon's sessions, and in cluster mode the other daemons' agents (docs/cluster.md)."""
+    own = daemon.agents.sessions
+    return [*own.values(), *(s for i, s in daemon.agents.remote.items() if i not in own and s.open)]
+
+
 def create_app(daemon: Daemon) -> FastAPI:
     """The API of ``daemon``; installs a :class:`LiveHub` (rings, stream, metrics) on first call."""
     hub = _hub_for(daemon)
@@ -189,7 +195,7 @@ def create_app(daemon: Daemon) -> FastAPI:
 
     @app.get("/api/v1/agents")
     async def agents() -> list[AgentView]:
-        return [_agent_view(daemon, s) for s in sorted(daemon.agents.sessions.values(), key=lambda s: s.cid)]
+        return [_agent_view(daemon, s) for s in sorted(_fleet_sessions(daemon), key=lambda s: s.cid)]
 
     @app.get("/api/v1/agents/{identity}")
     async def agent(identity: str) -> AgentView:
@@ -283,9 +289,7 @@ def create_app(daemon: Daemon) -> FastAPI:
         snapshot = {
             "type": "hello",
             "server_time": time.time(),
-            "agents": [
-                _agent_view(daemon, s).model_dump(mode="json") for s in daemon.agents.sessions.values()
-            ],
+            "agents": [_agent_view(daemon, s).model_dump(mode="json") for s in _fleet_sessions(daemon)],
         }
         hub.subscribe(client)
         reader = asyncio.create_task(_drain_incoming(websocket))
@@ -533,6 +537,10 @@ def create_app(daemon: Daemon) -> FastAPI:
             raise ApiProblem(503, "dashboard not installed", f"{WEB_DIR} is missing from this install")
 
     _mount_docs(app)
+    if daemon.cluster is not None:  # whole-fleet routes of a clustered daemon (docs/cluster.md)
+        from gcs.cluster.api import cluster_router
+
+        app.include_router(cluster_router(daemon, token))
     return app
 
 

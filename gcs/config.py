@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gcs.cooperation.config import CooperationConfig
 from protocol.packets import AgentParameters
@@ -115,6 +115,33 @@ class DaemonConfig(BaseModel):
     extension_options: dict[str, dict[str, Any]] = Field(
         default_factory=dict, description="options per extension, keyed by the module path as listed"
     )
+
+    # cluster mode (docs/cluster.md): several daemons sharing the fleet through NATS JetStream
+    cluster: list[str] = Field(
+        default_factory=list,
+        description="NATS servers nats://HOST:PORT of the cluster; empty = one daemon with its SQLite file",
+    )
+    cluster_replicas: int = Field(
+        default=1, ge=1, le=5, description="JetStream replicas of the shared buckets (3 on a 3-node NATS)"
+    )
+    cluster_lease_ttl_s: float = Field(
+        default=3.0, ge=0.5, le=60.0, description="a mission leader's lease; a standby takes over after it"
+    )
+    daemon_id: str | None = Field(
+        default=None,
+        pattern=r"^[A-Za-z0-9_-]{1,64}$",
+        description="this daemon's name in the cluster; default: hostname-pid",
+    )
+
+    @field_validator("cluster", mode="before")
+    @classmethod
+    def _split_servers(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            value = [part.strip() for part in value.split(",") if part.strip()]
+        for url in value or []:
+            if not isinstance(url, str) or not url.startswith(("nats://", "tls://")) or ":" not in url[7:]:
+                raise ValueError(f"cluster server {url!r} is not nats://HOST:PORT")
+        return value
 
     @property
     def database_path(self) -> Path:

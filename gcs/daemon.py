@@ -9,7 +9,7 @@ import secrets
 import ssl
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from gcs.agents import AgentManager, AgentSession
 from gcs.authority import Owner, VehicleAuthority
@@ -35,6 +35,9 @@ from protocol.packets import (
     StatusReport,
     SyncSignal,
 )
+
+if TYPE_CHECKING:
+    from gcs.cluster.node import ClusterNode
 
 log = logging.getLogger("gcs.daemon")
 
@@ -102,7 +105,14 @@ class Daemon:
 
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config
-        self.store = Store(config.database_path, allow_new=config.new_database)
+        self.cluster: ClusterNode | None = None
+        if config.cluster:  # NATS is imported only when asked for (the embedded default needs none)
+            from gcs.cluster.node import ClusterNode
+
+            self.cluster = ClusterNode(config)
+            self.store: Store = self.cluster.store
+        else:
+            self.store = Store(config.database_path, allow_new=config.new_database)
         self.events = EventBus(self.store)
         fleet_key = (
             parse_key(config.fleet_key_hex)
@@ -205,7 +215,10 @@ class Daemon:
         self.returns.tick()
 
     async def start(self) -> None:
-        self.missions.restore()
+        if self.cluster is not None:
+            await self.cluster.start(self)  # shared state loaded; takes over leaderless missions
+        else:
+            self.missions.restore()
         for agent, owner, reason in self.store.holds():
             self.authority.restore_hold(agent, owner, reason)
         tls = server_tls_context(self.config)
@@ -280,6 +293,8 @@ class Daemon:
         if self._server is not None:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self._server.wait_closed(), 2)
+        if self.cluster is not None:
+            await self.cluster.stop()
         self.store.close()
 
     async def set_geofence(self, geofence: Geofence | None, agents: list[str] | None = None) -> list[str]:

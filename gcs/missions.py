@@ -106,6 +106,10 @@ class MissionRunner:
         self.paused: set[str] = set()
         self.return_home: ReturnHome | None = None  # set by the daemon once the coordinator exists
         self._watchdogs: dict[str, asyncio.TimerHandle] = {}  # mission id -> next barrier's watchdog
+        # Cluster mode (gcs/cluster): a release is claimed in shared state first (exactly once),
+        # and missions another daemon leads are not ours to judge.
+        self.claim_release: Callable[[str, int], Awaitable[bool]] | None = None
+        self.led_elsewhere: Callable[[str], bool] = lambda _mission_id: False
         agents.on_join.append(self._on_join)
         agents.on_status.append(self._on_status)
         agents.on_sync.append(self._on_sync)
@@ -116,21 +120,40 @@ class MissionRunner:
     def restore(self) -> None:
         """Reload the missions that were running when the daemon stopped."""
         for stored in self._store.missions("running"):
-            task = TaskFile.model_validate_json(stored.task_json)
-            progress = self._store.mission_agents(stored.id)
-            mission = self._build(stored.id, task, self._resolve(task))
-            mission.barriers.released |= self._store.released_steps(stored.id)
-            for agent, (completed, excluded) in progress.items():
-                mission.completed[agent] = completed
-                if excluded:
-                    mission.excluded.add(agent)
-                    mission.barriers.members.discard(agent)
-            self.active[stored.id] = mission
-            self._arm_watchdog(mission)
-            self._events.publish(
-                "mission_restored", f"mission {task.name} resumed after restart", mission_id=stored.id
-            )
+            self.restore_one(stored.id)
         self.paused = self._store.paused_missions() & set(self.active)
+
+    def restore_one(self, mission_id: str) -> ActiveMission | None:
+        """Take over one stored running mission (restart, or a cluster standby taking the lead)."""
+        stored = self._store.mission(mission_id)
+        if stored is None or stored.state != "running" or mission_id in self.active:
+            return self.active.get(mission_id)
+        task = TaskFile.model_validate_json(stored.task_json)
+        progress = self._store.mission_agents(stored.id)
+        mission = self._build(stored.id, task, self._resolve(task))
+        mission.barriers.released |= self._store.released_steps(stored.id)
+        for agent, (completed, excluded) in progress.items():
+            mission.completed[agent] = completed
+            if excluded:
+                mission.excluded.add(agent)
+                mission.barriers.members.discard(agent)
+        self.active[stored.id] = mission
+        self._arm_watchdog(mission)
+        self._events.publish(
+            "mission_restored", f"mission {task.name} resumed after restart", mission_id=stored.id
+        )
+        if mission_id in self._store.paused_missions():
+            self.paused.add(mission_id)
+        return mission
+
+    def forget(self, mission_id: str) -> None:
+        """Stop running a mission here without ending it (another daemon of the cluster leads it)."""
+        mission = self.active.pop(mission_id, None)
+        if mission is not None:
+            for timer in mission.timers.values():
+                timer.cancel()
+        self._disarm_watchdog(mission_id)
+        self.paused.discard(mission_id)
 
     async def submit(self, task: TaskFile) -> str:
         """Validate against the live fleet, persist, and send every agent its actions."""
@@ -400,6 +423,8 @@ class MissionRunner:
         if signal.mission_id.startswith(RETURN_PREFIX):
             return  # a return's wait point: the return coordinator releases it
         mission = self._mission_of(session.identity, signal.mission_id)
+        if mission is None and self.led_elsewhere(signal.mission_id):
+            return
         if mission is None:
             self._events.publish(
                 "sync_ignored",
@@ -425,6 +450,9 @@ class MissionRunner:
             )
 
     async def _release(self, mission: ActiveMission, step: int) -> None:
+        if self.claim_release is not None and not await self.claim_release(mission.id, step):
+            mission.barriers.mark_released(step)  # another daemon released it; it told the agents
+            return
         mission.barriers.mark_released(step)
         self._store.record_release(mission.id, step)
         timer = mission.timers.pop(step, None)

@@ -49,6 +49,13 @@ def add_daemon_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--tls-client-ca", type=Path, help="PEM CA: require agent certificates it signed (mTLS)"
     )
+    parser.add_argument(
+        "--cluster",
+        default="",
+        metavar="nats://HOST:PORT[,...]",
+        help="share the fleet with other daemons through these NATS JetStream servers (docs/cluster.md)",
+    )
+    parser.add_argument("--daemon-id", help="this daemon's name in the cluster (default: hostname-pid)")
 
 
 def config_from_args(args: argparse.Namespace) -> DaemonConfig:
@@ -70,6 +77,8 @@ def config_from_args(args: argparse.Namespace) -> DaemonConfig:
         tls_cert=args.tls_cert,
         tls_key=args.tls_key,
         tls_client_ca=args.tls_client_ca,
+        cluster=[url.strip() for url in (getattr(args, "cluster", "") or "").split(",") if url.strip()],
+        daemon_id=getattr(args, "daemon_id", None),
     )
 
 

@@ -1,0 +1,91 @@
+"""HTTP routes of a clustered daemon: the whole fleet, and operator commands for any drone.
+
+``GET /api/v1/cluster`` (this daemon, the missions and who leads them), ``GET
+/api/v1/cluster/fleet`` (every agent of every daemon, with the daemon holding its link) and
+``POST /api/v1/cluster/fleet/{hold,resume,rtl,land}``: each drone's command is routed to the daemon
+holding its link and applied there through that daemon's vehicle authority.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, Literal
+
+from fastapi import APIRouter
+from pydantic import BaseModel
+
+from gcs.api_models import FleetCommand, FleetCommandResult
+
+if TYPE_CHECKING:
+    from gcs.daemon import Daemon
+
+
+class ClusterMission(BaseModel):
+    id: str
+    name: str
+    state: str
+    leader: str | None
+
+
+class ClusterInfo(BaseModel):
+    daemon_id: str
+    servers: list[str]
+    connected: bool
+    leading: list[str]
+    missions: list[ClusterMission]
+    takeovers: int
+
+
+def cluster_router(daemon: Daemon, token: Sequence[Any]) -> APIRouter:
+    node = daemon.cluster
+    assert node is not None
+    router = APIRouter()
+
+    @router.get("/api/v1/cluster")
+    async def cluster_info() -> ClusterInfo:
+        """This daemon's place in the cluster and who leads each running mission."""
+        missions = []
+        for stored in node.store.missions():
+            leader = None
+            if stored.state == "running":
+                leader, _ = await node.state.lease_holder(stored.id)
+            missions.append(ClusterMission(id=stored.id, name=stored.name, state=stored.state, leader=leader))
+        nc = node.state.nc
+        return ClusterInfo(
+            daemon_id=node.daemon_id,
+            servers=node.state.servers,
+            connected=bool(nc is not None and nc.is_connected),
+            leading=sorted(daemon.missions.active),
+            missions=missions,
+            takeovers=len(node.takeovers),
+        )
+
+    @router.get("/api/v1/cluster/fleet")
+    async def cluster_fleet() -> list[dict[str, Any]]:
+        """Every agent the cluster knows, with the daemon holding its link and its last status."""
+        return node.fleet()
+
+    async def _command(
+        kind: Literal["hold", "resume", "rtl", "land"], command: FleetCommand | None
+    ) -> FleetCommandResult:
+        agents, reason = (command.agents, command.reason) if command else (None, "operator")
+        delivered = await node.command(kind, agents, reason)
+        return FleetCommandResult(command=kind, delivered=delivered)
+
+    @router.post("/api/v1/cluster/fleet/hold", dependencies=list(token))
+    async def cluster_hold(command: FleetCommand | None = None) -> FleetCommandResult:
+        return await _command("hold", command)
+
+    @router.post("/api/v1/cluster/fleet/resume", dependencies=list(token))
+    async def cluster_resume(command: FleetCommand | None = None) -> FleetCommandResult:
+        return await _command("resume", command)
+
+    @router.post("/api/v1/cluster/fleet/rtl", dependencies=list(token))
+    async def cluster_rtl(command: FleetCommand | None = None) -> FleetCommandResult:
+        return await _command("rtl", command)
+
+    @router.post("/api/v1/cluster/fleet/land", dependencies=list(token))
+    async def cluster_land(command: FleetCommand | None = None) -> FleetCommandResult:
+        return await _command("land", command)
+
+    return router

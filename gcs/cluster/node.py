@@ -1,0 +1,477 @@
+"""A daemon's membership of the cluster: shared state, remote agents, mission leases, takeover.
+
+Each daemon serves the agents linked to it. Everything an agent says is shared: its status on
+``fleet.status.<identity>`` (plain subject; the FLEET_TELEMETRY stream keeps it with limits), its
+joins, barrier arrivals and losses on ``fleet.up.<identity>``, its arrivals also in the
+``fleet_barriers`` bucket. Every other daemon mirrors it as a :class:`RemoteSession`, so its
+mission runner and API see the whole fleet; what a runner sends to a remote agent goes out on
+``fleet.down.<identity>`` and the daemon holding the link posts it.
+
+One daemon leads each mission: it holds the mission's key in the ``fleet_leases`` bucket (TTL
+``cluster_lease_ttl_s``, renewed every third of it) and runs its barriers; the others ignore it.
+When the leader dies the lease expires, a standby takes it (compare-and-set: one winner), rebuilds
+the mission from the shared records and carries on. Agents waiting at a barrier say so in every
+status report, so the new leader also heals what died in flight (a 'finished' or a 'release').
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import socket
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, cast
+
+from gcs.agents import AgentSession
+from gcs.cluster.state import ClusterState
+from gcs.cluster.store import ClusterStore
+from gcs.config import DaemonConfig
+from protocol.packets import Body, Capabilities, GeoPoint, Resume, StatusReport, SyncSignal
+from protocol.wire import FrameDecoder, encode
+
+if TYPE_CHECKING:
+    from nats.aio.msg import Msg
+
+    from gcs.daemon import Daemon
+
+log = logging.getLogger("gcs.cluster")
+
+NUDGE_EVERY_S = 1.0  # re-send a release / re-count an arrival seen in status at most this often
+COMMAND_TIMEOUT_S = 5.0
+
+
+def default_daemon_id(config: DaemonConfig) -> str:
+    host = "".join(c if c.isalnum() or c in "-_" else "-" for c in socket.gethostname())
+    return f"{host}-{os.getpid()}"
+
+
+@dataclass(eq=False)
+class RemoteSession(AgentSession):
+    """An agent linked to another daemon: what it reports arrives over NATS, what we post goes back."""
+
+    daemon: str = ""
+    node: ClusterNode | None = None
+
+    @property
+    def last_tx(self) -> float:
+        return self.last_rx
+
+    def post(self, body: Body, *, urgent: bool | None = None) -> bool:
+        if not self.open or self.node is None:
+            return False
+        self.node.forward(self.identity, body, bool(urgent))
+        return True
+
+    async def send(
+        self,
+        body: Body,
+        timeout: float | None = None,
+        max_pending: int | None = None,
+        *,
+        urgent: bool | None = None,
+    ) -> bool:
+        return self.post(body, urgent=urgent)
+
+    async def close(
+        self, reason: Any, message: str, timeout: float = 1.0, *, code: Any | None = None
+    ) -> None:
+        self.open = False
+
+    def close_transport(self) -> None:
+        self.open = False
+
+
+def _frame(body: Body) -> bytes:
+    return encode(body, 0)
+
+
+def _body(data: bytes) -> Body | None:
+    frames = list(FrameDecoder().feed(data))
+    return frames[0].body if frames else None
+
+
+class ClusterNode:
+    """Joins a daemon to the cluster (``gcs serve --cluster``); built before the daemon's parts."""
+
+    def __init__(self, config: DaemonConfig) -> None:
+        self.config = config
+        self.daemon_id = config.daemon_id or default_daemon_id(config)
+        self.state = ClusterState(
+            config.cluster, self.daemon_id, config.cluster_replicas, config.cluster_lease_ttl_s
+        )
+        self.store = ClusterStore(config.database_path, self.state)
+        self.takeovers: list[tuple[str, float]] = []  # (mission id, wall time) missions taken over
+        self._daemon: Daemon | None = None
+        self._subs: list[Any] = []
+        self._tasks: list[asyncio.Task[None]] = []
+        self._nudged: dict[tuple[str, str, int], float] = {}
+        self._held_leases: set[str] = set()
+
+    @property
+    def daemon(self) -> Daemon:
+        assert self._daemon is not None, "cluster node not started"
+        return self._daemon
+
+    # --- lifecycle -------------------------------------------------------------------------------
+
+    async def start(self, daemon: Daemon) -> None:
+        """Connect, load the shared state, hook into the daemon, take over orphaned missions."""
+        self._daemon = daemon
+        await self.state.connect()
+        agents, missions = daemon.agents, daemon.missions
+        agents.assign_cid = self.state.assign_cid
+        missions.claim_release = self._claim_release
+        missions.led_elsewhere = self._led_elsewhere
+        agents.on_join.append(self._local_join)
+        agents.on_status.append(self._local_status)
+        agents.on_sync.append(self._local_sync)
+        agents.on_lost.append(self._local_lost)
+        nc = self.state.nc
+        assert nc is not None
+        self._subs = [
+            await nc.subscribe("fleet.status.>", cb=self._remote_status),
+            await nc.subscribe("fleet.up.>", cb=self._remote_up),
+            await nc.subscribe("fleet.down.>", cb=self._down),
+            await nc.subscribe(f"fleet.cmd.{self.daemon_id}", cb=self._command),
+        ]
+        await self._lease_tick()
+        self._tasks.append(asyncio.create_task(self._lease_loop(), name="cluster-leases"))
+
+    async def stop(self) -> None:
+        for task in self._tasks:
+            task.cancel()
+        for task in self._tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        for sub in self._subs:
+            with contextlib.suppress(Exception):
+                await sub.unsubscribe()
+        if self._daemon is not None:
+            for mission_id in list(self._daemon.missions.active):
+                await self.state.drop_lease(mission_id)  # a clean stop hands over at once
+        await self.state.close()
+
+    # --- leases ----------------------------------------------------------------------------------
+
+    async def _lease_loop(self) -> None:
+        period = self.config.cluster_lease_ttl_s / 3
+        while True:
+            await asyncio.sleep(period)
+            try:
+                await self._lease_tick()
+            except Exception:  # NATS briefly away (a node failing over): try again next period
+                log.warning("lease round failed", exc_info=True)
+
+    async def _lease_tick(self) -> None:
+        await self._sweep_remote()
+        await self.state.check_followers()
+        missions = self.daemon.missions
+        for mission_id in list(missions.active):
+            if not await self.state.renew_lease(mission_id):
+                holder, _ = await self.state.lease_holder(mission_id)
+                log.warning("lost the lead of %s to %s; following", mission_id, holder)
+                missions.forget(mission_id)
+        finished = {m.id for m in self.store.missions() if m.state != "running"}
+        for mission_id in finished & set(self._held_leases):
+            await self.state.drop_lease(mission_id)
+            self._held_leases.discard(mission_id)
+        for stored in self.store.missions("running"):
+            if stored.id in missions.active:
+                self._held_leases.add(stored.id)
+                continue
+            holder, _ = await self.state.lease_holder(stored.id)
+            if holder is None and await self.state.take_lease(stored.id):
+                await self._take_over(stored.id)
+
+    async def _sweep_remote(self) -> None:
+        """Mirrors of agents nobody has reported for ``lost_after_s`` (their daemon died) go."""
+        now = time.monotonic()
+        agents = self.daemon.agents
+        for identity, remote in list(agents.remote.items()):
+            if now - remote.last_rx > self.config.lost_after_s:
+                remote.open = False
+                agents.remote.pop(identity, None)
+                await self.daemon.missions._on_lost(identity)
+
+    async def _take_over(self, mission_id: str) -> None:
+        missions = self.daemon.missions
+        await self.state.resync()  # the freshest shared records, whatever our watchers missed
+        mission = missions.restore_one(mission_id)
+        if mission is None:
+            return
+        self._held_leases.add(mission_id)
+        self.takeovers.append((mission_id, time.time()))
+        for step, agents in self.store.arrivals(mission_id).items():
+            for agent in agents:
+                if step in mission.barriers.sync_steps and agent in mission.barriers.members:
+                    with contextlib.suppress(ValueError):
+                        mission.barriers.arrive(agent, step)
+        self.daemon.events.publish(
+            "mission_takeover",
+            f"{self.daemon_id} leads {mission.task.name} now (previous leader's lease expired)",
+            mission_id=mission_id,
+        )
+        for step in list(mission.barriers.sync_steps):
+            if step not in mission.barriers.released and not mission.barriers.missing(step):
+                await missions._release(mission, step)
+        for identity in missions.members(mission):  # heal what died in flight
+            session = self.daemon.agents.session(identity)
+            if session is not None and session.status is not None:
+                await self._nudge(session, session.status)
+
+    async def _claim_release(self, mission_id: str, step: int) -> bool:
+        return await self.state.create("barriers", f"{mission_id}.{step}.released", self.state.unique())
+
+    def _led_elsewhere(self, mission_id: str) -> bool:
+        stored = self.store.mission(mission_id)
+        return stored is not None and mission_id not in self.daemon.missions.active
+
+    # --- our agents: share what they say ------------------------------------------------------------
+
+    def _headers(self, session: AgentSession) -> dict[str, str]:
+        return {"daemon": self.daemon_id, "cid": str(session.cid)}
+
+    def _up(self, session: AgentSession, kind: str, payload: bytes) -> None:
+        nc = self.state.nc
+        if nc is None or nc.is_closed:
+            return
+        headers = {**self._headers(session), "kind": kind}
+        self.state.enqueue(lambda: nc.publish(f"fleet.up.{session.identity}", payload, headers=headers))
+
+    async def _local_join(self, session: AgentSession, resume: Resume | None) -> None:
+        self.daemon.agents.remote.pop(session.identity, None)
+        authority = self.daemon.authority
+        held = [(o, r) for a, o, r in self.store.holds() if a == session.identity]
+        for owner, reason in held:  # an operator hold given while it was linked to another daemon
+            if not authority.is_held(session.identity, owner):
+                authority.restore_hold(session.identity, owner, reason)
+        if held:
+            authority.reassert(session.identity)
+        self.state.put_json("agents", session.identity, {"cid": session.cid, "daemon": self.daemon_id})
+        join = {
+            "resume": resume.model_dump(mode="json") if resume else None,
+            "home": session.home.model_dump(mode="json") if session.home else None,
+            "capabilities": session.capabilities.model_dump(mode="json"),
+        }
+        self._up(session, "join", json.dumps(join).encode())
+
+    async def _local_status(self, session: AgentSession, status: StatusReport) -> None:
+        nc = self.state.nc
+        if nc is not None and not nc.is_closed:
+            with contextlib.suppress(Exception):
+                await nc.publish(
+                    f"fleet.status.{session.identity}", _frame(status), headers=self._headers(session)
+                )
+        await self._nudge(session, status)
+
+    async def _local_sync(self, session: AgentSession, signal: SyncSignal) -> None:
+        key = f"{signal.mission_id}.{signal.step}.arrived.{session.identity}"
+        if key not in self.state.mirror["barriers"]:
+            self.state.mirror["barriers"][key] = b"1"
+            value = self.state.unique()
+            self.state.enqueue(lambda: self.state.create("barriers", key, value))
+        self._up(session, "sync", _frame(signal))
+
+    async def _local_lost(self, identity: str) -> None:
+        session = self.daemon.agents.sessions.get(identity)
+        if session is not None:
+            self._up(session, "lost", b"")
+
+    # --- other daemons' agents --------------------------------------------------------------------
+
+    def _remote(self, msg: Msg) -> RemoteSession | None:
+        """The mirror of the agent a message is about; None if it is ours or from us."""
+        headers = msg.headers or {}
+        daemon = headers.get("daemon", "")
+        identity = msg.subject.split(".", 2)[2]
+        if daemon == self.daemon_id:
+            return None
+        local = self.daemon.agents.sessions.get(identity)
+        if local is not None and local.open:
+            return None  # it is linked to us now; the other daemon's news is older
+        agents = self.daemon.agents
+        remote = agents.remote.get(identity)
+        if not isinstance(remote, RemoteSession) or not remote.open:
+            remote = RemoteSession(
+                identity=identity,
+                cid=int(headers.get("cid", "0")),
+                capabilities=Capabilities(),
+                home=None,
+                writer=cast(Any, None),
+                peer=f"via {daemon}",
+                outbox=cast(Any, None),
+                daemon=daemon,
+                node=self,
+            )
+            agents.remote[identity] = remote
+        remote.daemon, remote.peer = daemon, f"via {daemon}"
+        remote.last_rx = time.monotonic()
+        return remote
+
+    async def _remote_status(self, msg: Msg) -> None:
+        remote = self._remote(msg)
+        if remote is None:
+            return
+        status = _body(msg.data)
+        if not isinstance(status, StatusReport):
+            return
+        remote.status = status
+        remote.status_count += 1
+        from gcs.live import LiveHub
+
+        for hub in self.daemon.services:  # the dashboard's stream and history show the whole fleet
+            if isinstance(hub, LiveHub):
+                await hub._on_status(remote, status)
+        missions = self.daemon.missions
+        await missions._on_status(remote, status)
+        await self._nudge(remote, status)
+
+    async def _remote_up(self, msg: Msg) -> None:
+        remote = self._remote(msg)
+        if remote is None:
+            return
+        kind = (msg.headers or {}).get("kind")
+        missions = self.daemon.missions
+        if kind == "join":
+            join = json.loads(msg.data)
+            remote.home = GeoPoint.model_validate(join["home"]) if join["home"] else None
+            remote.capabilities = Capabilities.model_validate(join["capabilities"])
+            resume = Resume.model_validate(join["resume"]) if join["resume"] else None
+            await missions._on_join(remote, resume)
+        elif kind == "sync":
+            signal = _body(msg.data)
+            if isinstance(signal, SyncSignal):
+                await missions._on_sync(remote, signal)
+        elif kind == "lost":
+            remote.open = False
+            self.daemon.agents.remote.pop(remote.identity, None)
+            await missions._on_lost(remote.identity)
+
+    async def _nudge(self, session: AgentSession, status: StatusReport) -> None:
+        """As leader: an agent reporting a wait at a released barrier gets the release again, one
+        waiting at a barrier we have no arrival for counts as arrived (the signal died in flight)."""
+        step, mission_id = status.waiting_sync, status.mission_id
+        if step is None or mission_id is None:
+            return
+        mission = self.daemon.missions.active.get(mission_id)
+        if mission is None or session.identity not in mission.barriers.members:
+            return
+        released = step in mission.barriers.released
+        if not released and session.identity in mission.barriers.arrivals.get(step, set()):
+            return
+        key = (session.identity, mission_id, step)
+        now = time.monotonic()
+        if now - self._nudged.get(key, 0.0) < NUDGE_EVERY_S:
+            return
+        self._nudged[key] = now
+        if released:
+            session.post(SyncSignal(mission_id=mission_id, step=step, kind="release"))
+        else:
+            signal = SyncSignal(mission_id=mission_id, step=step, kind="finished")
+            await self.daemon.missions._on_sync(session, signal)
+
+    # --- what other daemons send our agents ---------------------------------------------------------
+
+    def forward(self, identity: str, body: Body, urgent: bool) -> None:
+        nc = self.state.nc
+        if nc is None or nc.is_closed:
+            return
+        data, headers = _frame(body), {"daemon": self.daemon_id, "urgent": "1" if urgent else ""}
+        self.state.enqueue(lambda: nc.publish(f"fleet.down.{identity}", data, headers=headers))
+
+    async def _down(self, msg: Msg) -> None:
+        identity = msg.subject.split(".", 2)[2]
+        session = self.daemon.agents.sessions.get(identity)
+        if session is None or not session.open or (msg.headers or {}).get("daemon") == self.daemon_id:
+            return
+        body = _body(msg.data)
+        if body is not None:
+            session.post(body, urgent=bool((msg.headers or {}).get("urgent")) or None)
+
+    # --- operator commands for any drone --------------------------------------------------------------
+
+    def holder(self, identity: str) -> str | None:
+        """The daemon holding ``identity``'s link (ours, a remote one's, or the registry's)."""
+        local = self.daemon.agents.sessions.get(identity)
+        if local is not None and local.open:
+            return self.daemon_id
+        remote = self.daemon.agents.remote.get(identity)
+        if isinstance(remote, RemoteSession) and remote.open:
+            return remote.daemon
+        record = self.state.agent_record(identity)
+        return None if record is None else str(record["daemon"])
+
+    async def command(self, command: str, agents: list[str] | None, reason: str) -> list[str]:
+        """Run an operator command on each drone's own daemon (through its vehicle authority)."""
+        targets = agents if agents is not None else sorted(self.fleet_identities())
+        by_daemon: dict[str, list[str]] = {}
+        for identity in targets:
+            holder = self.holder(identity)
+            if holder is not None:
+                by_daemon.setdefault(holder, []).append(identity)
+        delivered: list[str] = []
+        for daemon, group in sorted(by_daemon.items()):
+            if daemon == self.daemon_id:
+                delivered += await self._apply(command, group, reason)
+                continue
+            nc = self.state.nc
+            assert nc is not None
+            request = json.dumps({"command": command, "agents": group, "reason": reason}).encode()
+            try:
+                reply = await nc.request(f"fleet.cmd.{daemon}", request, timeout=COMMAND_TIMEOUT_S)
+            except Exception as exc:
+                log.warning("daemon %s did not answer %s for %s: %r", daemon, command, group, exc)
+                continue
+            delivered += json.loads(reply.data).get("delivered", [])
+        return delivered
+
+    async def _apply(self, command: str, agents: list[str], reason: str) -> list[str]:
+        operator = self.daemon.operator
+        if command == "hold":
+            return await operator.hold(agents, reason)
+        if command == "resume":
+            return await operator.resume(agents, reason)
+        if command in ("rtl", "land"):
+            delivered, _ = await operator.bring_down(command, agents, reason)  # type: ignore[arg-type]
+            return delivered
+        raise ValueError(f"unknown command {command!r}")
+
+    async def _command(self, msg: Msg) -> None:
+        try:
+            request = json.loads(msg.data)
+            delivered = await self._apply(request["command"], list(request["agents"]), request["reason"])
+            answer: dict[str, Any] = {"delivered": delivered}
+        except Exception as exc:  # a bad request costs its reply, never the subscription
+            answer = {"delivered": [], "error": str(exc)}
+        await msg.respond(json.dumps(answer).encode())
+
+    # --- the whole fleet ---------------------------------------------------------------------------------
+
+    def fleet_identities(self) -> set[str]:
+        agents = self.daemon.agents
+        return {s.identity for s in agents.connected()} | {i for i, s in agents.remote.items() if s.open}
+
+    def fleet(self) -> list[dict[str, Any]]:
+        """Every agent the cluster knows: where its link is, and its last status."""
+        agents = self.daemon.agents
+        rows = []
+        now = time.monotonic()
+        for identity, record in sorted(self.state.json_values("agents").items()):
+            local = agents.sessions.get(identity)
+            session = local if local is not None and local.open else agents.remote.get(identity)
+            live = session is not None and session.open and now - session.last_rx < self.config.lost_after_s
+            rows.append(
+                {
+                    "identity": identity,
+                    "cid": record["cid"],
+                    "daemon": self.holder(identity),
+                    "local": session is local and local is not None,
+                    "connected": live,
+                    "status": session.status.model_dump(mode="json") if session and session.status else None,
+                }
+            )
+        return rows

@@ -1,0 +1,388 @@
+"""Fleet state shared by daemons through NATS JetStream (key-value buckets and two streams).
+
+What lives where (docs/cluster.md):
+
+==================  ===================================  =====================================
+bucket / stream     key                                  value / rule
+==================  ===================================  =====================================
+fleet_agents        identity                             {cid, daemon}: registry, who holds the link
+fleet_cids          c<CID>                               identity; ``create``: a CID is assigned once
+fleet_missions      mission id                           accepted mission (task, state, paused)
+fleet_progress      <mission>.<agent>                    {completed, excluded}
+fleet_barriers      <mission>.<step>.arrived.<agent>     an arrival (written by the link's daemon)
+                    <mission>.<step>.released            ``create``: a barrier is released once
+fleet_holds         <agent>.<owner>                      {agent, owner, reason}: operator holds
+fleet_leases        <mission>                            daemon id; bucket TTL: the leader's lease
+FLEET_EVENTS        fleet.events.<daemon>                the event log (limits: count, age)
+FLEET_TELEMETRY     fleet.status.<identity>              live status (plain subject) kept with limits
+==================  ===================================  =====================================
+
+Reads come from in-memory mirrors kept current by one KV watcher per bucket, so the daemon's
+synchronous code (the mission runner, the store interface) never waits on the network. Writes go
+through one ordered queue (retried, bounded); the few writes that must not race (a CID, a barrier
+release, a lease) are awaited compare-and-set calls.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import json
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import nats
+import nats.errors
+import nats.js.errors
+from nats.aio.client import Client
+from nats.js.client import JetStreamContext
+from nats.js.kv import KV_DEL, KV_PURGE, KeyValue
+
+log = logging.getLogger("gcs.cluster")
+
+BUCKETS = ("agents", "cids", "missions", "progress", "barriers", "holds", "leases")
+EVENTS_STREAM = "FLEET_EVENTS"
+TELEMETRY_STREAM = "FLEET_TELEMETRY"
+EVENT_LIMIT = 200_000
+EVENT_MAX_AGE_S = 7 * 86_400.0
+TELEMETRY_MAX_AGE_S = 3_600.0
+TELEMETRY_MAX_BYTES = 256 << 20
+WRITE_ATTEMPTS = 20
+CID_ATTEMPTS = 64
+MIRROR_LOAD_TIMEOUT_S = 10.0
+SETUP_TIMEOUT_S = 20.0
+CONNECT_TIMEOUT_S = 5.0
+CAS_TIMEOUT_S = 10.0
+
+Write = Callable[[], Awaitable[object]]
+
+
+class ClusterUnavailable(ConnectionError):
+    """NATS could not be reached or JetStream is not enabled there."""
+
+
+class ClusterState:
+    """One daemon's connection to the shared fleet state."""
+
+    def __init__(self, servers: list[str], daemon_id: str, replicas: int, lease_ttl_s: float) -> None:
+        self.servers = servers
+        self.daemon_id = daemon_id
+        self.replicas = replicas
+        self.lease_ttl_s = lease_ttl_s
+        self.nc: Client | None = None
+        self.js: JetStreamContext | None = None
+        self.kv: dict[str, KeyValue] = {}
+        self.mirror: dict[str, dict[str, bytes]] = {name: {} for name in BUCKETS}
+        self.on_change: list[Callable[[str, str, bytes | None], None]] = []
+        self._followers: dict[str, tuple[Any, asyncio.Task[None]]] = {}
+        self._tasks: list[asyncio.Task[None]] = []
+        self._writes: asyncio.Queue[Write] = asyncio.Queue()
+        self.write_failures = 0
+        self._serial = itertools.count()
+        self._seen: dict[str, int] = {}  # bucket -> newest revision applied to its mirror
+        self._behind: dict[str, int] = {}  # bucket -> stream sequence it lagged at the last check
+
+    # --- connection ------------------------------------------------------------------------------
+
+    async def connect(self) -> None:
+        try:
+            self.nc = await asyncio.wait_for(self._connect(), CONNECT_TIMEOUT_S)
+        except Exception as exc:
+            raise ClusterUnavailable(
+                f"cannot reach NATS at {','.join(self.servers)} within {CONNECT_TIMEOUT_S:.0f} s: {exc!r}"
+            ) from exc
+        self.js = self.nc.jetstream(timeout=5.0)
+        deadline = time.monotonic() + SETUP_TIMEOUT_S
+        while True:  # a NATS cluster just started elects its JetStream leader first: retry, bounded
+            try:
+                await self._setup()
+                break
+            except (nats.errors.Error, nats.js.errors.Error, TimeoutError) as exc:
+                if time.monotonic() > deadline:
+                    await self.close()
+                    raise ClusterUnavailable(
+                        f"JetStream not usable at {','.join(self.servers)}: {exc!r}"
+                    ) from exc
+                await asyncio.sleep(0.5)
+        for name in BUCKETS:
+            if name != "leases":  # leases expire without a marker on 2.9: always read them fresh
+                await self._follow(name)
+        self._tasks.append(asyncio.create_task(self._writer(), name="cluster-writer"))
+
+    async def _connect(self) -> Client:
+        """Connect; the first connection tries every server in turn, reconnects never give up."""
+        return await nats.connect(
+            servers=self.servers,
+            name=self.daemon_id,
+            connect_timeout=2,
+            reconnect_time_wait=0.25,
+            max_reconnect_attempts=-1,
+            allow_reconnect=True,
+            reconnected_cb=self._reconnected,
+            error_cb=self._nats_error,
+        )
+
+    async def _nats_error(self, exc: Exception) -> None:
+        """One line per client error (nats-py would log a traceback); quiet until first connected."""
+        level = logging.WARNING if self.js is not None else logging.DEBUG
+        log.log(level, "NATS: %r", exc)
+
+    async def _setup(self) -> None:
+        for name in BUCKETS:
+            if name not in self.kv:
+                self.kv[name] = await self._bucket(name)
+        await self._stream(EVENTS_STREAM, ["fleet.events.>"], max_msgs=EVENT_LIMIT, max_age=EVENT_MAX_AGE_S)
+        await self._stream(
+            TELEMETRY_STREAM,
+            ["fleet.status.>"],
+            max_age=TELEMETRY_MAX_AGE_S,
+            max_bytes=TELEMETRY_MAX_BYTES,
+            storage="memory",
+        )
+
+    async def _bucket(self, name: str) -> KeyValue:
+        assert self.js is not None
+        bucket = f"fleet_{name}"
+        with contextlib.suppress(nats.js.errors.BucketNotFoundError):
+            return await self.js.key_value(bucket)
+        ttl = self.lease_ttl_s if name == "leases" else None
+        return await self.js.create_key_value(bucket=bucket, history=1, replicas=self.replicas, ttl=ttl)
+
+    async def _stream(self, name: str, subjects: list[str], storage: str = "file", **limits: Any) -> None:
+        from nats.js.api import StorageType, StreamConfig
+
+        assert self.js is not None
+        config = StreamConfig(
+            name=name,
+            subjects=subjects,
+            num_replicas=self.replicas,
+            storage=StorageType.MEMORY if storage == "memory" else StorageType.FILE,
+            **limits,
+        )
+        try:
+            await self.js.stream_info(name)
+        except nats.js.errors.NotFoundError:
+            with contextlib.suppress(nats.js.errors.BadRequestError):  # another daemon made it first
+                await self.js.add_stream(config)
+
+    async def _follow(self, name: str) -> None:
+        """Load the bucket into its mirror, then keep the mirror current in the background."""
+        watcher = await self.kv[name].watchall()
+        snapshot: dict[str, bytes] = {}
+        deadline = time.monotonic() + MIRROR_LOAD_TIMEOUT_S
+        while time.monotonic() < deadline:
+            entry = await watcher.updates(timeout=max(0.1, deadline - time.monotonic()))
+            if entry is None:
+                break
+            self._apply(name, snapshot, entry)
+        mirror = self.mirror[name]
+        mirror.clear()
+        mirror.update(snapshot)
+        old = self._followers.pop(name, None)
+        self._followers[name] = (
+            watcher,
+            asyncio.create_task(self._run(name, watcher), name=f"cluster-{name}"),
+        )
+        if old is not None:
+            old[1].cancel()
+            with contextlib.suppress(Exception):
+                await old[0].stop()
+
+    async def _run(self, name: str, watcher: Any) -> None:
+        async for entry in watcher:
+            if entry is not None:
+                self._apply(name, self.mirror[name], entry)
+
+    async def resync(self, names: tuple[str, ...] = ("missions", "progress", "barriers", "holds")) -> None:
+        """Reload mirrors from a fresh snapshot (after a reconnect, before taking over a mission):
+        a watcher whose consumer sat on a NATS node that died is silent until it resets itself."""
+        for name in names:
+            await self._follow(name)
+
+    async def check_followers(self) -> None:
+        """Reload a mirror still behind what its bucket held at the previous check.
+
+        An ordered consumer whose NATS server died (without our connection moving) is silent
+        until its heartbeat check resets it; the bucket's last sequence shows the lag.
+        """
+        assert self.js is not None
+        for name in list(self._followers):
+            info = await self.js.stream_info(f"KV_fleet_{name}")
+            last = int(info.state.last_seq or 0)
+            before = self._behind.pop(name, None)
+            if before is not None and self._seen.get(name, 0) < before:
+                log.warning(
+                    "mirror of %s stalled at %d (bucket at %d); reloading", name, self._seen[name], last
+                )
+                await self._follow(name)
+            elif last > self._seen.get(name, 0):
+                self._behind[name] = last
+
+    async def _reconnected(self) -> None:
+        log.info(
+            "NATS reconnected to %s; reloading the shared state", self.nc.connected_url if self.nc else "?"
+        )
+        with contextlib.suppress(Exception):
+            await self.resync(tuple(n for n in BUCKETS if n != "leases"))
+
+    def _apply(self, name: str, mirror: dict[str, bytes], entry: Any) -> None:
+        self._seen[name] = max(self._seen.get(name, 0), int(entry.revision or 0))
+        value = None if entry.operation in (KV_DEL, KV_PURGE) else entry.value
+        if value is None:
+            mirror.pop(entry.key, None)
+        else:
+            mirror[entry.key] = value
+        for callback in self.on_change:
+            try:
+                callback(name, entry.key, value)
+            except Exception:
+                log.exception("cluster change callback failed")
+
+    async def close(self) -> None:
+        if self.nc is not None and self.nc.is_connected:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self.flush_writes(), 5.0)
+        tasks = self._tasks + [task for _, task in self._followers.values()]
+        self._followers.clear()
+        for task in tasks:
+            task.cancel()
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await task
+        self._tasks.clear()
+        if self.nc is not None:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self.nc.close(), 5.0)
+
+    # --- ordered writes --------------------------------------------------------------------------
+
+    def enqueue(self, write: Write) -> None:
+        """Run ``write`` after every write queued before it (retried; never blocks the caller)."""
+        self._writes.put_nowait(write)
+
+    def put_json(self, bucket: str, key: str, value: dict[str, Any]) -> None:
+        data = json.dumps(value, separators=(",", ":")).encode()
+        self.mirror[bucket][key] = data
+        self.enqueue(lambda: self.kv[bucket].put(key, data))
+
+    def delete(self, bucket: str, key: str) -> None:
+        self.mirror[bucket].pop(key, None)
+        self.enqueue(lambda: self.kv[bucket].delete(key))
+
+    def publish(self, subject: str, payload: bytes) -> None:
+        """Core publish (no ack): the stream on that subject keeps it within its limits."""
+        if self.nc is not None and not self.nc.is_closed:
+            self.enqueue(lambda: self.nc.publish(subject, payload))  # type: ignore[union-attr]
+
+    async def flush_writes(self) -> None:
+        await self._writes.join()
+
+    async def _writer(self) -> None:
+        while True:
+            write = await self._writes.get()
+            try:
+                for attempt in range(WRITE_ATTEMPTS):
+                    try:
+                        await write()
+                        break
+                    except (nats.errors.Error, nats.js.errors.Error, TimeoutError) as exc:
+                        if isinstance(exc, nats.js.errors.KeyWrongLastSequenceError):
+                            break  # a compare-and-set lost: someone else wrote first, which is fine
+                        await asyncio.sleep(min(2.0, 0.1 * (attempt + 1)))
+                else:
+                    self.write_failures += 1
+                    log.error("cluster write failed %d times; dropped", WRITE_ATTEMPTS)
+            finally:
+                self._writes.task_done()
+
+    # --- compare-and-set -------------------------------------------------------------------------
+
+    async def create(self, bucket: str, key: str, value: bytes) -> bool:
+        """Write ``key`` only if it does not exist; False if someone else holds it.
+
+        Retried (bounded) while NATS fails over; a retry that finds our own value there means the
+        earlier try went through and only its answer was lost, so it counts as won. Callers make
+        ``value`` unique to them (daemon id, time) for that reason.
+        """
+        deadline = time.monotonic() + CAS_TIMEOUT_S
+        while True:
+            try:
+                await self.kv[bucket].create(key, value)
+                break
+            except nats.js.errors.KeyWrongLastSequenceError:
+                entry = await self.kv[bucket].get(key)
+                if entry.value == value:
+                    break
+                if entry.value is not None and bucket != "leases":
+                    self.mirror[bucket][key] = entry.value
+                return False
+            except (nats.errors.Error, nats.js.errors.Error, TimeoutError):
+                if time.monotonic() > deadline:
+                    raise
+                await asyncio.sleep(0.2)
+        if bucket != "leases":
+            self.mirror[bucket][key] = value
+        return True
+
+    def unique(self) -> bytes:
+        """A value only this daemon writes, now (see :meth:`create`)."""
+        return f"{self.daemon_id} {time.time():.6f} {next(self._serial)}".encode()
+
+    async def assign_cid(self, identity: str) -> int:
+        """The agent's CID: its registered one, else the lowest free one (claimed with create)."""
+        known = self.agent_record(identity)
+        if known is not None:
+            return int(known["cid"])
+        for _ in range(CID_ATTEMPTS):
+            used = [int(k[1:]) for k in self.mirror["cids"] if k[1:].isdigit()]
+            cid = max(used, default=0) + 1
+            if await self.create("cids", f"c{cid}", identity.encode() + b" " + self.unique()):
+                record = {"cid": cid, "daemon": self.daemon_id, "since": time.time()}
+                if await self.create("agents", identity, json.dumps(record).encode()):
+                    return cid
+                self.delete("cids", f"c{cid}")  # registered meanwhile by another daemon: use theirs
+                theirs = self.agent_record(identity)
+                if theirs is not None:
+                    return int(theirs["cid"])
+        raise RuntimeError(f"could not assign a connection ID to {identity} after {CID_ATTEMPTS} tries")
+
+    def agent_record(self, identity: str) -> dict[str, Any] | None:
+        raw = self.mirror["agents"].get(identity)
+        return None if raw is None else json.loads(raw)
+
+    def json_values(self, bucket: str, prefix: str = "") -> dict[str, dict[str, Any]]:
+        return {k: json.loads(v) for k, v in list(self.mirror[bucket].items()) if k.startswith(prefix)}
+
+    # --- leases ----------------------------------------------------------------------------------
+
+    async def lease_holder(self, mission_id: str) -> tuple[str | None, int]:
+        """(daemon holding the mission's lease, revision); (None, 0) when it expired or never was."""
+        try:
+            entry = await self.kv["leases"].get(mission_id)
+        except (nats.js.errors.KeyNotFoundError, nats.js.errors.KeyDeletedError):
+            return None, 0
+        holder = (entry.value or b"").decode().split(" ", 1)[0]
+        return holder or None, int(entry.revision or 0)
+
+    async def take_lease(self, mission_id: str) -> bool:
+        return await self.create("leases", mission_id, self.unique())
+
+    async def renew_lease(self, mission_id: str) -> bool:
+        """Extend our lease; False if it is no longer ours (expired and taken by another daemon)."""
+        holder, revision = await self.lease_holder(mission_id)
+        if holder is None:
+            return await self.take_lease(mission_id)
+        if holder != self.daemon_id:
+            return False
+        try:
+            await self.kv["leases"].update(mission_id, self.unique(), last=revision)
+        except nats.js.errors.KeyWrongLastSequenceError:
+            return False
+        return True
+
+    async def drop_lease(self, mission_id: str) -> None:
+        with contextlib.suppress(Exception):
+            await self.kv["leases"].delete(mission_id)

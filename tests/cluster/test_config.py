@@ -1,0 +1,79 @@
+"""`--cluster` and the `cluster` settings: parsed from the CLI, TOML and environment; bad ones refused."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from gcs.cli import build_parser
+from gcs.commands.serve import resolve_config
+from gcs.config_file import ConfigFileError, load_daemon_config
+
+BIN = Path(sys.executable).parent
+
+
+def test_cli_flag_splits_servers() -> None:
+    args = build_parser().parse_args(
+        ["serve", "--cluster", "nats://10.0.0.1:4222,nats://10.0.0.2:4222", "--daemon-id", "base-1"]
+    )
+    config, _ = resolve_config(args)
+    assert config.cluster == ["nats://10.0.0.1:4222", "nats://10.0.0.2:4222"]
+    assert config.daemon_id == "base-1"
+
+
+def test_default_is_embedded() -> None:
+    config, _ = resolve_config(build_parser().parse_args(["serve"]))
+    assert config.cluster == [] and config.daemon_id is None
+
+
+def test_toml_and_environment(tmp_path: Path) -> None:
+    path = tmp_path / "gcs.toml"
+    path.write_text('[daemon]\ncluster = ["nats://127.0.0.1:4222"]\ncluster_replicas = 3\n')
+    config, _ = load_daemon_config(path, environ={"FLEETGCS_CLUSTER_LEASE_TTL_S": "2.5"})
+    assert config.cluster == ["nats://127.0.0.1:4222"]
+    assert config.cluster_replicas == 3 and config.cluster_lease_ttl_s == 2.5
+
+
+@pytest.mark.parametrize("bad", ['cluster = ["http://x:1"]', 'daemon_id = "has space"'])
+def test_bad_settings_refused(tmp_path: Path, bad: str) -> None:
+    path = tmp_path / "gcs.toml"
+    path.write_text(f"[daemon]\n{bad}\n")
+    with pytest.raises(ConfigFileError):
+        load_daemon_config(path, environ={})
+
+
+def test_unreachable_nats_is_one_clear_line(tmp_path: Path) -> None:
+    done = subprocess.run(
+        [
+            str(BIN / "gcs"),
+            "serve",
+            "--listen",
+            "127.0.0.1:0",
+            "--http",
+            "none",
+            "--data-dir",
+            str(tmp_path),
+            "--cluster",
+            "nats://127.0.0.1:1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 2, done.stderr
+    assert "cannot reach NATS at nats://127.0.0.1:1" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_agent_daemon_list() -> None:
+    from pydantic import ValidationError
+
+    from agent.config import AgentConfig
+
+    config = AgentConfig(identity="d1", key_hex="00" * 32, gcs_port=4000, daemons=["10.0.0.2:4001", "base3"])
+    assert config.daemon_addresses() == [("127.0.0.1", 4000), ("10.0.0.2", 4001), ("base3", 4000)]
+    with pytest.raises(ValidationError, match="bad port"):
+        AgentConfig(identity="d1", key_hex="00" * 32, daemons=["10.0.0.2:http"])
