@@ -86,6 +86,7 @@ class DaemonLink:
         self.last_error: str | None = None
         self._writer: asyncio.StreamWriter | None = None
         self._seq = 0
+        self.compact_status = False  # the daemon accepted the compact binary status body
         self._status_backlog: deque[StatusReport] = deque(maxlen=config.status_buffer)
         self._control_backlog: list[Body] = []
         self._send_lock = asyncio.Lock()
@@ -108,7 +109,7 @@ class DaemonLink:
         async with self._send_lock:
             self._seq += 1
             try:
-                writer.write(encode(body, self._seq))
+                writer.write(encode(body, self._seq, compact=self.compact_status))
                 async with asyncio.timeout(5.0):
                     await writer.drain()
             except (OSError, TimeoutError, ConnectionError):
@@ -180,6 +181,7 @@ class DaemonLink:
         backlog: list[Frame] = []
         self._writer = writer
         self._seq = 0
+        self.compact_status = False
         async with asyncio.timeout(self.config.handshake_timeout_s):
             await self._handshake(reader, decoder, backlog)
         self.connected = True
@@ -230,6 +232,7 @@ class DaemonLink:
             home=self._home(),
             proof=auth.agent_proof(self._key, self.config.identity, server_nonce, client_nonce),
             resume=self._resume(),
+            compact_status=True,
         )
         if not await self._send(request):
             raise ConnectionError("daemon went away during the handshake")
@@ -242,6 +245,7 @@ class DaemonLink:
                     "the daemon could not prove it holds our key; not trusting it", REFUSED_BACKOFF_S
                 )
             self.cid = body.cid
+            self.compact_status = bool(body.compact_status)
             if body.parameters is not None:
                 await self._on_parameters(SetParameters(parameters=body.parameters))
             return

@@ -97,6 +97,7 @@ class AgentSession:
     status: StatusReport | None = None
     status_count: int = 0
     open: bool = True
+    compact_status: bool = False  # negotiated: status may come as the compact binary body
 
     @property
     def last_tx(self) -> float:
@@ -315,6 +316,7 @@ class AgentManager:
             peer=peer,
             outbox=outbox,
         )
+        session.compact_status = bool(proof_request.compact_status)
         outbox.on_cut_off = lambda reason: self._cut_off(session, reason)
         outbox.start()
         parameters = self.config.agent_parameters.model_copy(
@@ -327,6 +329,7 @@ class AgentManager:
             server_proof=auth.daemon_proof(key, request.identity, request.client_nonce, server_nonce),
             parameters=parameters,
             server_time=time.time(),
+            compact_status=True if session.compact_status else None,
         )
         previous = self.sessions.get(request.identity)
         if previous is not None and previous.open:
@@ -375,6 +378,8 @@ class AgentManager:
         """Record what the frame says and hand it to the hook consumers; nothing is awaited here."""
         body = frame.body
         if isinstance(body, StatusReport):
+            if frame.compact and not session.compact_status:
+                raise ProtocolError("compact status body (type 0x82) sent without negotiating it")
             self._exception_events(session, body)
             session.status = body
             session.status_count += 1

@@ -87,6 +87,9 @@ class RequestCid(_Body):
 
     ``probe`` (optional, default false) asks only for authentication: a check such as
     ``agent doctor`` gets an ``accepted`` without a CID and never becomes a fleet member.
+
+    ``compact_status`` (optional) offers the compact binary status body (protocol/status_binary.py,
+    frame type byte 0x82); the agent uses it only once the accepting type 1 says so.
     """
 
     identity: Identity
@@ -97,6 +100,7 @@ class RequestCid(_Body):
     proof: HexMac | None = None
     resume: Resume | None = None
     probe: bool = False
+    compact_status: bool | None = None
 
 
 # --- type 1: response with connection ID -------------------------------------------------------
@@ -121,6 +125,8 @@ class ResponseCid(_Body):
 
     On ``accepted``, ``server_proof`` = hex HMAC-SHA256(key, "fleetgcs-daemon-v1|" identity "|"
     client_nonce "|" server_nonce) lets the agent check it talks to a daemon holding its key.
+    ``compact_status`` (on ``accepted``, only when the request offered it) lets the agent send
+    its status reports in the compact binary body.
     """
 
     outcome: Literal["challenge", "accepted", "refused"]
@@ -130,6 +136,7 @@ class ResponseCid(_Body):
     reason: str | None = Field(default=None, max_length=512)
     parameters: AgentParameters | None = None
     server_time: Finite | None = None
+    compact_status: bool | None = None
 
 
 # --- type 2: status report ---------------------------------------------------------------------

@@ -5,7 +5,8 @@ Header, all integers big-endian::
     offset size field
     0      2    magic        b"FG" (0x46 0x47)
     2      1    version      PROTOCOL_VERSION (1)
-    3      1    packet type  0..6
+    3      1    packet type  0..6; bit 7 (0x80) set = compact binary body (only 0x82, a type-2
+                             status in protocol/status_binary.py's layout, negotiated in the handshake)
     4      4    sequence     u32, per sender, +1 per frame, wraps at 2**32
     8      4    body length  u32, bytes of body that follow
     12     4    body CRC-32  u32, zlib.crc32 of the body bytes
@@ -25,13 +26,24 @@ from dataclasses import dataclass
 
 from pydantic import ValidationError
 
-from protocol.packets import BODY_MODELS, PROTOCOL_VERSION, Body, PacketType, packet_type_of
+from protocol import status_binary
+from protocol.packets import (
+    BODY_MODELS,
+    PROTOCOL_VERSION,
+    Body,
+    PacketType,
+    StatusReport,
+    packet_type_of,
+)
 
 MAGIC = b"FG"
 HEADER = struct.Struct(">2sBBIII")
 HEADER_SIZE = HEADER.size  # 16
 DEFAULT_MAX_BODY = 1 << 20  # 1 MiB: a 2000-waypoint survey leg is ~150 KiB
 SEQ_MODULO = 1 << 32
+COMPACT = 0x80
+"""Packet-type bit: the body is the compact binary form (today only type 2: ``STATUS_COMPACT``)."""
+STATUS_COMPACT = COMPACT | PacketType.STATUS
 
 
 class ProtocolError(Exception):
@@ -49,12 +61,20 @@ class Frame:
     packet_type: PacketType
     seq: int
     body: Body
+    compact: bool = False  # the body came in the compact binary form (type byte 0x82)
 
 
-def encode(body: Body, seq: int) -> bytes:
-    """Serialise ``body`` into one frame with sequence number ``seq`` (taken modulo 2**32)."""
-    payload = body.model_dump_json(exclude_none=True).encode("utf-8")
-    ptype = packet_type_of(body)
+def encode(body: Body, seq: int, *, compact: bool = False) -> bytes:
+    """Serialise ``body`` into one frame with sequence number ``seq`` (taken modulo 2**32).
+
+    ``compact`` sends a status report in the binary layout (only after the peer accepted it).
+    """
+    if compact and isinstance(body, StatusReport):
+        payload = status_binary.encode(body)
+        ptype = STATUS_COMPACT
+    else:
+        payload = body.model_dump_json(exclude_none=True).encode("utf-8")
+        ptype = packet_type_of(body)
     return (
         HEADER.pack(MAGIC, PROTOCOL_VERSION, ptype, seq % SEQ_MODULO, len(payload), zlib.crc32(payload))
         + payload
@@ -63,6 +83,11 @@ def encode(body: Body, seq: int) -> bytes:
 
 def decode_body(packet_type: int, payload: bytes) -> Body:
     """Validate a body for ``packet_type``; raise :class:`ProtocolError` on any problem."""
+    if packet_type == STATUS_COMPACT:
+        try:
+            return status_binary.decode(payload)
+        except status_binary.StatusBodyError as exc:
+            raise ProtocolError(str(exc), packet_type=PacketType.STATUS) from None
     try:
         ptype = PacketType(packet_type)
     except ValueError:
@@ -122,8 +147,8 @@ class FrameDecoder:
             raise self._fail(f"bad magic {bytes(buf[:2])!r} (expected {MAGIC!r}): not a fleetgcs stream")
         if len(buf) >= 3 and buf[2] != PROTOCOL_VERSION:
             raise self._fail(f"unsupported protocol version {buf[2]} (this side speaks {PROTOCOL_VERSION})")
-        if len(buf) >= 4 and buf[3] > max(PacketType):
-            raise self._fail(f"unknown packet type {buf[3]} (expected 0..6)", buf[3])
+        if len(buf) >= 4 and buf[3] > max(PacketType) and buf[3] != STATUS_COMPACT:
+            raise self._fail(f"unknown packet type {buf[3]} (expected 0..6 or 0x82)", buf[3])
         if len(buf) < HEADER_SIZE:
             return None
         _, _, ptype, seq, length, crc = HEADER.unpack_from(buf)
@@ -141,7 +166,7 @@ class FrameDecoder:
             self._failed = exc
             self._buffer.clear()
             raise
-        return Frame(PacketType(ptype), seq, body)
+        return Frame(PacketType(ptype & ~COMPACT), seq, body, ptype == STATUS_COMPACT)
 
 
 def decode_one(data: bytes, max_body: int = DEFAULT_MAX_BODY) -> Frame:
