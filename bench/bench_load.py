@@ -34,6 +34,7 @@ import os
 import platform
 import random
 import secrets
+import struct
 import subprocess
 import sys
 import tempfile
@@ -48,6 +49,8 @@ BIN = Path(sys.executable).parent
 P99_LIMIT_MS = 50.0
 STATUS_HZ = 10.0
 DAEMON_OVERRIDES: dict[str, Any] = {}  # DaemonConfig fields from --daemon-config (JSON)
+PROFILE: dict[str, str | None] = {"path": None}  # --profile: cProfile the daemon over a fleet trial
+CLIENT = {"compact": True}  # synthetic agents offer (and then send) the compact status body; --json: v1
 
 
 # --- /proc helpers --------------------------------------------------------------------------------
@@ -77,15 +80,21 @@ def percentile(values: list[float], p: float) -> float:
 # --- the server process: daemon, or a bare asyncio sink ------------------------------------------
 
 
-def server_main(kind: str, conn: Connection, key_hex: str, extra: dict[str, Any]) -> None:
+def server_main(
+    kind: str, conn: Connection, key_hex: str, extra: dict[str, Any], profile: str | None = None
+) -> None:
     """Entry point of the server process; answers commands on ``conn`` until 'stop'."""
     import logging
 
     logging.disable(logging.CRITICAL)  # per-agent events would flood stderr; the numbers are the output
-    asyncio.run(_server(kind, conn, key_hex, extra))
+    asyncio.run(_server(kind, conn, key_hex, extra, profile))
 
 
-async def _server(kind: str, conn: Connection, key_hex: str, extra: dict[str, Any]) -> None:
+async def _server(
+    kind: str, conn: Connection, key_hex: str, extra: dict[str, Any], profile: str | None = None
+) -> None:
+    import cProfile
+
     from gcs.config import DaemonConfig
     from gcs.daemon import Daemon
     from protocol.taskfile import TaskFile
@@ -155,18 +164,28 @@ async def _server(kind: str, conn: Connection, key_hex: str, extra: dict[str, An
     loop = asyncio.get_running_loop()
     conn.send(("ready", port, rss_kb()))
     cpu_mark = time.process_time()
+    profiler = cProfile.Profile() if profile else None
+    marks: dict[str, float] = {}
     for _ in range(1_000_000):
         command, *args = await loop.run_in_executor(None, conn.recv)
         if command == "reset":
             latencies.clear()
             counter["frames"] = 0
             cpu_mark = time.process_time()
+            marks = _service_marks(daemon)
+            if profiler is not None:
+                profiler.enable()
             conn.send("ok")
         elif command == "stats":
+            if profiler is not None and profile:
+                profiler.disable()
+                profiler.dump_stats(profile)
             received = len(latencies) if kind == "daemon" else counter["frames"]
             connected = len(daemon.agents.connected()) if daemon else 0
             conn.send(
                 {
+                    "services_us": _service_costs(daemon, marks),
+                    "events": _event_kinds(daemon),
                     "received": received,
                     "p50_ms": percentile(latencies, 0.50) * 1000,
                     "p99_ms": percentile(latencies, 0.99) * 1000,
@@ -196,6 +215,37 @@ async def _server(kind: str, conn: Connection, key_hex: str, extra: dict[str, An
     conn.send(stop_note)
 
 
+def _service_marks(daemon: Any) -> dict[str, float]:
+    """Busy seconds and event counts so far: ingest (decode + record) and each hook consumer."""
+    if daemon is None:
+        return {}
+    marks = {"ingest": daemon.agents.ingest_busy_s, "ingest#": float(daemon.agents.ingest_frames)}
+    for s in daemon.agents.hook_stats():
+        marks[s.name], marks[s.name + "#"] = s.busy_s, float(s.delivered)
+    return marks
+
+
+def _event_kinds(daemon: Any) -> dict[str, int]:
+    """How many events of each kind the daemon logged (what its services decided during the trial)."""
+    if daemon is None:
+        return {}
+    kinds: dict[str, int] = {}
+    for event in daemon.events.history(limit=100_000):
+        kinds[event.kind] = kinds.get(event.kind, 0) + 1
+    return kinds
+
+
+def _service_costs(daemon: Any, marks: dict[str, float]) -> dict[str, float]:
+    """Microseconds of event-loop time per status report, per service, since ``marks``."""
+    now = _service_marks(daemon)
+    reports = max(1.0, now.get("ingest#", 0.0) - marks.get("ingest#", 0.0))
+    return {
+        name: round((busy - marks.get(name, 0.0)) * 1e6 / reports, 2)
+        for name, busy in now.items()
+        if not name.endswith("#")
+    }
+
+
 # --- worker processes: many synthetic agents each -------------------------------------------------
 
 
@@ -203,37 +253,56 @@ GRID_M = 40.0  # synthetic vehicles hover on a grid this far apart (a real fleet
 
 
 class StatusTemplate:
-    """A real type-2 body serialised once; each frame only splices in a fresh timestamp."""
+    """A real type-2 body serialised once; each frame only splices in a fresh timestamp.
 
-    def __init__(self, index: int = 0) -> None:
+    ``compact``: the binary body (protocol/status_binary.py, time at body offset 4), else JSON.
+    """
+
+    def __init__(self, index: int = 0, compact: bool = False) -> None:
+        from protocol import status_binary
         from protocol.geo import offset_latlon
-        from protocol.packets import Battery, Position, StatusReport
+        from protocol.packets import Battery, Gps, Position, StatusReport
 
         lat, lon = offset_latlon(47.397742, 8.545594, GRID_M * (index // 50), GRID_M * (index % 50))
-        body = StatusReport(
+        report = StatusReport(
             time=0.0,
             position=Position(lat=lat, lon=lon, alt_rel=12.3, alt_amsl=500.3),
             battery=Battery(pct=87.5, voltage_v=12.1, current_a=14.2),
+            gps=Gps(fix=3, satellites=14),  # a healthy fleet: without a fix the emergency monitor returns it
             mode="GUIDED",
             armed=True,
             landed=False,
-        ).model_dump_json(exclude_none=True)
+        )
+        self.compact = compact
+        if compact:
+            self.binary = bytearray(status_binary.encode(report))
+            return
+        body = report.model_dump_json(exclude_none=True)
         head, tail = body.split('"time":0.0', 1)
         self.head, self.tail = (head + '"time":').encode(), tail.encode()
 
     def frame(self, seq: int, now: float) -> bytes:
-        from protocol.wire import HEADER, MAGIC
+        from protocol.wire import HEADER, MAGIC, STATUS_COMPACT
 
-        body = self.head + repr(now).encode() + self.tail
-        return HEADER.pack(MAGIC, 1, 2, seq & 0xFFFFFFFF, len(body), zlib.crc32(body)) + body
+        if self.compact:
+            _TIME.pack_into(self.binary, 4, now)
+            body = bytes(self.binary)
+            ptype = STATUS_COMPACT
+        else:
+            body = self.head + repr(now).encode() + self.tail
+            ptype = 2
+        return HEADER.pack(MAGIC, 1, ptype, seq & 0xFFFFFFFF, len(body), zlib.crc32(body)) + body
+
+
+_TIME = struct.Struct("<d")
 
 
 class Client:
     """One synthetic agent: a socket, a sequence counter and the releases it received."""
 
-    def __init__(self, identity: str, index: int) -> None:
+    def __init__(self, identity: str, index: int, compact: bool) -> None:
         self.identity = identity
-        self.template = StatusTemplate(index)
+        self.template = StatusTemplate(index, compact)
         self.reader: asyncio.StreamReader | None = None
         self.writer: asyncio.StreamWriter | None = None
         self.seq = 0
@@ -248,8 +317,10 @@ class Client:
         self.writer.write(frame)
 
 
-def worker_main(conn: Connection, port: int, key_hex: str, identities: list[str], authenticate: bool) -> None:
-    asyncio.run(_worker(conn, port, key_hex, identities, authenticate))
+def worker_main(
+    conn: Connection, port: int, key_hex: str, identities: list[str], authenticate: bool, compact: bool
+) -> None:
+    asyncio.run(_worker(conn, port, key_hex, identities, authenticate, compact))
 
 
 async def _handshake(client: Client, key: bytes) -> None:
@@ -272,7 +343,11 @@ async def _handshake(client: Client, key: bytes) -> None:
     assert isinstance(challenge, ResponseCid) and challenge.server_nonce, challenge
     proof = auth.agent_proof(key, client.identity, challenge.server_nonce, nonce)
     request = RequestCid(
-        identity=client.identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce, proof=proof
+        identity=client.identity,
+        protocol_version=PROTOCOL_VERSION,
+        client_nonce=nonce,
+        proof=proof,
+        compact_status=True if client.template.compact else None,
     )
     client.writer.write(encode(request, 2))
     for _ in range(100):
@@ -281,6 +356,7 @@ async def _handshake(client: Client, key: bytes) -> None:
         frames += list(decoder.feed(await client.reader.read(65_536)))
     accepted = frames.pop(0).body
     assert isinstance(accepted, ResponseCid) and accepted.outcome == "accepted", accepted
+    assert bool(accepted.compact_status) == client.template.compact, accepted
     client.seq = 2
 
 
@@ -306,13 +382,13 @@ async def _client_reader(client: Client) -> None:
 
 
 async def _worker(
-    conn: Connection, port: int, key_hex: str, identities: list[str], authenticate: bool
+    conn: Connection, port: int, key_hex: str, identities: list[str], authenticate: bool, compact: bool
 ) -> None:
     from protocol.packets import SyncSignal
     from protocol.wire import encode
 
     key = bytes.fromhex(key_hex)
-    clients = [Client(name, int(name.rsplit("-", 1)[1])) for name in identities]
+    clients = [Client(name, int(name.rsplit("-", 1)[1]), compact) for name in identities]
     loop = asyncio.get_running_loop()
     status_task: asyncio.Future[Any] | None = None
     cpu_mark = time.process_time()
@@ -421,7 +497,9 @@ class Harness:
         self.kind, self.agents = kind, agents
         self.server_conn, child = self.ctx.Pipe()
         self.server = self.ctx.Process(
-            target=server_main, args=(kind, child, self.key_hex, DAEMON_OVERRIDES), daemon=True
+            target=server_main,
+            args=(kind, child, self.key_hex, DAEMON_OVERRIDES, PROFILE["path"]),
+            daemon=True,
         )
         self.server.start()
         ready, self.port, self.base_rss_kb = self.server_conn.recv()
@@ -435,7 +513,9 @@ class Harness:
                 continue
             parent, child = self.ctx.Pipe()
             proc = self.ctx.Process(
-                target=worker_main, args=(child, self.port, self.key_hex, share, authenticate), daemon=True
+                target=worker_main,
+                args=(child, self.port, self.key_hex, share, authenticate, CLIENT["compact"]),
+                daemon=True,
             )
             proc.start()
             self.worker_conns.append(parent)
@@ -503,6 +583,8 @@ def fleet_trial(agents: int, seconds: float) -> dict[str, Any]:
         "client_workers_cpu_share": sum(r["cpu_s"] for r in sent_rows) / seconds,
         "daemon_rss_mb": stats["rss_kb"] / 1024,
         "rss_per_agent_kb": (stats["rss_kb"] - harness.base_rss_kb) / agents,
+        "services_us_per_report": stats["services_us"],
+        "events": stats["events"],
     }
     row["passed"] = bool(
         stats["received"] >= sent and dropped == 0 and stats["p99_ms"] < P99_LIMIT_MS and connected == agents
@@ -718,10 +800,17 @@ def main() -> int:
         help='JSON DaemonConfig overrides, e.g. {"telemetry":{"enabled":false}}',
     )
     parser.add_argument("--only-fleet", type=int, help="just one fleet trial of this size (diagnosis)")
+    parser.add_argument("--json", action="store_true", help="clients send JSON status bodies (v1 agents)")
+    parser.add_argument("--profile", help="with --only-fleet: write the daemon's cProfile stats here")
     args = parser.parse_args()
     DAEMON_OVERRIDES.update(json.loads(args.daemon_config))
+    CLIENT["compact"] = not args.json
+    PROFILE["path"] = args.profile
     if args.only_fleet:
-        _print_fleet(fleet_trial(args.only_fleet, args.seconds))
+        row = fleet_trial(args.only_fleet, args.seconds)
+        _print_fleet(row)
+        print(f"  event-loop us per report: {row['services_us_per_report']}")
+        print(f"  events: {row['events']}")
         return 0
     began = time.monotonic()
     seconds = 2.0 if args.quick else args.seconds

@@ -8,6 +8,9 @@ only that connection (type 6 ``protocol_error`` first), never the daemon or othe
 Nothing is awaited on the read path: the frame loop decodes, records (``session.status``...)
 and publishes to the hook consumers (gcs/dispatch.py), which run ``on_join`` / ``on_status`` /
 ``on_sync`` / ``on_lost`` hooks in one task per hook owner, outside the handshake budget.
+Status reports are handed over in one batch per event-loop iteration (everything every frame
+loop received in it); any other event first flushes the batch, so each consumer still sees one
+agent's events in the order they arrived.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 from gcs.config import DaemonConfig
-from gcs.dispatch import ConsumerStats, HookDispatcher
+from gcs.dispatch import ConsumerStats, HookDispatcher, HookKind
 from gcs.events import EventBus
 from gcs.keys import KeyRing
 from gcs.outbox import Outbox
@@ -169,7 +172,11 @@ class AgentManager:
             {"join": self.on_join, "status": self.on_status, "sync": self.on_sync, "lost": self.on_lost}
         )
         self._tasks: set[asyncio.Task[None]] = set()
+        self._status_batch: list[tuple[AgentSession, StatusReport]] = []
+        self._flush_scheduled = False
         self._pending_handshakes = 0
+        self.ingest_frames = 0  # frames decoded and recorded by the frame loops
+        self.ingest_busy_s = 0.0  # event-loop time they took (decode, checks, record, publish)
 
     # --- queries --------------------------------------------------------------------------------
 
@@ -349,7 +356,7 @@ class AgentManager:
             data={"cid": cid, "resume": proof_request.resume.model_dump() if proof_request.resume else None},
         )
         # Join hooks run in their services' consumers, outside this handshake's time budget.
-        self._hooks.publish("join", session.identity, session, proof_request.resume)
+        self._publish("join", session.identity, session, proof_request.resume)
         # Frames that arrived right behind the proof are handled as the frame loop would.
         for frame in backlog:
             self._handle(session, frame)
@@ -363,16 +370,21 @@ class AgentManager:
             data = await reader.read(READ_CHUNK)
             if not data:
                 return
-            for frame in decoder.feed(data):
-                session.last_rx = time.monotonic()  # complete packets count as life, stray bytes do not
-                if not bucket.take(session.last_rx):
-                    raise RateLimited(
-                        f"more than {self.config.max_frames_per_s:g} frames/s "
-                        f"(burst {self.config.frame_burst}); cut off"
-                    )
-                self._handle(session, frame)
-                if not session.open:
-                    return
+            started = time.perf_counter()
+            try:
+                for frame in decoder.feed(data):
+                    session.last_rx = time.monotonic()  # complete packets count as life, stray bytes do not
+                    if not bucket.take(session.last_rx):
+                        raise RateLimited(
+                            f"more than {self.config.max_frames_per_s:g} frames/s "
+                            f"(burst {self.config.frame_burst}); cut off"
+                        )
+                    self.ingest_frames += 1
+                    self._handle(session, frame)
+                    if not session.open:
+                        return
+            finally:
+                self.ingest_busy_s += time.perf_counter() - started
 
     def _handle(self, session: AgentSession, frame: Frame) -> None:
         """Record what the frame says and hand it to the hook consumers; nothing is awaited here."""
@@ -383,11 +395,14 @@ class AgentManager:
             self._exception_events(session, body)
             session.status = body
             session.status_count += 1
-            self._hooks.publish("status", session.identity, session, body)
+            self._status_batch.append((session, body))
+            if not self._flush_scheduled:
+                self._flush_scheduled = True
+                asyncio.get_running_loop().call_soon(self._flush_statuses)
         elif isinstance(body, SyncSignal):
             if body.kind != "finished":
                 raise ProtocolError("agents may only send 'finished' sync signals")
-            self._hooks.publish("sync", session.identity, session, body)
+            self._publish("sync", session.identity, session, body)
         elif isinstance(body, Close):
             self._events.publish(
                 "agent_closed",
@@ -401,8 +416,22 @@ class AgentManager:
                 "is not valid from an agent after the handshake"
             )
 
+    def _flush_statuses(self) -> None:
+        """Hand the reports received since the last flush to the status consumers, as one batch."""
+        self._flush_scheduled = False
+        batch, self._status_batch = self._status_batch, []
+        self._hooks.publish_batch(batch)
+
+    def _publish(self, kind: HookKind, agent: str, *args: object) -> None:
+        """Publish a non-status event behind every status already received (per-agent order)."""
+        if self._status_batch:
+            self._flush_statuses()
+        self._hooks.publish(kind, agent, *args)
+
     def _exception_events(self, session: AgentSession, status: StatusReport) -> None:
         """Turn exceptions that appear in a status report into events (once each)."""
+        if not status.exceptions:
+            return
         before = {e.split(":", 1)[0] for e in session.status.exceptions} if session.status else set()
         for text in status.exceptions:
             name = text.split(":", 1)[0]
@@ -452,7 +481,7 @@ class AgentManager:
                     severity="warning",
                     agent=identity,
                 )
-                self._hooks.publish("lost", identity, identity)
+                self._publish("lost", identity, identity)
             await self._hooks.prune()
 
     async def close_all(self, reason: CloseReason, message: str) -> None:
@@ -469,6 +498,8 @@ class AgentManager:
 
         For tests and services that need "everything received so far has been seen by the hooks".
         """
+        if self._status_batch:
+            self._flush_statuses()
         return await self._hooks.drain(timeout)
 
     def hook_stats(self) -> list[ConsumerStats]:

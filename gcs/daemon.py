@@ -130,6 +130,7 @@ class Daemon:
             self.agents, self.missions, self.authority, self.returns, self.events
         )
         self.agents.on_status.insert(0, self._observe_status)
+        self._returns_tick_due = False
         self.api_token = load_api_token(config)
         self._server: asyncio.base_events.Server | None = None
         self._http_task: asyncio.Task[None] | None = None
@@ -202,6 +203,12 @@ class Daemon:
         if session.home is None and p is not None and status.landed and not status.armed:
             # An agent that joined before its autopilot had a home: where it stands is its home.
             session.home = GeoPoint(lat=p.lat, lon=p.lon, alt_amsl=p.alt_amsl)
+        if self.returns.active and not self._returns_tick_due:  # O(fleet): once per batch, not per report
+            self._returns_tick_due = True
+            asyncio.get_running_loop().call_soon(self._returns_tick)
+
+    def _returns_tick(self) -> None:
+        self._returns_tick_due = False
         self.returns.tick()
 
     async def start(self) -> None:

@@ -8,11 +8,18 @@ the hooks of one service (say ``MissionRunner._on_join`` / ``_on_status`` / ``_o
 ``_on_lost``) see one agent's events in the order they happened, as they did when they ran in
 the frame loop, and a slow or failing service delays only itself.
 
-Each consumer's queue is bounded (``capacity`` events). When it is full, a status report is
-coalesced with the same agent's status still waiting (a status carries full state), or else the
-oldest waiting status is dropped; joins, syncs and losts are never dropped (their rate is bound
-by the agent count and the per-agent frame limit), they are counted as ``overflow`` instead.
-Everything is counted per consumer (``stats()``, exported by gcs/metrics.py).
+Status reports arrive in batches (``publish_batch``: the agent manager hands over everything the
+frame loops received in one event-loop iteration at once), so a report costs each consumer one
+list entry, not one queue item and one task switch. A consumer runs its queue in time slices of
+``SLICE_S`` and then yields, so with thousands of connections it still gets its share of the
+loop (a count-based yield let 2,000 read tasks starve it).
+
+Each consumer's queue is bounded (``capacity`` events, a batch counting its reports). When it is
+full, a status report is coalesced with the same agent's status still waiting (a status carries
+full state), or else the oldest waiting status (a whole batch, for batches) is dropped; joins,
+syncs and losts are never dropped (their rate is bound by the agent count and the per-agent
+frame limit), they are counted as ``overflow`` instead. Everything is counted per consumer
+(``stats()``, exported by gcs/metrics.py), including the loop time its hooks took (``busy_s``).
 """
 
 from __future__ import annotations
@@ -29,9 +36,10 @@ log = logging.getLogger("gcs.dispatch")
 
 HookKind = Literal["join", "status", "sync", "lost"]
 Hook = Callable[..., Awaitable[None]]
+StatusBatch = list[tuple[Any, Any]]  # (session, report) pairs, in arrival order
 
-DEFAULT_CAPACITY = 10_000
-YIELD_EVERY = 64  # a long backlog of quick hooks still lets the loop breathe
+DEFAULT_CAPACITY = 20_000
+SLICE_S = 0.004  # a consumer yields the loop after this much work (a long backlog still lets it breathe)
 SLOW_HOOK_S = 0.5  # a hook call longer than this is logged (once per consumer per minute)
 
 
@@ -39,9 +47,10 @@ SLOW_HOOK_S = 0.5  # a hook call longer than this is logged (once per consumer p
 class _Item:
     kind: HookKind
     hook: Hook
-    agent: str
+    agent: str  # "" for a batch
     args: tuple[Any, ...]
     live: bool = True
+    batch: StatusBatch | None = None  # a status batch: hook(session, report) for each pair
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,6 +62,7 @@ class ConsumerStats:
     dropped: int
     overflow: int
     failed: int
+    busy_s: float = 0.0  # time spent in this consumer's hooks (event-loop time), for benchmarks
 
 
 @dataclass(eq=False)
@@ -68,6 +78,7 @@ class Consumer:
     dropped: int = 0
     overflow: int = 0
     failed: int = 0
+    busy_s: float = 0.0
     _queue: collections.deque[_Item] = field(default_factory=collections.deque)
     _size: int = 0  # live items in the queue
     _latest: dict[str, _Item] = field(default_factory=dict)  # agent -> its newest queued item
@@ -84,6 +95,20 @@ class Consumer:
     def queued(self) -> int:
         return self._size
 
+    def offer_batch(self, hook: Hook, batch: StatusBatch) -> None:
+        """Queue one status batch (shared, never changed, by every consumer it goes to)."""
+        for _ in range(len(self._queue)):
+            if self._size + len(batch) <= self.capacity:
+                break
+            dropped = self._drop_oldest_status()
+            if not dropped:
+                break
+            self.dropped += dropped
+        self._queue.append(_Item("status", hook, "", (), batch=batch))
+        self._size += len(batch)
+        self._idle.clear()
+        self._wakeup.set()
+
     def offer(self, item: _Item) -> None:
         if self._size >= self.capacity:
             if item.kind == "status":
@@ -92,8 +117,7 @@ class Consumer:
                     latest.args = item.args  # the newer report replaces the one still waiting
                     self.coalesced += 1
                     return
-                if self._drop_oldest_status():
-                    self.dropped += 1
+                self.dropped += self._drop_oldest_status()
             else:
                 self.overflow += 1
         self._queue.append(item)
@@ -102,52 +126,68 @@ class Consumer:
         self._idle.clear()
         self._wakeup.set()
 
-    def _drop_oldest_status(self) -> bool:
+    def _drop_oldest_status(self) -> int:
+        """Drop the oldest waiting status (or status batch); how many reports went."""
         for queued in self._queue:
             if queued.live and queued.kind == "status":
                 queued.live = False
+                if queued.batch is not None:
+                    self._size -= len(queued.batch)
+                    return len(queued.batch)
                 self._size -= 1
                 if self._latest.get(queued.agent) is queued:
                     del self._latest[queued.agent]
-                return True
-        return False
+                return 1
+        return 0
 
     async def _run(self) -> None:
-        since_yield = 0
+        slice_start = time.monotonic()
         while True:
             if not self._queue:
                 self._idle.set()
                 self._wakeup.clear()
                 await self._wakeup.wait()
+                slice_start = time.monotonic()
                 continue
             item = self._queue.popleft()
             if not item.live:
                 continue
-            self._size -= 1
-            if self._latest.get(item.agent) is item:
-                del self._latest[item.agent]
+            if item.batch is not None:
+                self._size -= len(item.batch)
+            else:
+                self._size -= 1
+                if self._latest.get(item.agent) is item:
+                    del self._latest[item.agent]
             if not self.registered(item.kind, item.hook):
                 continue  # the service removed its hook (stopped) after the event was queued
             started = time.monotonic()
-            try:
-                await item.hook(*item.args)
-                self.delivered += 1
-            except asyncio.CancelledError:
-                raise
-            except Exception:  # a failing hook costs its own event, never the consumer
-                self.failed += 1
-                if self.failed <= 10 or self.failed % 1000 == 0:
-                    log.exception("%s hook of %s failed (%d failures)", item.kind, self.name, self.failed)
-            elapsed = time.monotonic() - started
+            if item.batch is None:
+                await self._call(item.kind, item.hook, item.args)
+            else:
+                for pair in item.batch:
+                    await self._call("status", item.hook, pair)
+            now = time.monotonic()
+            elapsed = now - started
+            self.busy_s += elapsed
             if elapsed > SLOW_HOOK_S and started - self._last_slow_log > 60.0:
                 self._last_slow_log = started
                 log.warning(
                     "%s hook of %s took %.2f s (%d queued)", item.kind, self.name, elapsed, self._size
                 )
-            since_yield += 1
-            if since_yield >= YIELD_EVERY:
-                since_yield = 0
+            if now - slice_start >= SLICE_S:
                 await asyncio.sleep(0)
+                slice_start = time.monotonic()
+
+    async def _call(self, kind: HookKind, hook: Hook, args: tuple[Any, ...]) -> None:
+        try:
+            await hook(*args)
+            self.delivered += 1
+        except asyncio.CancelledError:
+            raise
+        except Exception:  # a failing hook costs its own event, never the consumer
+            self.failed += 1
+            if self.failed <= 10 or self.failed % 1000 == 0:
+                log.exception("%s hook of %s failed (%d failures)", kind, self.name, self.failed)
 
     async def stop(self) -> None:
         if self._task is not None:
@@ -156,7 +196,14 @@ class Consumer:
 
     def stats(self) -> ConsumerStats:
         return ConsumerStats(
-            self.name, self._size, self.delivered, self.coalesced, self.dropped, self.overflow, self.failed
+            self.name,
+            self._size,
+            self.delivered,
+            self.coalesced,
+            self.dropped,
+            self.overflow,
+            self.failed,
+            self.busy_s,
         )
 
 
@@ -173,6 +220,12 @@ class HookDispatcher:
         """Queue ``hook(*args)`` for every hook of ``kind``; never blocks, never raises for a hook."""
         for hook in self._hooks[kind]:
             self._consumer(hook).offer(_Item(kind, hook, agent, args))
+
+    def publish_batch(self, batch: StatusBatch) -> None:
+        """Queue ``hook(session, report)`` for every pair of ``batch`` and every status hook."""
+        if batch:
+            for hook in self._hooks["status"]:
+                self._consumer(hook).offer_batch(hook, batch)
 
     def _registered(self, kind: HookKind, hook: Hook) -> bool:
         return hook in self._hooks[kind]
@@ -236,4 +289,4 @@ def _owner(hook: Hook) -> object:
     return hook.__self__ if hasattr(hook, "__self__") else hook
 
 
-__all__ = ["ConsumerStats", "HookDispatcher", "HookKind"]
+__all__ = ["ConsumerStats", "HookDispatcher", "HookKind", "StatusBatch"]

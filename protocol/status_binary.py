@@ -153,14 +153,29 @@ _set = object.__setattr__
 def _model(cls: type[Any], values: dict[str, Any]) -> Any:
     """A model instance from values already checked against its field constraints (no validation).
 
-    Equal to what ``cls.model_validate(values)`` gives for those values; about 1 µs instead of 5-25.
+    Equal to what ``cls.model_validate(values)`` gives for those values (every field given), in
+    well under 1 µs instead of 5-25. The fields-set is shared per class: these models are frozen,
+    and pydantic copies it before changing it (``model_copy``).
     """
     model = _new(cls)
     _set(model, "__dict__", values)
-    _set(model, "__pydantic_fields_set__", set(values))
+    _set(model, "__pydantic_fields_set__", _FIELDS_SET[cls])
     _set(model, "__pydantic_extra__", None)
     _set(model, "__pydantic_private__", None)
     return model
+
+
+_FIELDS_SET: dict[type[Any], set[str]] = {
+    cls: set(cls.model_fields) for cls in (StatusReport, Position, VelocityNed, Battery, Gps)
+}
+_GPS: dict[tuple[int, int], Gps] = {}  # at most 9 x 256 distinct values, and frozen: shared
+
+
+def _gps(fix: int, satellites: int) -> Gps:
+    gps = _GPS.get((fix, satellites))
+    if gps is None:
+        gps = _GPS[(fix, satellites)] = _model(Gps, {"fix": fix, "satellites": satellites})
+    return gps
 
 
 def _bad(field: str, value: object) -> StatusBodyError:
@@ -274,7 +289,7 @@ def decode(payload: bytes) -> StatusReport:
         values["position"] = _model(Position, position)
     values["velocity"] = _model(VelocityNed, values["velocity"])
     values["battery"] = _model(Battery, values["battery"])
-    values["gps"] = _model(Gps, values["gps"])
+    values["gps"] = _gps(fix, sats)
     report: StatusReport = _model(StatusReport, values)
     return report
 

@@ -44,6 +44,7 @@ SEQ_MODULO = 1 << 32
 COMPACT = 0x80
 """Packet-type bit: the body is the compact binary form (today only type 2: ``STATUS_COMPACT``)."""
 STATUS_COMPACT = COMPACT | PacketType.STATUS
+_MAX_TYPE = max(PacketType)
 
 
 class ProtocolError(Exception):
@@ -147,7 +148,7 @@ class FrameDecoder:
             raise self._fail(f"bad magic {bytes(buf[:2])!r} (expected {MAGIC!r}): not a fleetgcs stream")
         if len(buf) >= 3 and buf[2] != PROTOCOL_VERSION:
             raise self._fail(f"unsupported protocol version {buf[2]} (this side speaks {PROTOCOL_VERSION})")
-        if len(buf) >= 4 and buf[3] > max(PacketType) and buf[3] != STATUS_COMPACT:
+        if len(buf) >= 4 and buf[3] > _MAX_TYPE and buf[3] != STATUS_COMPACT:
             raise self._fail(f"unknown packet type {buf[3]} (expected 0..6 or 0x82)", buf[3])
         if len(buf) < HEADER_SIZE:
             return None
