@@ -6,6 +6,11 @@ pure and return intents; this service applies them through the vehicle authority
 publishes their events through a throttle so a persistent condition cannot bury the log. A
 ticker re-asserts holds (seed 000: "for safety reasons ... sent periodically"), runs the
 fleet-wide checks when reports are scarce and catches drones whose status stopped arriving.
+
+Per report only the agent's own picture is updated (tracking, emergency and divergence edges);
+the fleet-wide checks (collision, connectivity: O(fleet) each) run on their own fixed tick of
+``collision.min_check_interval_s`` when a report has arrived since the last one, never inside
+the status consumer, so their cost does not grow with the report rate.
 """
 
 from __future__ import annotations
@@ -71,7 +76,7 @@ class CooperationService:
         self._throttle: EventThrottle | None = None
         self._preflight: PreflightChecks | None = None
         self._tasks: list[asyncio.Task[None]] = []
-        self._last_fleet_check = 0.0
+        self._fleet_due = False  # a report arrived since the last fleet-wide check
 
     @property
     def avoider(self) -> Any:
@@ -96,7 +101,10 @@ class CooperationService:
         ctx.missions.preflight_checks.append(self._preflight)
         if self.config.energy.model_path is not None:
             self.energy_model = EnergyModel.load(self.config.energy.model_path)
-        self._tasks = [asyncio.create_task(self._ticker(), name="cooperation-ticker")]
+        self._tasks = [
+            asyncio.create_task(self._ticker(), name="cooperation-ticker"),
+            asyncio.create_task(self._fleet_ticker(), name="cooperation-fleet-checks"),
+        ]
 
     async def stop(self) -> None:
         for task in self._tasks:
@@ -231,9 +239,7 @@ class CooperationService:
             if self.config.divergence.enabled:
                 busy = self.ctx.authority.is_held(ident) or self._outranked(ident, "divergence")
                 intents += self.divergence.on_status(agent, status, busy, now)
-            if now - self._last_fleet_check >= self.config.collision.min_check_interval_s:
-                self._last_fleet_check = now
-                intents += self._fleet_checks(now)
+            self._fleet_due = True
             await self.apply(intents)
         except Exception:  # a bug here must not cost the agent its connection
             log.exception("cooperation: status handling failed for %s", ident)
@@ -290,6 +296,19 @@ class CooperationService:
         if cfg.link_range_m is not None:
             return cfg.link_range_m
         return self._ctx.config.agent_parameters.link_range_m if self._ctx else None
+
+    async def _fleet_ticker(self) -> None:
+        """The fleet-wide checks on a fixed tick, over the latest picture of every agent."""
+        period = max(0.01, self.config.collision.min_check_interval_s)
+        while True:
+            await asyncio.sleep(period)
+            if not self._fleet_due:
+                continue
+            self._fleet_due = False
+            try:
+                await self.apply(self._fleet_checks(time.monotonic()))
+            except Exception:  # a bug here must not end the checks
+                log.exception("cooperation: fleet-wide check failed")
 
     async def _ticker(self) -> None:
         """Re-assert holds periodically, run checks between reports, catch drones whose reports stopped."""
