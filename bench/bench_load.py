@@ -86,15 +86,42 @@ def server_main(
     """Entry point of the server process; answers commands on ``conn`` until 'stop'."""
     import logging
 
-    logging.disable(logging.CRITICAL)  # per-agent events would flood stderr; the numbers are the output
-    asyncio.run(_server(kind, conn, key_hex, extra, profile))
+    slow_ms = os.environ.get("BENCH_SLOW_CALLBACK_MS")  # diagnosis: log every loop stall longer than this
+    if slow_ms:
+        logging.basicConfig(level=logging.WARNING)
+        for name in ("gcs", "fleetgcs"):
+            logging.getLogger(name).setLevel(logging.CRITICAL)
+    else:
+        logging.disable(logging.CRITICAL)  # per-agent events would flood stderr; the numbers are the output
+    asyncio.run(_server(kind, conn, key_hex, extra, profile), debug=bool(slow_ms))
 
 
 async def _server(
     kind: str, conn: Connection, key_hex: str, extra: dict[str, Any], profile: str | None = None
 ) -> None:
     import cProfile
+    import gc
 
+    gc_pauses: dict[int, list[float]] = {0: [], 1: [], 2: []}
+    gc_started = [0.0]
+
+    def gc_watch(phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            gc_started[0] = time.perf_counter()
+        else:
+            gc_pauses[info["generation"]].append(time.perf_counter() - gc_started[0])
+
+    gc.callbacks.append(gc_watch)
+    if os.environ.get("BENCH_GC"):  # diagnosis: e.g. "freeze" or "off"
+        import gc
+
+        gc.freeze()
+        if os.environ["BENCH_GC"] == "off":
+            gc.disable()
+        if os.environ["BENCH_GC"] == "threshold":
+            gc.set_threshold(2000, 10, 1_000_000)
+    if os.environ.get("BENCH_SLOW_CALLBACK_MS"):
+        asyncio.get_running_loop().slow_callback_duration = float(os.environ["BENCH_SLOW_CALLBACK_MS"]) / 1000
     from gcs.config import DaemonConfig
     from gcs.daemon import Daemon
     from protocol.taskfile import TaskFile
@@ -169,6 +196,8 @@ async def _server(
     for _ in range(1_000_000):
         command, *args = await loop.run_in_executor(None, conn.recv)
         if command == "reset":
+            for pauses in gc_pauses.values():
+                pauses.clear()
             latencies.clear()
             counter["frames"] = 0
             cpu_mark = time.process_time()
@@ -186,6 +215,10 @@ async def _server(
                 {
                     "services_us": _service_costs(daemon, marks),
                     "events": _event_kinds(daemon),
+                    "gc_pauses": {
+                        f"gen{g}": f"{len(p)} max {max(p, default=0) * 1000:.1f} ms"
+                        for g, p in gc_pauses.items()
+                    },
                     "received": received,
                     "p50_ms": percentile(latencies, 0.50) * 1000,
                     "p99_ms": percentile(latencies, 0.99) * 1000,
@@ -585,6 +618,7 @@ def fleet_trial(agents: int, seconds: float) -> dict[str, Any]:
         "rss_per_agent_kb": (stats["rss_kb"] - harness.base_rss_kb) / agents,
         "services_us_per_report": stats["services_us"],
         "events": stats["events"],
+        "gc_pauses": stats["gc_pauses"],
     }
     row["passed"] = bool(
         stats["received"] >= sent and dropped == 0 and stats["p99_ms"] < P99_LIMIT_MS and connected == agents
@@ -652,10 +686,10 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
             sync_timeout_s=600,
             plans=[AgentPlan(agent=name, actions=list(actions)) for name in harness.identities],
         )
+        harness.workers_call("status", STATUS_HZ, 3600.0)  # a 3-D fix first: submit waits for one
+        time.sleep(0.5)
         mission_id = harness.server_call("submit", task.model_dump_json())
         time.sleep(0.5 + agents / 2000)  # the type-4 batches reach everyone
-        harness.workers_call("status", STATUS_HZ, 3600.0)
-        time.sleep(0.3)
         for step in range(steps):
             received = [t for row in harness.workers_call("finish", mission_id, step, 30.0) for t in row]
             last_arrival = harness.server_call("arrival", step)
@@ -811,6 +845,7 @@ def main() -> int:
         _print_fleet(row)
         print(f"  event-loop us per report: {row['services_us_per_report']}")
         print(f"  events: {row['events']}")
+        print(f"  gc pauses: {row['gc_pauses']}")
         return 0
     began = time.monotonic()
     seconds = 2.0 if args.quick else args.seconds
@@ -864,6 +899,7 @@ def main() -> int:
 
     best_row = next((t for t in trials if t["agents"] == best), None)
     summary = {
+        "client_status_body": "compact" if CLIENT["compact"] else "json",
         "max_fleet_zero_loss_p99_under_50ms": best,
         "rss_per_agent_kb_at_max": best_row["rss_per_agent_kb"] if best_row else None,
         "daemon_over_bare_asyncio_throughput": ratio,
@@ -871,6 +907,20 @@ def main() -> int:
     print(
         f"\nlargest fleet sustained: {best} agents at {STATUS_HZ:g} Hz; wall {time.monotonic() - began:.0f} s"
     )
+    if best_row:
+        print(f"daemon memory at the knee: {best_row['rss_per_agent_kb']:.1f} KiB RSS per agent")
+        costs = best_row["services_us_per_report"]
+        print(
+            "event-loop time per status report at the knee (us): "
+            + ", ".join(f"{name} {us:.1f}" for name, us in costs.items())
+            + f"; total {sum(costs.values()):.1f}"
+        )
+    for row in barriers:
+        print(
+            f"barrier release at {row['agents']} agents: p50 {row['last_release_p50_ms']:.2f} ms, "
+            f"p99 {row['last_release_p99_ms']:.2f} ms"
+        )
+    print(f"daemon / bare asyncio flood ratio: {ratio:.3f}")
     RESULTS.mkdir(exist_ok=True)
     out = {
         "machine": info,

@@ -52,6 +52,7 @@ from protocol.packets import AgentParameters, Resume, SetParameters, StatusRepor
 log = logging.getLogger("gcs.cooperation")
 
 EMERGENCY_MISSION = "cooperation-emergency"
+FLEET_CHECK_DUTY = 4.0  # the fleet-check tick is at least this many times one check's duration
 LOST_LINK_ACTION = {"event": "continue", "hold": "hold", "return": "rtl", "rtl": "rtl"}
 
 
@@ -77,6 +78,7 @@ class CooperationService:
         self._preflight: PreflightChecks | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._fleet_due = False  # a report arrived since the last fleet-wide check
+        self.fleet_check_s = 0.0  # how long the last fleet-wide check took (loop time)
 
     @property
     def avoider(self) -> Any:
@@ -298,17 +300,26 @@ class CooperationService:
         return self._ctx.config.agent_parameters.link_range_m if self._ctx else None
 
     async def _fleet_ticker(self) -> None:
-        """The fleet-wide checks on a fixed tick, over the latest picture of every agent."""
-        period = max(0.01, self.config.collision.min_check_interval_s)
+        """The fleet-wide checks on a fixed tick, over the latest picture of every agent.
+
+        The tick is ``min_check_interval_s``, stretched to ``FLEET_CHECK_DUTY`` times the last
+        check's own duration when a very large fleet makes one pass long: the checks never take
+        more than a quarter of the event loop, whatever the fleet size.
+        """
+        base = max(0.01, self.config.collision.min_check_interval_s)
+        period = base
         while True:
             await asyncio.sleep(period)
             if not self._fleet_due:
                 continue
             self._fleet_due = False
+            started = time.monotonic()
             try:
-                await self.apply(self._fleet_checks(time.monotonic()))
+                await self.apply(self._fleet_checks(started))
             except Exception:  # a bug here must not end the checks
                 log.exception("cooperation: fleet-wide check failed")
+            self.fleet_check_s = time.monotonic() - started
+            period = max(base, FLEET_CHECK_DUTY * self.fleet_check_s)
 
     async def _ticker(self) -> None:
         """Re-assert holds periodically, run checks between reports, catch drones whose reports stopped."""
