@@ -155,11 +155,17 @@ async def _server(
         async def on_status(_: object, status: Any) -> None:
             latencies.append(time.time() - status.time)
 
-        async def on_sync(_: object, signal: Any) -> None:
-            arrivals[signal.step] = time.time()  # the last one wins: the barrier's last arrival
+        from protocol.packets import SyncSignal
 
+        handle = daemon.agents._handle
+
+        def handle_and_stamp(session: Any, frame: Any) -> None:
+            if isinstance(frame.body, SyncSignal):  # stamped as the frame loop gets it, before any hook
+                arrivals[frame.body.step] = time.time()  # the last one wins: the barrier's last arrival
+            handle(session, frame)
+
+        daemon.agents._handle = handle_and_stamp  # type: ignore[method-assign]
         daemon.agents.on_status.append(on_status)
-        daemon.agents.on_sync.insert(0, on_sync)
         await daemon.start()
         port = daemon.listen_port
     else:
@@ -232,6 +238,8 @@ async def _server(
             assert daemon is not None
             mission_id = await daemon.missions.submit(TaskFile.model_validate_json(args[0]))
             conn.send(mission_id)
+        elif command == "events":
+            conn.send(_event_kinds(daemon))
         elif command == "arrival":
             conn.send(arrivals.get(args[0]))
         elif command == "stop":
@@ -663,7 +671,7 @@ def _print_fleet(row: dict[str, Any]) -> None:
         f"dropped {row['dropped_agents']:>3}  p50 {row['latency_p50_ms']:7.2f} ms  "
         f"p99 {row['latency_p99_ms']:8.2f} ms  cpu {row['daemon_cpu_share']:4.0%} "
         f"(clients {row['client_workers_cpu_share']:4.0%})  rss/agent {row['rss_per_agent_kb']:6.1f} KiB  "
-        f"{'PASS' if row['passed'] else 'fail'}",
+        f"{'PASS' if row['passed'] else 'fail'}  (full gc: {row['gc_pauses']['gen2']})",
         flush=True,
     )
 
@@ -676,6 +684,7 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
     harness = Harness("daemon", agents)
     per_step: list[float] = []
     per_agent: list[float] = []
+    failed = ""
     try:
         assert harness.connect() == agents
         actions: list[Any] = [Takeoff(step=0, alt=5.0, sync=True)]
@@ -694,7 +703,11 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
             received = [t for row in harness.workers_call("finish", mission_id, step, 30.0) for t in row]
             last_arrival = harness.server_call("arrival", step)
             if last_arrival is None or any(t is None for t in received):
-                raise RuntimeError(f"barrier {step} with {agents} agents did not release everyone")
+                # Overloaded (the cooperation service then treats late reports as stale and
+                # takes the drones over): count it and stop, the numbers so far stand.
+                failed = f"step {step}: {sum(t is None for t in received)} not released"
+                failed += f"; daemon events {harness.server_call('events')}"
+                break
             per_step.append(max(received) - last_arrival)
             per_agent += [t - last_arrival for t in received]
             time.sleep(0.05)
@@ -707,6 +720,8 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
         "last_release_p99_ms": percentile(per_step, 0.99) * 1000,
         "per_agent_release_p50_ms": percentile(per_agent, 0.5) * 1000,
         "per_agent_release_p99_ms": percentile(per_agent, 0.99) * 1000,
+        "released_steps": len(per_step),
+        "failed": failed,
     }
 
 
@@ -866,7 +881,8 @@ def main() -> int:
         print(
             f"  {n:>6} agents  last arrival -> last release p50 {row['last_release_p50_ms']:7.2f} ms  "
             f"p99 {row['last_release_p99_ms']:7.2f} ms  "
-            f"(per agent p50 {row['per_agent_release_p50_ms']:.2f} ms)",
+            f"(per agent p50 {row['per_agent_release_p50_ms']:.2f} ms; {row['released_steps']} barriers)"
+            + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
             flush=True,
         )
 
