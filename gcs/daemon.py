@@ -38,6 +38,21 @@ from protocol.packets import (
 )
 
 log = logging.getLogger("gcs.daemon")
+_heap_frozen = False
+
+
+def _freeze_startup_heap() -> None:
+    """Move what is loaded at start-up (modules, pydantic schemas, services) out of the collector's sight.
+
+    It lives as long as the process, so a full collection need not scan it: that took full
+    collections from 60-130 ms to a few ms (docs/performance.md). Once per process, so tests
+    that start many daemons do not freeze each other's garbage.
+    """
+    global _heap_frozen
+    if not _heap_frozen:
+        _heap_frozen = True
+        gc.freeze()
+
 
 SERVICE_STOP_TIMEOUT_S = 5.0
 
@@ -232,10 +247,7 @@ class Daemon:
             await service.start(context)
         if self.config.http_host:
             await self._start_http()
-        # Everything loaded so far (modules, pydantic schemas, services) lives as long as the
-        # process: out of the collector's sight, a full collection scans only what came after,
-        # which took a full collection from ~80 ms to a few ms (docs/performance.md).
-        gc.freeze()
+        _freeze_startup_heap()
         self.events.publish(
             "daemon_started",
             f"agents on {self.config.listen_host}:{self.listen_port}"
