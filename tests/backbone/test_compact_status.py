@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from gcs.daemon import Daemon
 from protocol import auth
 from protocol.packets import (
     PROTOCOL_VERSION,
@@ -40,6 +41,15 @@ async def _handshake(client: RawClient, identity: str, key_hex: str, offer: bool
     return answer.body
 
 
+async def _joined(daemon: Daemon, identity: str, key_hex: str, offer: bool | None) -> tuple[RawClient, bool]:
+    """A raw client through the handshake; and whether the daemon accepted the compact body."""
+    client = await RawClient.connect(daemon.listen_port)
+    accepted = await _handshake(client, identity, key_hex, offer)
+    if not offer:  # a v1 agent never sees the new field
+        assert accepted.compact_status is None and b"compact_status" not in encode(accepted, 1)
+    return client, accepted.compact_status is True
+
+
 def _report(t: float) -> StatusReport:
     return StatusReport(
         time=t, position=Position(lat=47.3, lon=8.5, alt_rel=10.0, alt_amsl=500.0), mode="GUIDED"
@@ -49,10 +59,8 @@ def _report(t: float) -> StatusReport:
 async def test_v1_agent_without_the_offer_gets_json_only_and_is_served(tmp_path: Path) -> None:
     key = new_key()
     async with running_daemon(tmp_path, key) as daemon:
-        client = await RawClient.connect(daemon.listen_port)
-        accepted = await _handshake(client, "old-1", key, None)
-        assert accepted.compact_status is None
-        assert b"compact_status" not in encode(accepted, 1)  # a v1 agent never sees the new field
+        client, compact = await _joined(daemon, "old-1", key, None)
+        assert not compact
         await client.send(_report(1.0))
         await wait_for(lambda: (s := daemon.agents.session("old-1")) and s.status, 5.0, "v1 status")
         session = daemon.agents.session("old-1")
@@ -68,9 +76,8 @@ async def test_v1_agent_without_the_offer_gets_json_only_and_is_served(tmp_path:
 async def test_offered_compact_body_is_accepted_and_ingested(tmp_path: Path) -> None:
     key = new_key()
     async with running_daemon(tmp_path, key) as daemon:
-        client = await RawClient.connect(daemon.listen_port)
-        accepted = await _handshake(client, "new-1", key, True)
-        assert accepted.compact_status is True
+        client, compact = await _joined(daemon, "new-1", key, True)
+        assert compact
         client.seq += 1
         await client.send_raw(encode(_report(3.0), client.seq, compact=True))
         await wait_for(lambda: (s := daemon.agents.session("new-1")) and s.status, 5.0, "compact status")
