@@ -175,6 +175,7 @@ class AgentManager:
         self._tasks: set[asyncio.Task[None]] = set()
         self._status_batch: list[tuple[AgentSession, StatusReport]] = []
         self._flush_scheduled = False
+        self._hooks_closed = False
         self._pending_handshakes = 0
         self.ingest_frames = 0  # frames decoded and recorded by the frame loops
         self.ingest_busy_s = 0.0  # event-loop time they took (decode, checks, record, publish)
@@ -456,13 +457,15 @@ class AgentManager:
         """Hand the reports received since the last flush to the status consumers, as one batch."""
         self._flush_scheduled = False
         batch, self._status_batch = self._status_batch, []
-        self._hooks.publish_batch(batch)
+        if not self._hooks_closed:
+            self._hooks.publish_batch(batch)
 
     def _publish(self, kind: HookKind, agent: str, *args: object) -> None:
         """Publish a non-status event behind every status already received (per-agent order)."""
         if self._status_batch:
             self._flush_statuses()
-        self._hooks.publish(kind, agent, *args)
+        if not self._hooks_closed:
+            self._hooks.publish(kind, agent, *args)
 
     def _exception_events(self, session: AgentSession, status: StatusReport) -> None:
         """Turn exceptions that appear in a status report into events (once each)."""
@@ -525,6 +528,7 @@ class AgentManager:
         await asyncio.gather(*(s.close(reason, message) for s in sessions))
         if self._tasks:  # closed transports end every frame loop; give them a moment to clean up
             await asyncio.wait(list(self._tasks), timeout=2.0)
+        self._hooks_closed = True  # a flush still scheduled must not start new consumers
         await self._hooks.close()
 
     # --- hook consumers -------------------------------------------------------------------------
