@@ -11,13 +11,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
+from agent.config import SanityLimits
 from agent.executor import ActionExecutor, ActionFailed
 from agent.tasks import cancel_and_wait
-from protocol.actions import Action
+from protocol.actions import Action, GoBy, Goto, Hold, Land, ReturnToLaunch, Takeoff, Waypoints
+from protocol.geo import distance_m
 
 log = logging.getLogger("agent.queue")
 
@@ -33,6 +36,59 @@ class _BarrierWait:
 
 
 FailedHook = Callable[[Action, str], Awaitable[None]]
+
+
+def sanity_violation(
+    actions: list[Action],
+    limits: SanityLimits,
+    home: tuple[float, float] | None,
+    queued: int,
+) -> tuple[Action | None, str] | None:
+    """Why ``actions`` must be refused under ``limits`` (the offending action and the reason), or None.
+
+    ``home`` (lat, lon) is where distances are measured from (None: not known yet, distances
+    unchecked); ``queued`` is the number of actions that stay queued ahead of these.
+    """
+    if queued + len(actions) > limits.max_queue_actions:
+        return (
+            None,
+            f"{queued + len(actions)} queued actions exceed max_queue_actions {limits.max_queue_actions}",
+        )
+    for action in actions:
+        alts: list[float] = []
+        points: list[tuple[float, float]] = []
+        if isinstance(action, (Takeoff, Goto)):
+            alts.append(action.alt)
+        if isinstance(action, ReturnToLaunch) and action.alt is not None:
+            alts.append(action.alt)
+        if isinstance(action, (Goto, Land)) and action.lat is not None and action.lon is not None:
+            points.append((action.lat, action.lon))
+        if isinstance(action, Waypoints):
+            alts.extend(p.alt for p in action.points)
+            points.extend((p.lat, p.lon) for p in action.points)
+        if isinstance(action, GoBy):
+            reach = math.hypot(action.north, action.east)
+            if reach > limits.max_distance_from_home_m:
+                limit = limits.max_distance_from_home_m
+                return action, f"go_by of {reach:.0f} m exceeds max_distance_from_home_m {limit:g}"
+            if action.up > limits.max_alt_m:
+                return action, f"go_by climb of {action.up:.0f} m exceeds max_alt_m {limits.max_alt_m:g}"
+        if isinstance(action, Hold) and not limits.min_hold_s <= action.seconds <= limits.max_hold_s:
+            return action, (
+                f"hold of {action.seconds:g} s outside {limits.min_hold_s:g}..{limits.max_hold_s:g} s"
+            )
+        for alt in alts:
+            if alt > limits.max_alt_m:
+                return action, f"altitude {alt:g} m exceeds max_alt_m {limits.max_alt_m:g}"
+        if home is not None:
+            for lat, lon in points:
+                off = distance_m(home[0], home[1], lat, lon)
+                if off > limits.max_distance_from_home_m:
+                    return action, (
+                        f"target {off / 1000:.1f} km from home exceeds max_distance_from_home_m "
+                        f"{limits.max_distance_from_home_m:g}"
+                    )
+    return None
 
 
 class CommandQueue:
@@ -124,11 +180,14 @@ class CommandQueue:
         self._resumed.set()
 
     def release(self, mission_id: str, step: int) -> None:
-        """The daemon released ``step`` (type 5)."""
+        """The daemon released ``step`` (type 5); a release for a barrier not reached is ignored."""
         if mission_id != self.mission_id:
             log.warning(
                 "release of step %d for mission %s, but running %s", step, mission_id, self.mission_id
             )
+            return
+        if step != self.waiting_sync and step > self.completed_step:
+            log.warning("release of step %d ignored: not reached (completed %d)", step, self.completed_step)
             return
         self._releases.add(step)
         self._release_event.set()

@@ -37,6 +37,22 @@ class AgentSettings(BaseModel):
         return changed
 
 
+class SanityLimits(BaseModel):
+    """What the agent refuses to fly whoever orders it (fixed at start; the daemon cannot change them).
+
+    A type-4 batch with any action outside these limits is refused whole and reported to the
+    daemon (``command_refused`` exception and the status ``failure``).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_distance_from_home_m: float = Field(default=10_000.0, gt=0.0, le=1_000_000.0)
+    max_alt_m: float = Field(default=500.0, gt=0.0, le=10_000.0, description="metres above home")
+    max_queue_actions: int = Field(default=20_000, ge=1, le=1_000_000)
+    min_hold_s: float = Field(default=0.0, ge=0.0)
+    max_hold_s: float = Field(default=3600.0, gt=0.0, le=86_400.0)
+
+
 class AgentConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -60,7 +76,15 @@ class AgentConfig(BaseModel):
     tls_cert: Path | None = Field(default=None, description="PEM client certificate (mutual TLS)")
     tls_key: Path | None = Field(default=None, description="PEM private key of tls_cert")
     tls_server_name: str | None = Field(default=None, description="name in the daemon's certificate")
+    limits: SanityLimits = SanityLimits()
     status_buffer: int = Field(default=1200, ge=1, description="status reports kept while offline")
+    replay_max_reports: int = Field(
+        default=300,
+        ge=2,
+        le=400,
+        description="buffered reports sent after an outage (thinned, state changes kept); the daemon "
+        "takes a burst of 400",
+    )
     arm_deadline_s: float = Field(default=60.0, gt=0.0)
     takeoff_tolerance: float = Field(default=0.95, gt=0.5, le=1.0, description="fraction of target altitude")
     resend_target_s: float = Field(default=3.0, gt=0.0, description="re-send unacknowledged position targets")

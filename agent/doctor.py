@@ -27,8 +27,10 @@ from agent.autopilot.base import Autopilot
 from agent.config import AgentConfig
 from agent.link import client_tls_context
 from protocol import auth
-from protocol.packets import PROTOCOL_VERSION, Close, CloseReason, RequestCid, ResponseCid
-from protocol.wire import Frame, FrameDecoder, ProtocolError, encode
+from protocol.packets import SUPPORTED_VERSIONS, Close, CloseReason
+from protocol.session import V1_DAEMON, ClientHandshake, Refused
+from protocol.stream import FramedStream
+from protocol.wire import ProtocolError
 
 Verdict = Literal["ok", "warn", "fail", "skip"]
 OFFSET_WARN_S, OFFSET_FAIL_S = 0.2, 1.0
@@ -167,91 +169,71 @@ def serial_hint(error: str) -> str:
 
 
 async def handshake(config: AgentConfig, identity: str, timeout: float) -> Handshake:
-    """One full authenticated handshake; measures round trip and clock offset (midpoint method)."""
+    """One full authenticated handshake (a probe); measures round trip and clock offset (midpoint method).
+
+    A version-1 daemon refuses the v2 hello without a code; the probe is then repeated in v1.
+    """
+    try:
+        return await _probe(config, identity, timeout, SUPPORTED_VERSIONS)
+    except _OldDaemon:
+        return await _probe(config, identity, timeout, (1,))
+
+
+class _OldDaemon(Exception):
+    pass
+
+
+async def _probe(config: AgentConfig, identity: str, timeout: float, versions: tuple[int, ...]) -> Handshake:
     key = auth.parse_key(config.key_hex)
     tls = client_tls_context(config)
     try:
-        reader, writer = await asyncio.wait_for(
-            asyncio.open_connection(
+        async with asyncio.timeout(timeout):
+            reader, writer = await asyncio.open_connection(
                 config.gcs_host,
                 config.gcs_port,
                 ssl=tls,
                 server_hostname=(config.tls_server_name or config.gcs_host) if tls else None,
-            ),
-            timeout,
-        )
+            )
     except (OSError, TimeoutError) as exc:
         raise HandshakeError(
             f"cannot connect to {config.gcs_host}:{config.gcs_port}: {exc or 'timeout'}",
             "is `gcs serve` running, listening beyond loopback (--listen 0.0.0.0:4396), "
             "and is the port open in the firewall?",
         ) from None
-    decoder = FrameDecoder()
-    backlog: list[Frame] = []
-
-    async def read() -> Frame:
-        while not backlog:
-            data = await asyncio.wait_for(reader.read(65_536), timeout)
-            if not data:
-                raise HandshakeError(
-                    "the daemon closed the connection", "see the daemon's log (agent_refused)"
-                )
-            backlog.extend(decoder.feed(data))
-        return backlog.pop(0)
-
+    stream = FramedStream(reader, writer)
+    session = ClientHandshake(identity, key, versions=versions, capabilities=config.capabilities, probe=True)
     try:
-        nonce = auth.new_nonce()
-        writer.write(
-            encode(
-                RequestCid(
-                    identity=identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce, probe=True
-                ),
-                1,
-            )
-        )
-        await writer.drain()
-        challenge = (await read()).body
-        if isinstance(challenge, ResponseCid) and challenge.outcome == "refused":
-            raise HandshakeError(
-                f"refused: {challenge.reason}", "is this identity listed in the daemon's agent keys?"
-            )
-        if not isinstance(challenge, ResponseCid) or challenge.server_nonce is None:
-            raise HandshakeError(f"unexpected answer to hello: {type(challenge).__name__}")
-        proof = auth.agent_proof(key, identity, challenge.server_nonce, nonce)
-        sent = time.time()
-        writer.write(
-            encode(
-                RequestCid(
-                    identity=identity,
-                    protocol_version=PROTOCOL_VERSION,
-                    client_nonce=nonce,
-                    capabilities=config.capabilities,
-                    proof=proof,
-                    probe=True,
-                ),
-                2,
-            )
-        )
-        await writer.drain()
-        answer = (await read()).body
+        stream.version = max(session.versions)
+        async with asyncio.timeout(timeout):
+            await stream.send(session.hello())
+            proof = session.on_challenge((await stream.read_frame()).body)
+            sent = time.time()
+            await stream.send(proof)
+            answer = (await stream.read_frame()).body
         received = time.time()
-        if not isinstance(answer, ResponseCid) or answer.outcome != "accepted":
-            reason = answer.reason if isinstance(answer, ResponseCid) else getattr(answer, "message", "")
-            raise HandshakeError(
-                f"refused: {reason}", "the key must be the daemon's fleet key (or this agent's own key)"
-            )
-        expected = auth.daemon_proof(key, identity, nonce, challenge.server_nonce)
-        if answer.server_proof is None or not auth.proofs_equal(answer.server_proof, expected):
-            raise HandshakeError(
-                "the daemon could not prove it holds the key", "wrong daemon address, or a spoof"
-            )
-        if answer.server_time is None:
+        accepted = session.on_answer(answer)
+        if accepted.server_time is None:
             raise HandshakeError("the daemon sent no server_time", "upgrade the daemon")
-        offset = answer.server_time - (sent + received) / 2
-        with contextlib.suppress(Exception):
-            writer.write(encode(Close(reason=CloseReason.NORMAL, message="agent doctor"), 3))
-            await writer.drain()
-        return Handshake(cid=answer.cid, rtt_s=received - sent, offset_s=offset)
+        offset = accepted.server_time - (sent + received) / 2
+        await stream.close(Close(reason=CloseReason.NORMAL, message="agent doctor"))
+        return Handshake(cid=accepted.cid, rtt_s=received - sent, offset_s=offset)
+    except Refused as exc:
+        if exc.code == V1_DAEMON and versions != (1,):
+            raise _OldDaemon from None
+        hints = {
+            "unknown_identity": "is this identity listed in the daemon's agent keys?",
+            "wrong_key": "the key must be the daemon's fleet key (or this agent's own key)",
+            "enrollment_closed": "enroll the identity on the daemon first (or allow enrollment)",
+            "banned": "the operator banned this identity",
+            "certificate_mismatch": "the client certificate must name this identity (CN or DNS SAN)",
+        }
+        raise HandshakeError(
+            f"refused ({exc.code or 'no code'}): {exc}", hints.get(exc.code or "", "")
+        ) from None
+    except ConnectionError:
+        raise HandshakeError(
+            "the daemon closed the connection", "see the daemon's log (agent_refused)"
+        ) from None
     except ProtocolError as exc:
         raise HandshakeError(
             f"protocol error: {exc}", "is this port really the fleetgcs agent listener?"

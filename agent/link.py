@@ -1,10 +1,21 @@
-"""The agent's side of the daemon link: connect, authenticate, reconnect with backoff, buffer.
+"""The agent's side of the daemon link: connect, authenticate, reconnect with backoff, buffer, replay.
+
+The handshake is :class:`protocol.session.ClientHandshake` over a :class:`protocol.stream.FramedStream`
+(the one implementation every client uses). The agent offers protocol versions 1 and 2; a
+version-1 daemon refuses the v2 hello without a code, and the link then speaks version 1.
 
 While the link is down, status reports go into a bounded buffer (oldest dropped first) and
-control packets (sync "finished") into an unbounded one; both are delivered, in order, right
-after the next successful handshake. A ``replaced`` close means another process runs with our
-identity; the link then waits ``REPLACED_BACKOFF_S`` before trying again, so two agents with
-one identity do not take turns kicking each other off.
+control packets (sync "finished") into an unbounded one. After the next ``accepted`` the agent
+sends, in this order (docs/protocol.md section 2): the buffered reports oldest first, thinned to
+``replay_max_reports`` (state changes kept), the control packets in order, then a fresh status
+report, all before its first status period. The daemon counts replayed reports apart from live
+frames (its replay allowance has a burst of 400), so a long outage never trips the rate limit.
+
+Refusal and close codes decide what happens next (:data:`protocol.session.ACTIONS`): ``retry``
+waits the daemon's ``retry_after_s`` (at least ``REFUSED_BACKOFF_S``), ``reconnect`` uses the
+normal backoff (``replaced`` waits ``REPLACED_BACKOFF_S`` so two agents with one identity do not
+take turns kicking each other off), ``stop`` ends the link (wrong key, banned...) until restart;
+the agent keeps flying its queue and applies its lost-link failsafe.
 """
 
 from __future__ import annotations
@@ -16,25 +27,24 @@ import random
 import ssl
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 
 from agent.config import AgentConfig
-from protocol import auth
 from protocol.packets import (
-    PROTOCOL_VERSION,
+    SUPPORTED_VERSIONS,
     Body,
     Close,
     CloseReason,
     GeoPoint,
     PerformActions,
-    RequestCid,
-    ResponseCid,
     Resume,
     SetParameters,
     StatusReport,
     SyncSignal,
 )
-from protocol.wire import Frame, FrameDecoder, ProtocolError, encode
+from protocol.session import V1_DAEMON, ClientHandshake, Code, Refused
+from protocol.stream import FramedStream, client_handshake
+from protocol.wire import Frame, ProtocolError
 
 log = logging.getLogger("agent.link")
 
@@ -53,10 +63,50 @@ def client_tls_context(config: AgentConfig) -> ssl.SSLContext | None:
     return context
 
 
-class HandshakeFailed(Exception):
-    def __init__(self, message: str, backoff_s: float | None = None) -> None:
-        super().__init__(message)
-        self.backoff_s = backoff_s
+def _milestone(report: StatusReport) -> tuple[object, ...]:
+    failure = report.failure.time if report.failure else None
+    return (
+        report.mission_id,
+        report.step,
+        report.completed_step,
+        report.waiting_sync,
+        report.mode,
+        report.armed,
+        report.landed,
+        report.paused,
+        failure,
+        tuple(report.exceptions),
+        report.failsafe,
+    )
+
+
+def thin_replay(reports: Sequence[StatusReport], limit: int) -> list[StatusReport]:
+    """At most ``limit`` of ``reports``, in order: every state change first, then evenly spaced.
+
+    A state change (step, completed step, mode, armed, exceptions...) is what the daemon must
+    not miss; the reports between two changes differ only in position and battery.
+    """
+    if len(reports) <= limit:
+        return list(reports)
+    keep: set[int] = {len(reports) - 1}
+    previous: tuple[object, ...] | None = None
+    changes = []
+    for index, report in enumerate(reports):
+        mark = _milestone(report)
+        if mark != previous:
+            changes.append(index)
+        previous = mark
+    if len(changes) >= limit - 1:
+        stride = len(changes) / (limit - 1)
+        keep.update(changes[int(k * stride)] for k in range(limit - 1))
+    else:
+        keep.update(changes)
+    spare = limit - len(keep)
+    if spare > 0:  # evenly spaced among the rest (stride >= 1, so the picks are distinct)
+        rest = [i for i in range(len(reports)) if i not in keep]
+        stride = len(rest) / spare
+        keep.update(rest[int(k * stride)] for k in range(spare))
+    return [reports[i] for i in sorted(keep)][:limit]
 
 
 class DaemonLink:
@@ -71,6 +121,7 @@ class DaemonLink:
         on_parameters: Callable[[SetParameters], Awaitable[None]],
         home: Callable[[], GeoPoint | None],
         resume: Callable[[], Resume | None],
+        current_status: Callable[[], StatusReport] | None = None,
     ) -> None:
         self.config = config
         self._key = key
@@ -79,14 +130,21 @@ class DaemonLink:
         self._on_parameters = on_parameters
         self._home = home
         self._resume = resume
+        self._current_status = current_status
         self.cid: int | None = None
+        self.version: int | None = None  # negotiated protocol version of the current session
+        self.versions: list[int] = list(SUPPORTED_VERSIONS)  # what we offer; [1] after a v1 daemon
         self.connected = False
         self.last_contact = time.monotonic()
         self.sessions = 0
         self.last_error: str | None = None
-        self._writer: asyncio.StreamWriter | None = None
-        self._seq = 0
-        self.compact_status = False  # the daemon accepted the compact binary status body
+        self.last_code: str | None = None  # code of the last refusal or close the daemon sent
+        self.stopped: str | None = None  # why the link gave up for good (a `stop` code)
+        self.was_lost = False  # the daemon said it had marked us lost (v2 `accepted.lost`)
+        self.compact_status = False  # the daemon accepted the compact binary status body (v2)
+        self.replayed = 0  # buffered status reports sent after outages
+        self.thinned = 0  # buffered status reports left out of a replay
+        self._stream: FramedStream | None = None
         self._status_backlog: deque[StatusReport] = deque(maxlen=config.status_buffer)
         self._control_backlog: list[Body] = []
         self._send_lock = asyncio.Lock()
@@ -103,15 +161,12 @@ class DaemonLink:
             self._control_backlog.append(body)
 
     async def _send(self, body: Body) -> bool:
-        writer = self._writer
-        if writer is None:
+        stream = self._stream
+        if stream is None:
             return False
         async with self._send_lock:
-            self._seq += 1
             try:
-                writer.write(encode(body, self._seq, compact=self.compact_status))
-                async with asyncio.timeout(5.0):
-                    await writer.drain()
+                await stream.send(body, timeout=5.0)
             except (OSError, TimeoutError, ConnectionError):
                 self._drop()
                 return False
@@ -119,15 +174,15 @@ class DaemonLink:
 
     def _drop(self) -> None:
         self.connected = False
-        if self._writer is not None:
+        if self._stream is not None:
             with contextlib.suppress(Exception):
-                self._writer.close()
-        self._writer = None
+                self._stream.writer.close()
+        self._stream = None
 
     # --- session loop ---------------------------------------------------------------------------
 
     async def run(self) -> None:
-        """Connect, serve, reconnect with jittered exponential backoff; until cancelled."""
+        """Connect, serve, reconnect with jittered exponential backoff; until cancelled or told to stop."""
         delay = self.config.reconnect_min_s
         while not self._stopping:
             backoff: float | None = None
@@ -144,12 +199,12 @@ class DaemonLink:
                 )
             else:
                 try:
-                    await self._session(reader, writer)
+                    await self._session(FramedStream(reader, writer))
                     delay = self.config.reconnect_min_s
-                except HandshakeFailed as exc:
-                    self.last_error = str(exc)
-                    backoff = exc.backoff_s
-                    log.error("%s", exc)
+                except Refused as exc:
+                    backoff = self._refused(exc)
+                    if self.stopped is not None:
+                        return
                 except (
                     ProtocolError,
                     ConnectionError,
@@ -170,97 +225,106 @@ class DaemonLink:
             await asyncio.sleep(wait)
             delay = min(self.config.reconnect_max_s, delay * 2)
 
+    def _refused(self, exc: Refused) -> float | None:
+        """Act on a refusal or coded close; returns the backoff (None: the usual one)."""
+        self.last_error = str(exc)
+        self.last_code = exc.code
+        if exc.code == V1_DAEMON and self.versions != [1]:
+            log.warning("the daemon speaks protocol version 1 only; falling back to it")
+            self.versions = [1]
+            return self.config.reconnect_min_s
+        action = exc.action
+        if exc.code is None:  # a version-1 daemon: no codes, retry later as before
+            log.error("%s", exc)
+            return REFUSED_BACKOFF_S
+        if action == "stop":
+            self.stopped = f"{exc.code}: {exc.message}"
+            log.error("daemon refused us for good (%s); not reconnecting until restarted", self.stopped)
+            return None
+        if action == "retry":
+            log.warning("%s; retrying later", exc)
+            return max(REFUSED_BACKOFF_S, exc.retry_after_s or 0.0) * (0.75 + 0.5 * random.random())
+        if exc.code == Code.REPLACED:
+            log.error("%s", exc)
+            return REPLACED_BACKOFF_S
+        log.warning("%s; reconnecting", exc)
+        return None
+
     async def stop(self, reason: CloseReason = CloseReason.NORMAL) -> None:
         self._stopping = True
         if self.connected:
             await self._send(Close(reason=reason, message="agent stopping"))
         self._drop()
 
-    async def _session(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        decoder = FrameDecoder()
-        backlog: list[Frame] = []
-        self._writer = writer
-        self._seq = 0
+    async def _session(self, stream: FramedStream) -> None:
+        self._stream = stream
         self.compact_status = False
-        async with asyncio.timeout(self.config.handshake_timeout_s):
-            await self._handshake(reader, decoder, backlog)
+        handshake = ClientHandshake(
+            self.config.identity,
+            self._key,
+            versions=self.versions,
+            capabilities=self.config.capabilities,
+            compact_status=True,
+        )
+        accepted = await client_handshake(
+            stream,
+            handshake,
+            home=self._home(),
+            resume=self._resume(),
+            timeout=self.config.handshake_timeout_s,
+        )
+        self.cid, self.version, self.was_lost = accepted.cid, accepted.version, accepted.lost
+        self.compact_status = accepted.compact_status  # client_handshake set the stream to match
+        if accepted.parameters is not None:
+            await self._on_parameters(SetParameters(parameters=accepted.parameters))
         self.connected = True
         self.sessions += 1
         self.last_contact = time.monotonic()
-        log.info("connected to daemon as %s, cid %s", self.config.identity, self.cid)
-        await self._flush_backlog()
-        for frame in backlog:
-            await self._dispatch(frame)
-        while self.connected:
-            try:
-                async with asyncio.timeout(self.config.daemon_silence_s):
-                    data = await reader.read(65_536)
-            except TimeoutError:  # a silent partition: TCP open, nothing flowing (the daemon keeps alive)
-                raise ConnectionError(
-                    f"nothing from the daemon for {self.config.daemon_silence_s:g} s"
-                ) from None
-            if not data:
-                raise ConnectionError("daemon closed the connection")
-            self.last_contact = time.monotonic()
-            for frame in decoder.feed(data):
+        log.info(
+            "connected to daemon as %s, cid %s, protocol v%d%s",
+            self.config.identity,
+            self.cid,
+            self.version,
+            " (the daemon had marked us lost)" if accepted.lost else "",
+        )
+        # Right after accepted, in time order: the buffered reports (thinned), the buffered
+        # control packets, then the current state, before the first period has passed.
+        await self._replay()
+        await self._flush_control()
+        if self._current_status is not None and self.connected:
+            await self._send(self._current_status())
+        try:
+            async for frame in stream.frames(idle_timeout=self.config.daemon_silence_s):
+                self.last_contact = time.monotonic()
                 await self._dispatch(frame)
+                if not self.connected:
+                    return
+        except TimeoutError:  # a silent partition: TCP open, nothing flowing (the daemon keeps alive)
+            raise ConnectionError(f"nothing from the daemon for {self.config.daemon_silence_s:g} s") from None
 
-    async def _handshake(
-        self, reader: asyncio.StreamReader, decoder: FrameDecoder, backlog: list[Frame]
-    ) -> None:
-        client_nonce = auth.new_nonce()
-        hello = RequestCid(
-            identity=self.config.identity, protocol_version=PROTOCOL_VERSION, client_nonce=client_nonce
-        )
-        if not await self._send(hello):
-            raise ConnectionError("daemon went away during the handshake")
-        challenge = await _next_frame(reader, decoder, backlog)
-        if isinstance(challenge.body, Close):
-            raise HandshakeFailed(f"daemon closed: {challenge.body.message}", REFUSED_BACKOFF_S)
-        if not isinstance(challenge.body, ResponseCid):
-            raise ProtocolError("expected a type 1 challenge")
-        if challenge.body.outcome == "refused":
-            raise HandshakeFailed(f"daemon refused us: {challenge.body.reason}", REFUSED_BACKOFF_S)
-        server_nonce = challenge.body.server_nonce
-        if challenge.body.outcome != "challenge" or server_nonce is None:
-            raise ProtocolError("expected a type 1 challenge with a nonce")
-        request = RequestCid(
-            identity=self.config.identity,
-            protocol_version=PROTOCOL_VERSION,
-            client_nonce=client_nonce,
-            capabilities=self.config.capabilities,
-            home=self._home(),
-            proof=auth.agent_proof(self._key, self.config.identity, server_nonce, client_nonce),
-            resume=self._resume(),
-            compact_status=True,
-        )
-        if not await self._send(request):
-            raise ConnectionError("daemon went away during the handshake")
-        answer = await _next_frame(reader, decoder, backlog)
-        body = answer.body
-        if isinstance(body, ResponseCid) and body.outcome == "accepted" and body.cid is not None:
-            expected = auth.daemon_proof(self._key, self.config.identity, client_nonce, server_nonce)
-            if body.server_proof is None or not auth.proofs_equal(body.server_proof, expected):
-                raise HandshakeFailed(
-                    "the daemon could not prove it holds our key; not trusting it", REFUSED_BACKOFF_S
-                )
-            self.cid = body.cid
-            self.compact_status = bool(body.compact_status)
-            if body.parameters is not None:
-                await self._on_parameters(SetParameters(parameters=body.parameters))
-            return
-        reason = body.reason if isinstance(body, ResponseCid) else getattr(body, "message", "")
-        raise HandshakeFailed(f"daemon refused {self.config.identity}: {reason}", REFUSED_BACKOFF_S)
-
-    async def _flush_backlog(self) -> None:
-        while self._status_backlog and self.connected:
-            if not await self._send(self._status_backlog[0]):
-                return
-            self._status_backlog.popleft()
+    async def _flush_control(self) -> None:
         while self._control_backlog and self.connected:
             if not await self._send(self._control_backlog[0]):
                 return
             self._control_backlog.pop(0)
+
+    async def _replay(self) -> None:
+        """Send the buffered reports, thinned to ``replay_max_reports``, oldest first.
+
+        The thinned replay fits the daemon's separate replay allowance (docs/protocol.md), so it
+        goes out at once; what cannot be sent stays buffered for the next session.
+        """
+        if not self._status_backlog:
+            return
+        reports = thin_replay(list(self._status_backlog), self.config.replay_max_reports)
+        self.thinned += len(self._status_backlog) - len(reports)
+        self._status_backlog.clear()
+        self._status_backlog.extend(reports)
+        while self._status_backlog and self.connected:
+            if not await self._send(self._status_backlog[0]):
+                return
+            self._status_backlog.popleft()
+            self.replayed += 1
 
     async def _dispatch(self, frame: Frame) -> None:
         body = frame.body
@@ -272,10 +336,9 @@ class DaemonLink:
             await self._on_parameters(body)
         elif isinstance(body, Close):
             self._drop()
-            if body.reason == CloseReason.REPLACED:
-                raise HandshakeFailed(
-                    f"replaced by another session of {self.config.identity}", REPLACED_BACKOFF_S
-                )
+            code = body.code or (Code.REPLACED if body.reason == CloseReason.REPLACED else None)
+            if code is not None:
+                raise Refused(code, f"daemon closed the session: {body.reason.value} {body.message}".strip())
             raise ConnectionError(f"daemon closed the session: {body.reason.value} {body.message}")
         else:
             raise ProtocolError(f"type {frame.packet_type.value} is not valid from the daemon")
@@ -284,12 +347,3 @@ class DaemonLink:
     def buffered(self) -> tuple[int, int]:
         """(status reports, control packets) waiting for the link."""
         return len(self._status_backlog), len(self._control_backlog)
-
-
-async def _next_frame(reader: asyncio.StreamReader, decoder: FrameDecoder, backlog: list[Frame]) -> Frame:
-    while not backlog:
-        data = await reader.read(65_536)
-        if not data:
-            raise ConnectionError("daemon closed the connection")
-        backlog.extend(decoder.feed(data))
-    return backlog.pop(0)

@@ -15,7 +15,7 @@ from agent.autopilot.base import (
     FenceSpec,
     Telemetry,
 )
-from agent.command_queue import CommandQueue
+from agent.command_queue import CommandQueue, sanity_violation
 from agent.config import AgentConfig
 from agent.executor import ActionExecutor
 from agent.link import DaemonLink
@@ -117,6 +117,7 @@ class Agent:
             on_parameters=self._on_parameters,
             home=self._home,
             resume=self._resume,
+            current_status=self._build_status,
         )
         self.monitor = ExceptionMonitor(
             autopilot,
@@ -157,21 +158,23 @@ class Agent:
 
     async def _status_loop(self) -> None:
         while True:
-            t = self.autopilot.telemetry()
-            link_ok = time.monotonic() - t.last_heartbeat_monotonic < HEARTBEAT_TIMEOUT_S
-            status = build_status(
-                t,
-                self.queue,
-                self.exception_list(),
-                link_ok,
-                self.executor.failure,
-                self.monitor.failsafe_text(),
-            )
-            await self.link.send_status(status)
+            await self.link.send_status(self._build_status())
             self._status_wakeup.clear()
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(self.settings.status_period_s):
                     await self._status_wakeup.wait()
+
+    def _build_status(self) -> StatusReport:
+        t = self.autopilot.telemetry()
+        link_ok = time.monotonic() - t.last_heartbeat_monotonic < HEARTBEAT_TIMEOUT_S
+        return build_status(
+            t,
+            self.queue,
+            self.exception_list(),
+            link_ok,
+            self.executor.failure,
+            self.monitor.failsafe_text(),
+        )
 
     def exception_list(self) -> list[str]:
         """Active conditions plus one-shot exceptions of the last ``RECENT_EXCEPTION_S`` seconds."""
@@ -223,6 +226,8 @@ class Agent:
             self.queue.resume()
         else:
             actions: list[Action] = list(packet.actions)
+            if await self._refuse_if_insane(packet, actions):
+                return
             log.info("%s %d actions for mission %s", packet.mode, len(actions), packet.mission_id)
             await self.queue.submit(
                 packet.mission_id,
@@ -231,6 +236,33 @@ class Agent:
                 await_release=packet.await_release,
             )
         self._status_wakeup.set()
+
+    async def _refuse_if_insane(self, packet: PerformActions, actions: list[Action]) -> bool:
+        """Refuse a batch outside the agent's own limits; the daemon hears why (exception + failure)."""
+        t = self.autopilot.telemetry()
+        home = (t.home_lat, t.home_lon) if t.home_lat is not None and t.home_lon is not None else None
+        replacing = packet.mode == "replace" or packet.mission_id != self.queue.mission_id
+        verdict = sanity_violation(actions, self.config.limits, home, 0 if replacing else self.queue.depth)
+        if verdict is None:
+            return False
+        action, reason = verdict
+        detail = f"{packet.mode} of {len(actions)} actions for {packet.mission_id} refused: {reason}"
+        log.error("%s", detail)
+        # Like a failed action: the queue is emptied, a flying vehicle holds, the failure is reported.
+        if replacing:
+            await self.queue.submit(packet.mission_id, [], replace=True)
+        else:
+            await self.queue.interrupt()
+        self.executor.failure = ActionFailure(
+            step=action.step if action is not None else max(0, self.queue.completed_step + 1),
+            kind=action.kind if action is not None else "queue",
+            reason=f"refused by the agent: {reason}"[:300],
+            time=time.time(),
+        )
+        await self._on_exception("command_refused", detail)
+        with contextlib.suppress(AutopilotError):
+            await self.executor.hold_vehicle()
+        return True
 
     async def _on_release(self, signal: SyncSignal) -> None:
         self.queue.release(signal.mission_id, signal.step)

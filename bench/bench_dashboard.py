@@ -39,15 +39,13 @@ from gcs.daemon import Daemon  # noqa: E402
 from protocol import auth  # noqa: E402
 from protocol.geo import offset_latlon  # noqa: E402
 from protocol.packets import (  # noqa: E402
-    PROTOCOL_VERSION,
     Battery,
     Gps,
     Position,
-    RequestCid,
-    ResponseCid,
     StatusReport,
 )
-from protocol.wire import FrameDecoder, encode  # noqa: E402
+from protocol.session import ClientHandshake  # noqa: E402
+from protocol.stream import open_client  # noqa: E402
 
 HOME = (47.397742, 8.545594, 488.0)
 
@@ -57,37 +55,15 @@ HOME = (47.397742, 8.545594, 488.0)
 
 async def _agent(identity: str, index: int, port: int, key_hex: str, rate_hz: float, stop_at: float) -> int:
     key = auth.parse_key(key_hex)
-    reader, writer = await asyncio.open_connection("127.0.0.1", port)
-    decoder = FrameDecoder()
-    backlog: list[Any] = []
-
-    async def read() -> Any:
-        while not backlog:
-            backlog.extend(decoder.feed(await reader.read(65_536)))
-        return backlog.pop(0).body
-
-    nonce = auth.new_nonce()
-    writer.write(
-        encode(RequestCid(identity=identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce), 1)
-    )
-    challenge = await read()
-    assert isinstance(challenge, ResponseCid) and challenge.server_nonce
-    proof = auth.agent_proof(key, identity, challenge.server_nonce, nonce)
-    writer.write(
-        encode(
-            RequestCid(identity=identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce, proof=proof),
-            2,
-        )
-    )
-    accepted = await read()
-    assert isinstance(accepted, ResponseCid) and accepted.outcome == "accepted", accepted
+    stream, _ = await open_client("127.0.0.1", port, ClientHandshake(identity, key), timeout=30.0)
+    reader, writer = stream.reader, stream.writer
 
     async def drain() -> None:
         while await reader.read(65_536):
             pass
 
     drainer = asyncio.create_task(drain())
-    seq, sent = 2, 0
+    sent = 0
     period = 1.0 / rate_hz
     await asyncio.sleep((index % 100) / 100 * period)  # spread the fleet over the period
     next_at = time.monotonic()
@@ -95,7 +71,6 @@ async def _agent(identity: str, index: int, port: int, key_hex: str, rate_hz: fl
     while time.time() < stop_at:
         angle = sent * 0.05
         lat, lon = offset_latlon(lat0, lon0, 20 * math.sin(angle), 20 * math.cos(angle))
-        seq += 1
         status = StatusReport(
             time=time.time(),
             position=Position(lat=lat, lon=lon, alt_rel=20.0, alt_amsl=HOME[2] + 20.0),
@@ -106,8 +81,7 @@ async def _agent(identity: str, index: int, port: int, key_hex: str, rate_hz: fl
             landed=False,
             gps=Gps(fix=3, satellites=12),
         )
-        writer.write(encode(status, seq))
-        await writer.drain()
+        await stream.send(status)
         sent += 1
         next_at += period
         await asyncio.sleep(max(0.0, next_at - time.monotonic()))

@@ -346,6 +346,7 @@ class Client:
         self.template = StatusTemplate(index, compact)
         self.reader: asyncio.StreamReader | None = None
         self.writer: asyncio.StreamWriter | None = None
+        self.stream: Any = None  # protocol.stream.FramedStream once the handshake is done
         self.seq = 0
         self.sent = 0
         self.closed = False
@@ -365,60 +366,31 @@ def worker_main(
 
 
 async def _handshake(client: Client, key: bytes) -> None:
-    from protocol import auth
-    from protocol.packets import PROTOCOL_VERSION, RequestCid, ResponseCid
-    from protocol.wire import FrameDecoder, encode
+    """The shared client handshake (protocol/session.py over protocol/stream.py)."""
+    from protocol.session import ClientHandshake
+    from protocol.stream import client_handshake
 
-    assert client.reader is not None and client.writer is not None
-    decoder = FrameDecoder()
-    nonce = auth.new_nonce()
-    client.writer.write(
-        encode(RequestCid(identity=client.identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce), 1)
+    stream = client.stream
+    accepted = await client_handshake(
+        stream, ClientHandshake(client.identity, key, compact_status=client.template.compact), timeout=60.0
     )
-    frames: list[Any] = []
-    for _ in range(100):
-        if frames:
-            break
-        frames += list(decoder.feed(await client.reader.read(65_536)))
-    challenge = frames.pop(0).body
-    assert isinstance(challenge, ResponseCid) and challenge.server_nonce, challenge
-    proof = auth.agent_proof(key, client.identity, challenge.server_nonce, nonce)
-    request = RequestCid(
-        identity=client.identity,
-        protocol_version=PROTOCOL_VERSION,
-        client_nonce=nonce,
-        proof=proof,
-        compact_status=True if client.template.compact else None,
-    )
-    client.writer.write(encode(request, 2))
-    for _ in range(100):
-        if frames:
-            break
-        frames += list(decoder.feed(await client.reader.read(65_536)))
-    accepted = frames.pop(0).body
-    assert isinstance(accepted, ResponseCid) and accepted.outcome == "accepted", accepted
-    assert bool(accepted.compact_status) == client.template.compact, accepted
-    client.seq = 2
+    assert accepted.compact_status == client.template.compact, accepted
+    client.seq = stream.seq
 
 
 async def _client_reader(client: Client) -> None:
-    """Drain what the daemon sends; note releases and closes."""
+    """Drain what the daemon sends (the shared frame loop); note releases and closes."""
     from protocol.packets import Close, SyncSignal
-    from protocol.wire import FrameDecoder, ProtocolError
+    from protocol.wire import ProtocolError
 
-    assert client.reader is not None
-    decoder = FrameDecoder()
+    assert client.stream is not None
     with contextlib.suppress(ConnectionError, ProtocolError):
-        for _ in range(100_000_000):
-            data = await client.reader.read(65_536)
-            if not data:
-                break
-            for frame in decoder.feed(data):
-                if isinstance(frame.body, SyncSignal) and frame.body.kind == "release":
-                    client.releases.setdefault(frame.body.step, time.time())
-                    client.release_event.set()
-                elif isinstance(frame.body, Close):
-                    client.closed = True
+        async for frame in client.stream.frames():
+            if isinstance(frame.body, SyncSignal) and frame.body.kind == "release":
+                client.releases.setdefault(frame.body.step, time.time())
+                client.release_event.set()
+            elif isinstance(frame.body, Close):
+                client.closed = True
     client.closed = True
 
 
@@ -426,6 +398,7 @@ async def _worker(
     conn: Connection, port: int, key_hex: str, identities: list[str], authenticate: bool, compact: bool
 ) -> None:
     from protocol.packets import SyncSignal
+    from protocol.stream import FramedStream
     from protocol.wire import encode
 
     key = bytes.fromhex(key_hex)
@@ -440,9 +413,10 @@ async def _worker(
         async with gate:
             try:
                 client.reader, client.writer = await asyncio.open_connection("127.0.0.1", port)
+                client.stream = FramedStream(client.reader, client.writer)
                 if authenticate:
                     await asyncio.wait_for(_handshake(client, key), 60)
-            except (OSError, TimeoutError, AssertionError):
+            except Exception:  # refused, timed out, reset: this one client is lost, the bench goes on
                 client.closed = True
                 return False
             readers.append(asyncio.create_task(_client_reader(client)))

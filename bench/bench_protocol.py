@@ -20,20 +20,19 @@ from pathlib import Path
 from gcs.agents import AgentSession
 from gcs.config import DaemonConfig
 from gcs.daemon import Daemon
-from protocol import auth, status_binary
+from protocol import status_binary
 from protocol.actions import Waypoint, Waypoints
 from protocol.packets import (
-    PROTOCOL_VERSION,
     Battery,
     Gps,
     PacketType,
     PerformActions,
     Position,
-    RequestCid,
-    ResponseCid,
     StatusReport,
 )
-from protocol.wire import FrameDecoder, decode_body, decode_one, encode
+from protocol.session import ClientHandshake
+from protocol.stream import open_client
+from protocol.wire import decode_body, decode_one, encode
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -99,33 +98,16 @@ def bench_codec(repeat: int = 20_000) -> dict[str, float]:
 
 
 async def _synthetic_agent(port: int, key: bytes, identity: str, rate_hz: float, stop_at: float) -> int:
-    reader, writer = await asyncio.open_connection("127.0.0.1", port)
-    decoder = FrameDecoder()
-    nonce = auth.new_nonce()
-    writer.write(
-        encode(RequestCid(identity=identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce), 1)
-    )
-    challenge = next(iter(decoder.feed(await reader.read(65_536))))
-    assert isinstance(challenge.body, ResponseCid) and challenge.body.server_nonce
-    proof = auth.agent_proof(key, identity, challenge.body.server_nonce, nonce)
-    writer.write(
-        encode(
-            RequestCid(identity=identity, protocol_version=PROTOCOL_VERSION, client_nonce=nonce, proof=proof),
-            2,
-        )
-    )
-    await reader.read(65_536)
-    sent, seq = 0, 3
+    stream, _ = await open_client("127.0.0.1", port, ClientHandshake(identity, key), timeout=30.0)
+    sent = 0
     period = 1.0 / rate_hz
     next_send = time.monotonic()
     while time.monotonic() < stop_at:
-        writer.write(encode(sample_status(time.time()), seq))
-        seq += 1
+        await stream.send(sample_status(time.time()))
         sent += 1
-        await writer.drain()
         next_send += period
         await asyncio.sleep(max(0.0, next_send - time.monotonic()))
-    writer.close()
+    await stream.close()
     return sent
 
 

@@ -22,10 +22,9 @@ sys.path.insert(0, str(ROOT))
 
 from gcs.api_planning import SearchPlanRequest, plan  # noqa: E402
 from gcs.cooperation.config import CooperationConfig  # noqa: E402
-from protocol.actions import Goto, Hold, Land, Takeoff  # noqa: E402
-from protocol.taskfile import AgentPlan, TaskFile  # noqa: E402
-from tests.cooperation.rig import SPEEDUP, Rig, at, rig, wait_for  # noqa: E402
-from tests.scenarios.scenarios import area, crossing_task, head_on, infos, separation  # noqa: E402
+from protocol.taskfile import TaskFile  # noqa: E402
+from tests.cooperation.rig import SPEEDUP, Rig, rig, wait_for  # noqa: E402
+from tests.scenarios.scenarios import area, crossing_task, head_on, infos, separation, stack_task  # noqa: E402
 
 COOP = CooperationConfig(vehicle_time_scale=SPEEDUP)
 Scenario = Callable[[Rig], Awaitable[float | None]]
@@ -73,20 +72,7 @@ async def rtl_all_from_held(r: Rig) -> float | None:
 
 
 async def land_all_from_stack(r: Rig) -> float | None:
-    spot = at(30, 5)
-    plans = [
-        AgentPlan(
-            agent=name,
-            actions=[
-                Takeoff(step=0, alt=8.0 + 5 * k, sync=True),
-                Goto(step=1, lat=spot[0], lon=spot[1], alt=8.0 + 5 * k, speed=4.0, sync=True),
-                Hold(step=2, seconds=200),
-                Land(step=3),
-            ],
-        )
-        for k, name in enumerate(r.names)
-    ]
-    await r.daemon.missions.submit(TaskFile(name="stack", plans=plans))
+    await r.daemon.missions.submit(stack_task(r.names))
     await wait_for(lambda: all((s := r.status(n)) and s.step >= 2 for n in r.names), 60, "stacked")
     return await _bring_down(r, "land")
 

@@ -26,6 +26,7 @@ import random
 import sys
 import time
 import zlib
+from collections.abc import Callable
 from pathlib import Path
 
 try:
@@ -78,13 +79,17 @@ def fix_crcs(data: bytes) -> bytes:
     return bytes(out)
 
 
+def split_case(data: bytes) -> tuple[int, bytes]:
+    """A case's control byte and its payload, CRCs recomputed when bit 7 asks for it."""
+    control, payload = data[0], data[1:]
+    return control, fix_crcs(payload) if control & 0x80 else payload
+
+
 def test_one_input(data: bytes) -> None:
     """One fuzz case. Raises AssertionError (or whatever escaped the decoder) on a contract breach."""
     if not data:
         return
-    control, payload = data[0], data[1:]
-    if control & 0x80:
-        payload = fix_crcs(payload)
+    control, payload = split_case(data)
     read_size = READ_SIZES[control & 0x0F]
     decoder = FrameDecoder(SMALL_LIMIT) if control & 0x20 else FrameDecoder()
     frames: list[Frame] = []
@@ -208,8 +213,15 @@ def load_corpus(directory: Path = CORPUS) -> list[bytes]:
     return [p.read_bytes() for p in sorted(directory.iterdir()) if p.is_file()]
 
 
-def mutation_loop(corpus: list[bytes], seconds: float, seed: int = 0, max_cases: int = 10**9) -> int:
-    """Run mutated cases until ``seconds`` or ``max_cases``; returns the number run."""
+def mutation_loop(
+    corpus: list[bytes],
+    seconds: float,
+    seed: int = 0,
+    max_cases: int = 10**9,
+    target: Callable[[bytes], None] | None = None,
+) -> int:
+    """Run mutated cases through ``target`` (this decoder target by default) until ``seconds`` or
+    ``max_cases``; returns the number run."""
     rng = random.Random(seed)
     deadline = time.monotonic() + seconds
     cases = 0
@@ -217,7 +229,7 @@ def mutation_loop(corpus: list[bytes], seconds: float, seed: int = 0, max_cases:
         case = rng.choice(corpus)
         for _ in range(rng.randint(1, 3)):
             case = mutate(case, rng, corpus)
-        test_one_input(case)
+        (target or test_one_input)(case)
         cases += 1
     return cases
 

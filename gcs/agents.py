@@ -1,16 +1,20 @@
 """Agent manager: TCP sessions, the authenticated handshake, CIDs, liveness, frame routing.
 
 One read task per connection and one writer task per session (gcs/outbox.py: a bounded
-outbound queue with an urgent lane). A connection must complete the type-0/1 handshake within
-``handshake_timeout_s``; until then no other packet is accepted. Any protocol error closes
-only that connection (type 6 ``protocol_error`` first), never the daemon or other agents.
+outbound queue with an urgent lane). Frames are read through the shared
+:class:`protocol.stream.FramedStream` and the handshake is :class:`protocol.session.ServerHandshake`
+(versions negotiated, refusals with codes). A connection must complete it within
+``handshake_timeout_s`` with frames under 1 KiB, and at most ``max_handshakes`` run at once;
+until then no other packet is accepted. Any protocol error closes only that connection (type 6
+``protocol_error`` first), never the daemon or other agents.
 
 Nothing is awaited on the read path: the frame loop decodes, records (``session.status``...)
 and publishes to the hook consumers (gcs/dispatch.py), which run ``on_join`` / ``on_status`` /
 ``on_sync`` / ``on_lost`` hooks in one task per hook owner, outside the handshake budget.
 Status reports are handed over in one batch per event-loop iteration (everything every frame
 loop received in it); any other event first flushes the batch, so each consumer still sees one
-agent's events in the order they arrived.
+agent's events in the order they arrived. A v2 agent may send them in the compact binary body
+(``compact_status``, negotiated by the session layer).
 """
 
 from __future__ import annotations
@@ -23,14 +27,14 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 from gcs.config import DaemonConfig
-from gcs.dispatch import ConsumerStats, HookDispatcher, HookKind
+from gcs.dispatch import ConsumerStats, HookDispatcher, HookKind, HookList
 from gcs.events import EventBus
 from gcs.keys import KeyRing
 from gcs.outbox import Outbox
-from gcs.store import Store
-from protocol import auth
+from gcs.store import CidExhausted, Store
 from protocol.packets import (
     PROTOCOL_VERSION,
+    AgentParameters,
     Body,
     Capabilities,
     Close,
@@ -38,22 +42,17 @@ from protocol.packets import (
     GeoPoint,
     PacketType,
     RequestCid,
-    ResponseCid,
     Resume,
     SetParameters,
     StatusReport,
     SyncSignal,
     packet_type_of,
 )
-from protocol.wire import Frame, FrameDecoder, ProtocolError, encode
+from protocol.session import Code, Refused, ServerHandshake, close_for
+from protocol.stream import FramedStream
+from protocol.wire import PRE_AUTH_MAX_BODY, Frame, ProtocolError, encode
 
 log = logging.getLogger("gcs.agents")
-
-READ_CHUNK = 65_536
-
-
-class HandshakeRefused(Exception):
-    """The peer failed the handshake; the message goes back to it in the refusal."""
 
 
 class ProbeAnswered(ConnectionError):
@@ -100,7 +99,12 @@ class AgentSession:
     last_rx: float = field(default_factory=time.monotonic)
     status: StatusReport | None = None
     status_count: int = 0
+    replayed_count: int = 0  # buffered status reports received (counted apart from live ones)
     open: bool = True
+    version: int = PROTOCOL_VERSION
+    exception_names: frozenset[str] = frozenset()
+    exception_budget: TokenBucket | None = None
+    exceptions_suppressed: int = 0
     compact_status: bool = False  # negotiated: status may come as the compact binary body
 
     @property
@@ -135,11 +139,15 @@ class AgentSession:
             return False
         return await self.outbox.send(body, urgent, timeout)
 
-    async def close(self, reason: CloseReason, message: str, timeout: float = 1.0) -> None:
+    async def close(
+        self, reason: CloseReason, message: str, timeout: float = 1.0, *, code: Code | None = None
+    ) -> None:
         """Tell the peer why (urgent, bounded wait), then close the transport."""
         if self.outbox.open:
             self.open = False  # no new frames from here on; the close itself still goes out
-            await self.outbox.send(Close(reason=reason, message=message[:500]), True, timeout)
+            code = code or _REASON_CODES.get(reason)
+            body = Close(reason=reason, message=message[:500], code=code.value if code else None)
+            await self.outbox.send(body, True, timeout)
         self.close_transport()
 
     def close_transport(self) -> None:
@@ -165,10 +173,11 @@ class AgentManager:
         self._keys = keys
         self.sessions: dict[str, AgentSession] = {}
         self.lost: set[str] = set()
-        self.on_join: list[JoinHook] = []
-        self.on_status: list[StatusHook] = []
-        self.on_sync: list[SyncHook] = []
-        self.on_lost: list[LostHook] = []
+        # Plain lists to the services that append/remove hooks; HookList only counts changes.
+        self.on_join: HookList[JoinHook] = HookList()
+        self.on_status: HookList[StatusHook] = HookList()
+        self.on_sync: HookList[SyncHook] = HookList()
+        self.on_lost: HookList[LostHook] = HookList()
         self._hooks = HookDispatcher(
             {"join": self.on_join, "status": self.on_status, "sync": self.on_sync, "lost": self.on_lost}
         )
@@ -177,8 +186,10 @@ class AgentManager:
         self._flush_scheduled = False
         self._hooks_closed = False
         self._pending_handshakes = 0
-        self.ingest_frames = 0  # frames decoded and recorded by the frame loops
-        self.ingest_busy_s = 0.0  # event-loop time they took (decode, checks, record, publish)
+        self.ingest_frames = 0  # frames recorded by the frame loops
+        self.ingest_busy_s = 0.0  # event-loop time recording them took (checks, record, publish)
+        self.busy_refusals = 0
+        self.accepting = True  # False: handshakes are refused with code `starting`
 
     # --- queries --------------------------------------------------------------------------------
 
@@ -211,15 +222,21 @@ class AgentManager:
     def burst(self, identities: list[str], body: Body) -> int:
         """Send ``body`` to every connected agent of ``identities`` in one pass; how many got it.
 
-        Encoded once; each agent's socket is written right away (behind what its outbox still
-        holds), with no task switch per agent: a barrier release reaches 1,000 agents in one go.
+        Encoded once per protocol version; each agent's socket is written right away (behind
+        what its outbox still holds), with no task switch per agent: a barrier release reaches
+        1,000 agents in one go.
         """
-        frame = encode(body, 0)
+        frames: dict[int, bytes] = {}
         ptype = packet_type_of(body)
         sent = 0
         for identity in identities:
             session = self.session(identity)
-            if session is not None and session.outbox.write_now(frame, ptype):
+            if session is None:
+                continue
+            frame = frames.get(session.version)
+            if frame is None:
+                frame = frames[session.version] = encode(body, 0, session.version)
+            if session.outbox.write_now(frame, ptype):
                 sent += 1
         return sent
 
@@ -231,25 +248,37 @@ class AgentManager:
         if task is not None:
             self._tasks.add(task)
         peer = _peer_name(writer)
-        decoder = FrameDecoder(self.config.max_body_bytes)
+        # Before the agent is known a frame is small: a handshake packet is well under 1 KiB.
+        stream = FramedStream(reader, writer, max_body=PRE_AUTH_MAX_BODY, version=PROTOCOL_VERSION)
         session: AgentSession | None = None
+        handshake = ServerHandshake(self._keys.key_for)
         try:
-            session = await asyncio.wait_for(
-                self._handshake(reader, writer, decoder, peer), self.config.handshake_timeout_s
-            )
-            await self._frame_loop(session, reader, decoder)
+            if self._pending_handshakes >= self.config.max_handshakes:
+                self.busy_refusals += 1
+                raise Refused(Code.BUSY, f"{self.config.max_handshakes} handshakes in progress; retry later")
+            self._pending_handshakes += 1
+            try:
+                session = await asyncio.wait_for(
+                    self._handshake(stream, handshake, peer), self.config.handshake_timeout_s
+                )
+            finally:
+                self._pending_handshakes -= 1
+            await self._frame_loop(session, stream)
         except TimeoutError:
             self._events.publish(
                 "handshake_timeout", f"{peer} did not complete the handshake in time", severity="warning"
             )
-            await _close_raw(writer, CloseReason.PROTOCOL_ERROR, "handshake timeout")
-        except HandshakeRefused as exc:
-            self._events.publish("agent_refused", f"{peer}: {exc}", severity="warning")
-            await _close_raw(writer, CloseReason.REFUSED, str(exc), refusal=True)
+            await stream.close(close_for(Code.HANDSHAKE_TIMEOUT, "handshake timeout"))
+        except Refused as exc:
+            if exc.code != Code.BUSY or self.busy_refusals == 1 or self.busy_refusals % 100 == 0:
+                self._events.publish("agent_refused", f"{peer}: {exc} ({exc.code})", severity="warning")
+            known = {c.value for c in Code}
+            code = Code(exc.code) if exc.code in known else Code.PROTOCOL_ERROR
+            await stream.close(*handshake.refusal(code, str(exc), exc.retry_after_s))
         except RateLimited as exc:
             assert session is not None
             self._events.publish("agent_cut_off", str(exc), severity="error", agent=session.identity)
-            await session.close(CloseReason.PROTOCOL_ERROR, str(exc))
+            await session.close(CloseReason.PROTOCOL_ERROR, str(exc), code=Code.RATE_LIMITED)
         except ProtocolError as exc:
             who = session.identity if session else peer
             self._events.publish(
@@ -259,9 +288,9 @@ class AgentManager:
                 agent=session.identity if session else None,
             )
             if session is not None:
-                await session.close(CloseReason.PROTOCOL_ERROR, str(exc))
+                await session.close(CloseReason.PROTOCOL_ERROR, str(exc), code=Code.PROTOCOL_ERROR)
             else:
-                await _close_raw(writer, CloseReason.PROTOCOL_ERROR, str(exc)[:500])
+                await stream.close(close_for(Code.PROTOCOL_ERROR, str(exc)))
         except (ConnectionError, OSError, asyncio.IncompleteReadError):
             pass
         except asyncio.CancelledError:
@@ -276,152 +305,133 @@ class AgentManager:
             if task is not None:
                 self._tasks.discard(task)
 
-    async def _read_frame(
-        self, reader: asyncio.StreamReader, decoder: FrameDecoder, backlog: list[Frame]
-    ) -> Frame:
-        while not backlog:
-            data = await reader.read(READ_CHUNK)
-            if not data:
-                raise ConnectionError("peer closed the connection")
-            backlog.extend(decoder.feed(data))
-        return backlog.pop(0)
-
-    async def _handshake(
-        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, decoder: FrameDecoder, peer: str
-    ) -> AgentSession:
-        backlog: list[Frame] = []
-        hello = await self._read_frame(reader, decoder, backlog)
-        if not isinstance(hello.body, RequestCid):
-            raise ProtocolError(f"expected a type 0 request first, got type {hello.packet_type.value}")
-        request = hello.body
-        if request.protocol_version != PROTOCOL_VERSION:
-            raise HandshakeRefused(
-                f"protocol version {request.protocol_version} not supported "
-                f"(daemon speaks {PROTOCOL_VERSION})"
+    def _admit(self, request: RequestCid, writer: asyncio.StreamWriter) -> None:
+        """Refusals that depend on the daemon, not on the key (Refused with a code)."""
+        if not self.accepting:
+            raise Refused(Code.STARTING, "the daemon is starting; retry later", 2.0)
+        if request.identity in self.config.banned_agents:
+            raise Refused(Code.BANNED, f"{request.identity!r} is banned by the operator")
+        bound = certificate_identities(writer.get_extra_info("peercert"))
+        if bound is not None and request.identity not in bound:
+            raise Refused(
+                Code.CERTIFICATE_MISMATCH,
+                f"the client certificate is for {sorted(bound)}, not {request.identity!r}",
             )
-        key = self._keys.key_for(request.identity)
-        if key is None:
-            raise HandshakeRefused(f"unknown agent {request.identity!r}: no key is configured for it")
-        probing = request.probe
         if (
-            not probing
+            not request.probe
             and len(self.connected()) >= self.config.max_agents
             and request.identity not in self.sessions
         ):
-            raise HandshakeRefused(f"fleet full: {self.config.max_agents} agents connected")
-        server_nonce = auth.new_nonce()
-        writer.write(encode(ResponseCid(outcome="challenge", server_nonce=server_nonce), 1))
-        await writer.drain()
-        answer = await self._read_frame(reader, decoder, backlog)
-        proof_request = answer.body
-        if not isinstance(proof_request, RequestCid) or proof_request.identity != request.identity:
-            raise ProtocolError("expected the type 0 request with proof for the same identity")
-        if proof_request.client_nonce != request.client_nonce or proof_request.proof is None:
-            raise HandshakeRefused("proof missing or client nonce changed")
-        expected = auth.agent_proof(key, request.identity, server_nonce, request.client_nonce)
-        if not auth.proofs_equal(proof_request.proof, expected):
-            raise HandshakeRefused(f"authentication failed for {request.identity!r}: wrong key")
-        if probing or proof_request.probe:  # authenticated only: no CID, no session, never a member
-            await _answer_probe(writer, request, key, server_nonce, self.config, self._events)
-        cid = self._store.cid_for(request.identity, proof_request.capabilities.model_dump())
+            raise Refused(Code.FLEET_FULL, f"fleet full: {self.config.max_agents} agents connected", 30.0)
+
+    def _allocate_cid(self, request: RequestCid) -> int:
+        known = self._store.cid_of(request.identity)
+        if known is None and not self.config.enroll_new_agents:
+            raise Refused(
+                Code.ENROLLMENT_CLOSED,
+                f"{request.identity!r} is not enrolled and enrollment of new agents is off",
+            )
+        try:
+            return self._store.cid_for(request.identity, request.capabilities.model_dump())
+        except CidExhausted as exc:
+            raise Refused(Code.CID_EXHAUSTED, str(exc), 300.0) from None
+
+    async def _handshake(self, stream: FramedStream, handshake: ServerHandshake, peer: str) -> AgentSession:
+        hello = (await stream.read_frame()).body
+        challenge = handshake.on_hello(hello)
+        stream.version = handshake.version
+        assert isinstance(hello, RequestCid)
+        self._admit(hello, stream.writer)
+        await stream.send(challenge)
+        authenticated = handshake.on_proof((await stream.read_frame()).body)
+        request = authenticated.request
+        if authenticated.probe:  # authenticated only: no CID, no session, never a member
+            answer = handshake.accept(None, self._parameters(), time.time())
+            await stream.send(answer, close_for(Code.NORMAL, "probe answered"))
+            self._events.publish("agent_probe", f"{request.identity} probed from {peer}")
+            raise ProbeAnswered(request.identity)
+        cid = self._allocate_cid(request)
+        stream.decoder.max_body = self.config.max_body_bytes  # authenticated: mission-sized frames
         outbox = Outbox(
-            writer,
+            stream.writer,
             request.identity,
             self.config.send_timeout_s,
             self.config.max_pending_bytes,
-            first_seq=1,  # the challenge was frame 1
+            first_seq=stream.seq,
+            version=stream.version,
         )
         session = AgentSession(
             identity=request.identity,
             cid=cid,
-            capabilities=proof_request.capabilities,
-            home=proof_request.home,
-            writer=writer,
+            capabilities=request.capabilities,
+            home=request.home,
+            writer=stream.writer,
             peer=peer,
             outbox=outbox,
+            version=stream.version,
+            compact_status=handshake.compact_status,
         )
-        session.compact_status = bool(proof_request.compact_status)
         outbox.on_cut_off = lambda reason: self._cut_off(session, reason)
         outbox.start()
-        parameters = self.config.agent_parameters.model_copy(
-            update={"status_period_s": self.config.status_period_s}
-        )
-        accepted = ResponseCid(
-            outcome="accepted",
-            cid=cid,
-            server_nonce=server_nonce,
-            server_proof=auth.daemon_proof(key, request.identity, request.client_nonce, server_nonce),
-            parameters=parameters,
-            server_time=time.time(),
-            compact_status=True if session.compact_status else None,
-        )
+        was_lost = request.identity in self.lost
+        accepted = handshake.accept(cid, self._parameters(), time.time(), lost=was_lost)
         previous = self.sessions.get(request.identity)
         if previous is not None and previous.open:
-            await previous.close(CloseReason.REPLACED, f"replaced by a new session from {peer}")
+            await previous.close(
+                CloseReason.REPLACED, f"replaced by a new session from {peer}", code=Code.REPLACED
+            )
             self._events.publish(
                 "agent_replaced", f"session from {previous.peer} replaced by {peer}", agent=request.identity
             )
         self.sessions[request.identity] = session
         if not await session.send(accepted, self.config.send_timeout_s):
             raise ConnectionError("agent left during the handshake")
-        was_lost = request.identity in self.lost
         self.lost.discard(request.identity)
         self._events.publish(
             "agent_joined",
-            f"cid {cid} from {peer}" + (" (back after being lost)" if was_lost else ""),
+            f"cid {cid} from {peer}, protocol v{stream.version}"
+            + (" (back after being lost)" if was_lost else ""),
             agent=request.identity,
-            data={"cid": cid, "resume": proof_request.resume.model_dump() if proof_request.resume else None},
+            data={
+                "cid": cid,
+                "version": stream.version,
+                "resume": request.resume.model_dump() if request.resume else None,
+            },
         )
         # Join hooks run in their services' consumers, outside this handshake's time budget.
-        self._publish("join", session.identity, session, proof_request.resume)
-        # Frames that arrived right behind the proof are handled as the frame loop would.
-        for frame in backlog:
-            self._handle(session, frame)
+        self._publish("join", session.identity, session, request.resume)
         return session
 
-    async def _frame_loop(
-        self, session: AgentSession, reader: asyncio.StreamReader, decoder: FrameDecoder
-    ) -> None:
-        """Serve the session's frames until it ends; raises what ended it (protocol error, rate limit).
+    def _parameters(self) -> AgentParameters:
+        return self.config.agent_parameters.model_copy(
+            update={"status_period_s": self.config.status_period_s}
+        )
 
-        After the handshake the connection's protocol is swapped for a :class:`_FrameProtocol`, so
-        frames are decoded in the transport's ``data_received`` callback: no task wake-up and no
-        ``StreamReader`` buffer copy per read, which at 10 Hz from thousands of agents was most
-        of the per-report cost. The stream protocol stays behind it for write flow control.
+    async def _frame_loop(self, session: AgentSession, stream: FramedStream) -> None:
+        """Frames of an authenticated session; frames that came right behind the proof come first.
+
+        Live frames and replayed (``buffered``) status reports are counted in separate buckets,
+        so an agent catching up after an outage is not cut off for it (docs/protocol.md).
         """
-        transport = session.writer.transport
-        stream_protocol = transport.get_protocol()
-        bucket = TokenBucket(self.config.max_frames_per_s, self.config.frame_burst)
-        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        frames = _FrameProtocol(self, session, decoder, bucket, stream_protocol, done)
-        transport.set_protocol(frames)
-        buffered: bytearray = reader._buffer  # type: ignore[attr-defined]  # read after the handshake
-        if buffered:
-            leftover = bytes(buffered)
-            buffered.clear()
-            frames.data_received(leftover)
-        if reader.at_eof() or transport.is_closing():
-            frames.finish()
-        await done
-
-    def _ingest(self, session: AgentSession, decoder: FrameDecoder, bucket: TokenBucket, data: bytes) -> bool:
-        """Decode and handle every frame ``data`` completes; False once the session is over."""
-        started = time.perf_counter()
-        try:
-            for frame in decoder.feed(data):
-                session.last_rx = time.monotonic()  # complete packets count as life, stray bytes do not
-                if not bucket.take(session.last_rx):
-                    raise RateLimited(
-                        f"more than {self.config.max_frames_per_s:g} frames/s "
-                        f"(burst {self.config.frame_burst}); cut off"
-                    )
-                self.ingest_frames += 1
-                self._handle(session, frame)
-                if not session.open:
-                    return False
-            return True
-        finally:
+        live = TokenBucket(self.config.max_frames_per_s, self.config.frame_burst)
+        replay = TokenBucket(self.config.replay_frames_per_s, self.config.replay_burst)
+        async for frame in stream.frames():
+            session.last_rx = time.monotonic()  # complete packets count as life, stray bytes do not
+            replayed = isinstance(frame.body, StatusReport) and frame.body.buffered
+            if not (replay if replayed else live).take(session.last_rx):
+                kind = "replayed status reports" if replayed else "frames"
+                rate, burst = (
+                    (self.config.replay_frames_per_s, self.config.replay_burst)
+                    if replayed
+                    else (self.config.max_frames_per_s, self.config.frame_burst)
+                )
+                raise RateLimited(f"more than {rate:g} {kind}/s (burst {burst}); cut off")
+            started = time.perf_counter()
+            self._handle(session, frame)
+            self.ingest_frames += 1
             self.ingest_busy_s += time.perf_counter() - started
+            if not session.open:
+                return
 
     def _handle(self, session: AgentSession, frame: Frame) -> None:
         """Record what the frame says and hand it to the hook consumers; nothing is awaited here."""
@@ -430,8 +440,11 @@ class AgentManager:
             if frame.compact and not session.compact_status:
                 raise ProtocolError("compact status body (type 0x82) sent without negotiating it")
             self._exception_events(session, body)
-            session.status = body
             session.status_count += 1
+            if body.buffered:  # history: it never overwrites the newer live state
+                session.replayed_count += 1
+            else:
+                session.status = body
             self._status_batch.append((session, body))
             if not self._flush_scheduled:
                 self._flush_scheduled = True
@@ -468,12 +481,36 @@ class AgentManager:
             self._hooks.publish(kind, agent, *args)
 
     def _exception_events(self, session: AgentSession, status: StatusReport) -> None:
-        """Turn exceptions that appear in a status report into events (once each)."""
-        if not status.exceptions:
-            return
-        before = {e.split(":", 1)[0] for e in session.status.exceptions} if session.status else set()
+        """Turn exceptions that appear in a status report into events (once each, bounded).
+
+        At most ``max_exception_events`` per agent per minute are published; beyond that they
+        are counted, with one warning per suppressed run, so an agent cycling through new names
+        cannot fill the database.
+        """
+        if not status.exceptions and not session.exception_names:
+            return  # the common case: nothing raised before or now
+        before = session.exception_names
+        names = frozenset(e.split(":", 1)[0] for e in status.exceptions)
+        session.exception_names = names
+        if session.exception_budget is None:
+            cap = self.config.max_exception_events
+            session.exception_budget = TokenBucket(cap / 60.0, cap)
+        now = time.monotonic()
         for text in status.exceptions:
             name = text.split(":", 1)[0]
+            if name in before:
+                continue
+            if not session.exception_budget.take(now):
+                session.exceptions_suppressed += 1
+                if session.exceptions_suppressed == 1 or session.exceptions_suppressed % 1000 == 0:
+                    self._events.publish(
+                        "agent_exceptions_suppressed",
+                        f"more than {self.config.max_exception_events} new exceptions a minute; "
+                        f"{session.exceptions_suppressed} not logged",
+                        severity="warning",
+                        agent=session.identity,
+                    )
+                continue
             if name not in before:
                 self._events.publish(
                     "agent_exception",
@@ -547,56 +584,31 @@ class AgentManager:
         return self._hooks.stats()
 
 
-class _FrameProtocol(asyncio.Protocol):
-    """An agent connection after its handshake: frames decoded as bytes arrive (see ``_frame_loop``).
+_REASON_CODES = {
+    CloseReason.NORMAL: Code.NORMAL,
+    CloseReason.REPLACED: Code.REPLACED,
+    CloseReason.SHUTDOWN: Code.SHUTDOWN,
+    CloseReason.PROTOCOL_ERROR: Code.PROTOCOL_ERROR,
+}
 
-    Write flow control (``pause_writing`` / ``resume_writing``) and ``connection_lost`` are
-    passed on to the stream protocol the connection started with, so ``StreamWriter.drain()``
-    in the session's outbox keeps working.
+
+def certificate_identities(peercert: object) -> set[str] | None:
+    """The names a verified client certificate carries (subject CN, DNS SANs); None without one.
+
+    With mutual TLS an agent may only present an identity its certificate names, so a
+    certificate issued for one drone cannot log in as another.
     """
-
-    def __init__(
-        self,
-        manager: AgentManager,
-        session: AgentSession,
-        decoder: FrameDecoder,
-        bucket: TokenBucket,
-        stream_protocol: asyncio.BaseProtocol,
-        done: asyncio.Future[None],
-    ) -> None:
-        self._manager, self._session, self._decoder, self._bucket = manager, session, decoder, bucket
-        self._stream = stream_protocol
-        self._done = done
-
-    def finish(self, exc: BaseException | None = None) -> None:
-        if not self._done.done():
-            if exc is None:
-                self._done.set_result(None)
-            else:
-                self._done.set_exception(exc)
-
-    def data_received(self, data: bytes) -> None:
-        if self._done.done():
-            return
-        try:
-            if not self._manager._ingest(self._session, self._decoder, self._bucket, data):
-                self.finish()
-        except Exception as exc:  # ends this session only: handle_connection deals with it
-            self.finish(exc)
-
-    def eof_received(self) -> bool:
-        self.finish()
-        return False
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        self.finish()
-        self._stream.connection_lost(exc)
-
-    def pause_writing(self) -> None:
-        self._stream.pause_writing()
-
-    def resume_writing(self) -> None:
-        self._stream.resume_writing()
+    if not isinstance(peercert, dict) or not peercert:
+        return None
+    names: set[str] = set()
+    for rdn in peercert.get("subject", ()):
+        for key, value in rdn:
+            if key == "commonName":
+                names.add(str(value))
+    for kind, value in peercert.get("subjectAltName", ()):
+        if kind == "DNS":
+            names.add(str(value))
+    return names
 
 
 def _peer_name(writer: asyncio.StreamWriter) -> str:
@@ -606,40 +618,4 @@ def _peer_name(writer: asyncio.StreamWriter) -> str:
     return str(peer)
 
 
-async def _close_raw(
-    writer: asyncio.StreamWriter, reason: CloseReason, message: str, refusal: bool = False
-) -> None:
-    """Tell a peer without a session why it is being dropped, then drop it."""
-    with contextlib.suppress(Exception):
-        if refusal:
-            writer.write(encode(ResponseCid(outcome="refused", reason=message[:500]), 1))
-        writer.write(encode(Close(reason=reason, message=message[:500]), 2))
-        await asyncio.wait_for(writer.drain(), 1.0)
-    with contextlib.suppress(Exception):
-        writer.close()
-
-
-async def _answer_probe(
-    writer: asyncio.StreamWriter,
-    request: RequestCid,
-    key: bytes,
-    server_nonce: str,
-    config: DaemonConfig,
-    events: EventBus,
-) -> None:
-    """Answer an authenticated probe (``agent doctor``): accepted without a CID, then closed."""
-    answer = ResponseCid(
-        outcome="accepted",
-        server_nonce=server_nonce,
-        server_proof=auth.daemon_proof(key, request.identity, request.client_nonce, server_nonce),
-        parameters=config.agent_parameters.model_copy(update={"status_period_s": config.status_period_s}),
-        server_time=time.time(),
-    )
-    writer.write(encode(answer, 2))
-    writer.write(encode(Close(reason=CloseReason.NORMAL, message="probe answered"), 3))
-    await writer.drain()
-    events.publish("agent_probe", f"{request.identity} probed from {_peer_name(writer)}")
-    raise ProbeAnswered(request.identity)
-
-
-__all__ = ["AgentManager", "AgentSession", "HandshakeRefused", "PacketType"]
+__all__ = ["AgentManager", "AgentSession", "PacketType", "certificate_identities"]

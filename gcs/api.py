@@ -52,6 +52,7 @@ from gcs.api_planning import (
 )
 from gcs.authority import VehicleControl
 from gcs.events import Event
+from gcs.http_guard import HttpGuard
 from gcs.live import LiveHub, StatusSample, StreamClient
 from gcs.metrics import CONTENT_TYPE
 from gcs.missions import MissionProgress, MissionRejected
@@ -117,6 +118,14 @@ def create_app(daemon: Daemon) -> FastAPI:
     )
     app.state.hub = hub
     app.state.daemon = daemon
+    # Host/Origin, token before body, body size while reading (gcs/http_guard.py).
+    app.add_middleware(
+        HttpGuard,
+        token=lambda: daemon.api_token,
+        max_body_bytes=daemon.config.max_api_body_bytes,
+        listen_host=daemon.config.http_host,
+        allowed_hosts=daemon.config.http_allowed_hosts,
+    )
 
     @app.exception_handler(ApiProblem)
     async def _api_problem(_: Request, exc: ApiProblem) -> JSONResponse:
@@ -333,7 +342,7 @@ def create_app(daemon: Daemon) -> FastAPI:
         except MissionRejected as exc:
             raise ApiProblem(422, "mission rejected", str(exc)) from None
 
-    @app.post("/api/v1/plan")
+    @app.post("/api/v1/plan", dependencies=token)
     async def preview(request: Annotated[PlanRequest, Body(discriminator="method")]) -> PlanPreview:
         """Plan without flying: the task file and predicted length, time and energy per drone."""
         return await _plan(request)

@@ -36,8 +36,18 @@ class DaemonConfig(BaseModel):
     listen_port: int = Field(default=4396, ge=0, le=65_535)
     http_host: str | None = "127.0.0.1"
     http_port: int = Field(default=8080, ge=0, le=65_535)
+    http_allowed_hosts: list[str] = Field(
+        default_factory=list,
+        description="DNS names the API may be addressed by besides loopback and http_host (Host, Origin)",
+    )
+    max_api_body_bytes: int = Field(
+        default=16 << 20, ge=1024, description="largest HTTP request body, enforced while reading"
+    )
     data_dir: Path = Field(default_factory=default_data_dir)
     database: Path | None = Field(default=None, description="default: DATA_DIR/fleetgcs.sqlite")
+    new_database: bool = Field(
+        default=False, description="create an empty database even where one existed (it went missing)"
+    )
     fleet_key_hex: str | None = Field(default=None, description="shared key; default: DATA_DIR/fleet.key")
     agent_keys_file: Path | None = Field(default=None, description="JSON {identity: hex key}")
     allow_unlisted_agents: bool = Field(
@@ -52,6 +62,25 @@ class DaemonConfig(BaseModel):
     )
     max_body_bytes: int = Field(default=DEFAULT_MAX_BODY, ge=1024, le=64 << 20)
     max_agents: int = Field(default=1000, ge=1)
+    max_handshakes: int = Field(
+        default=64,
+        ge=1,
+        description="connections allowed to be in the handshake at once; more are refused busy",
+    )
+    enroll_new_agents: bool = Field(
+        default=True,
+        description="give a CID to identities the database has never seen; off = only known identities join",
+    )
+    banned_agents: list[str] = Field(default_factory=list, description="identities refused with code banned")
+    replay_frames_per_s: float = Field(
+        default=100.0, gt=0.0, description="buffered status reports/s an agent may replay after an outage"
+    )
+    replay_burst: int = Field(default=400, ge=1, description="buffered status reports it may send at once")
+    max_exception_events: int = Field(
+        default=30,
+        ge=1,
+        description="agent_exception events per agent per minute; more are counted, not logged",
+    )
     max_frames_per_s: float = Field(
         default=200.0, gt=0.0, description="sustained frames/s one agent may send (status at 10 Hz is 10)"
     )

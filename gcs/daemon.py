@@ -118,7 +118,7 @@ class Daemon:
 
     def __init__(self, config: DaemonConfig) -> None:
         self.config = config
-        self.store = Store(config.database_path)
+        self.store = Store(config.database_path, allow_new=config.new_database)
         self.events = EventBus(self.store)
         fleet_key = (
             parse_key(config.fleet_key_hex)
@@ -330,7 +330,7 @@ class Daemon:
         targets = agents if agents is not None else [s.identity for s in self.agents.connected()]
         delivered = []
         for identity in targets:
-            if await self.agents.send(identity, body):
+            if self.agents.post(identity, body):  # each agent's own outbox: no one waits for the slowest
                 delivered.append(identity)
         if body.geofence is not None or body.clear_geofence:
             for identity in delivered:

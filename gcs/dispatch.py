@@ -10,9 +10,9 @@ the frame loop, and a slow or failing service delays only itself.
 
 Status reports arrive in batches (``publish_batch``: the agent manager hands over everything the
 frame loops received in one event-loop iteration at once), so a report costs each consumer one
-list entry, not one queue item and one task switch. A consumer runs its queue in time slices of
-``SLICE_S`` and then yields, so with thousands of connections it still gets its share of the
-loop (a count-based yield let 2,000 read tasks starve it).
+list entry, not one queue item and one task switch. A consumer runs its queue in steps of
+``STEP_BUDGET_S`` and then yields, so with thousands of connections it still gets its share of
+the loop and a backlog never stalls it.
 
 Each consumer's queue is bounded (``capacity`` events, a batch counting its reports). When it is
 full, a status report is coalesced with the same agent's status still waiting (a status carries
@@ -28,9 +28,9 @@ import asyncio
 import collections
 import logging
 import time
-from collections.abc import Awaitable, Callable, Mapping, Sequence
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, Self, SupportsIndex, TypeVar
 
 log = logging.getLogger("gcs.dispatch")
 
@@ -38,9 +38,65 @@ HookKind = Literal["join", "status", "sync", "lost"]
 Hook = Callable[..., Awaitable[None]]
 StatusBatch = list[tuple[Any, Any]]  # (session, report) pairs, in arrival order
 
-DEFAULT_CAPACITY = 20_000
-SLICE_S = 0.004  # a consumer yields the loop after this much work (a long backlog still lets it breathe)
+DEFAULT_CAPACITY = 10_000
+STEP_BUDGET_S = 0.02
+"""A consumer with a backlog runs hooks for this long before letting the loop go round: long
+enough to keep pace with frame loops that decode a whole 64 KiB read per step, short enough that
+a backlog of quick hooks never stalls the loop."""
 SLOW_HOOK_S = 0.5  # a hook call longer than this is logged (once per consumer per minute)
+
+
+_H = TypeVar("_H")
+
+
+class HookList(list[_H]):
+    """A plain list of hooks (services append and remove as before) that counts its changes.
+
+    The dispatcher caches which consumer serves each hook and checks "still registered?" by
+    comparing versions instead of searching the list for every event.
+    """
+
+    version: int = 0
+
+    def _changed(self) -> None:
+        self.version += 1
+
+    def append(self, hook: _H) -> None:
+        super().append(hook)
+        self._changed()
+
+    def extend(self, hooks: Iterable[_H]) -> None:
+        super().extend(hooks)
+        self._changed()
+
+    def insert(self, index: SupportsIndex, hook: _H) -> None:
+        super().insert(index, hook)
+        self._changed()
+
+    def remove(self, hook: _H) -> None:
+        super().remove(hook)
+        self._changed()
+
+    def pop(self, index: SupportsIndex = -1) -> _H:
+        hook = super().pop(index)
+        self._changed()
+        return hook
+
+    def clear(self) -> None:
+        super().clear()
+        self._changed()
+
+    def __setitem__(self, index: Any, value: Any) -> None:
+        super().__setitem__(index, value)
+        self._changed()
+
+    def __delitem__(self, index: Any) -> None:
+        super().__delitem__(index)
+        self._changed()
+
+    def __iadd__(self, hooks: Iterable[_H]) -> Self:  # type: ignore[override,misc]
+        self.extend(hooks)
+        return self
 
 
 @dataclass(eq=False, slots=True)
@@ -49,6 +105,7 @@ class _Item:
     hook: Hook
     agent: str  # "" for a batch
     args: tuple[Any, ...]
+    version: int  # of the hook list when published: unchanged means still registered
     live: bool = True
     batch: StatusBatch | None = None  # a status batch: hook(session, report) for each pair
 
@@ -71,7 +128,7 @@ class Consumer:
 
     name: str
     owner: object
-    registered: Callable[[HookKind, Hook], bool]
+    lists: Mapping[HookKind, HookList[Hook]]
     capacity: int = DEFAULT_CAPACITY
     delivered: int = 0
     coalesced: int = 0
@@ -84,6 +141,7 @@ class Consumer:
     _latest: dict[str, _Item] = field(default_factory=dict)  # agent -> its newest queued item
     _wakeup: asyncio.Event = field(default_factory=asyncio.Event)
     _idle: asyncio.Event = field(default_factory=asyncio.Event)
+    _awake: bool = False  # the task is running or already woken: no Event calls per event
     _task: asyncio.Task[None] | None = None
     _last_slow_log: float = 0.0
 
@@ -95,19 +153,22 @@ class Consumer:
     def queued(self) -> int:
         return self._size
 
-    def offer_batch(self, hook: Hook, batch: StatusBatch) -> None:
-        """Queue one status batch (shared, never changed, by every consumer it goes to)."""
+    def offer_batch(self, item: _Item) -> None:
+        """Queue one status batch (``item.batch``: shared, never changed, by every consumer it goes to)."""
+        size = len(item.batch or ())
         for _ in range(len(self._queue)):
-            if self._size + len(batch) <= self.capacity:
+            if self._size + size <= self.capacity:
                 break
             dropped = self._drop_oldest_status()
             if not dropped:
                 break
             self.dropped += dropped
-        self._queue.append(_Item("status", hook, "", (), batch=batch))
-        self._size += len(batch)
-        self._idle.clear()
-        self._wakeup.set()
+        self._queue.append(item)
+        self._size += size
+        if not self._awake:
+            self._awake = True
+            self._idle.clear()
+            self._wakeup.set()
 
     def offer(self, item: _Item) -> None:
         if self._size >= self.capacity:
@@ -123,8 +184,10 @@ class Consumer:
         self._queue.append(item)
         self._size += 1
         self._latest[item.agent] = item
-        self._idle.clear()
-        self._wakeup.set()
+        if not self._awake:
+            self._awake = True
+            self._idle.clear()
+            self._wakeup.set()
 
     def _drop_oldest_status(self) -> int:
         """Drop the oldest waiting status (or status batch); how many reports went."""
@@ -141,42 +204,44 @@ class Consumer:
         return 0
 
     async def _run(self) -> None:
-        slice_start = time.monotonic()
+        queue, latest, lists = self._queue, self._latest, self.lists
+        step_started = started = time.monotonic()
         while True:
-            if not self._queue:
+            if not queue:
+                self._awake = False
                 self._idle.set()
                 self._wakeup.clear()
                 await self._wakeup.wait()
-                slice_start = time.monotonic()
+                step_started = started = time.monotonic()
                 continue
-            item = self._queue.popleft()
+            item = queue.popleft()
             if not item.live:
                 continue
             if item.batch is not None:
                 self._size -= len(item.batch)
             else:
                 self._size -= 1
-                if self._latest.get(item.agent) is item:
-                    del self._latest[item.agent]
-            if not self.registered(item.kind, item.hook):
+                if latest.get(item.agent) is item:
+                    del latest[item.agent]
+            hooks = lists[item.kind]
+            if item.version != hooks.version and item.hook not in hooks:
                 continue  # the service removed its hook (stopped) after the event was queued
-            started = time.monotonic()
             if item.batch is None:
                 await self._call(item.kind, item.hook, item.args)
             else:
                 for pair in item.batch:
                     await self._call("status", item.hook, pair)
             now = time.monotonic()
-            elapsed = now - started
-            self.busy_s += elapsed
-            if elapsed > SLOW_HOOK_S and started - self._last_slow_log > 60.0:
+            self.busy_s += now - started
+            if now - started > SLOW_HOOK_S and started - self._last_slow_log > 60.0:
                 self._last_slow_log = started
                 log.warning(
-                    "%s hook of %s took %.2f s (%d queued)", item.kind, self.name, elapsed, self._size
+                    "%s hook of %s took %.2f s (%d queued)", item.kind, self.name, now - started, self._size
                 )
-            if now - slice_start >= SLICE_S:
+            started = now
+            if now - step_started > STEP_BUDGET_S:
                 await asyncio.sleep(0)
-                slice_start = time.monotonic()
+                step_started = started = time.monotonic()
 
     async def _call(self, kind: HookKind, hook: Hook, args: tuple[Any, ...]) -> None:
         try:
@@ -210,25 +275,32 @@ class Consumer:
 class HookDispatcher:
     """Publishes agent events to the consumer of every hook registered for their kind."""
 
-    def __init__(self, hooks: Mapping[HookKind, Sequence[Hook]], capacity: int = DEFAULT_CAPACITY) -> None:
+    def __init__(self, hooks: Mapping[HookKind, HookList[Hook]], capacity: int = DEFAULT_CAPACITY) -> None:
         self._hooks = hooks  # the manager's own lists: services append/remove hooks at any time
         self.capacity = capacity
         self._consumers: dict[int, Consumer] = {}
         self._names: collections.Counter[str] = collections.Counter()
+        self._routes: dict[HookKind, tuple[int, list[tuple[Hook, Consumer]]]] = {}
 
     def publish(self, kind: HookKind, agent: str, *args: Any) -> None:
         """Queue ``hook(*args)`` for every hook of ``kind``; never blocks, never raises for a hook."""
-        for hook in self._hooks[kind]:
-            self._consumer(hook).offer(_Item(kind, hook, agent, args))
+        for hook, consumer in self._route(kind):
+            consumer.offer(_Item(kind, hook, agent, args, self._hooks[kind].version))
 
     def publish_batch(self, batch: StatusBatch) -> None:
         """Queue ``hook(session, report)`` for every pair of ``batch`` and every status hook."""
         if batch:
-            for hook in self._hooks["status"]:
-                self._consumer(hook).offer_batch(hook, batch)
+            version = self._hooks["status"].version
+            for hook, consumer in self._route("status"):
+                consumer.offer_batch(_Item("status", hook, "", (), version, batch=batch))
 
-    def _registered(self, kind: HookKind, hook: Hook) -> bool:
-        return hook in self._hooks[kind]
+    def _route(self, kind: HookKind) -> list[tuple[Hook, Consumer]]:
+        """(hook, its consumer) for every hook of ``kind``, cached until the hook list changes."""
+        version = self._hooks[kind].version
+        route = self._routes.get(kind)
+        if route is None or route[0] != version:
+            route = self._routes[kind] = (version, [(h, self._consumer(h)) for h in self._hooks[kind]])
+        return route[1]
 
     def _consumer(self, hook: Hook) -> Consumer:
         owner = _owner(hook)
@@ -238,7 +310,7 @@ class HookDispatcher:
             base = type(owner).__name__ if bound else str(getattr(hook, "__name__", "hook"))
             self._names[base] += 1
             name = base if self._names[base] == 1 else f"{base}#{self._names[base]}"
-            consumer = Consumer(name, owner, self._registered, self.capacity)
+            consumer = Consumer(name, owner, self._hooks, self.capacity)
             self._consumers[id(owner)] = consumer
         return consumer
 
@@ -275,11 +347,14 @@ class HookDispatcher:
         live = {id(_owner(hook)) for hooks in self._hooks.values() for hook in hooks}
         idle = [k for k, c in self._consumers.items() if k not in live and c._idle.is_set()]
         stopped = [c for c in (self._consumers.pop(k, None) for k in idle) if c is not None]
+        if stopped:
+            self._routes.clear()
         for consumer in stopped:
             await consumer.stop()
 
     async def close(self) -> None:
         consumers, self._consumers = list(self._consumers.values()), {}
+        self._routes.clear()
         for consumer in consumers:
             await consumer.stop()
 
@@ -289,4 +364,4 @@ def _owner(hook: Hook) -> object:
     return hook.__self__ if hasattr(hook, "__self__") else hook
 
 
-__all__ = ["ConsumerStats", "HookDispatcher", "HookKind", "StatusBatch"]
+__all__ = ["ConsumerStats", "HookDispatcher", "HookKind", "HookList", "StatusBatch"]

@@ -13,7 +13,7 @@ from protocol.auth import parse_key
 def load_or_create_key_file(path: Path) -> bytes:
     """Read a hex key file, creating it (mode 0600, 32 random bytes) when absent."""
     if not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
         with os.fdopen(fd, "w") as handle:
             handle.write(secrets.token_hex(32) + "\n")

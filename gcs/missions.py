@@ -445,20 +445,38 @@ class MissionRunner:
         if mission.state != "running" or step in mission.barriers.released:
             return
         missing = sorted(mission.barriers.missing(step))
+        await self._lost_policy(
+            mission,
+            step,
+            missing,
+            f"step {step}: still waiting for {missing} after {mission.task.sync_timeout_s:.0f} s",
+            abort_result=f"sync step {step} timed out waiting for {missing}",
+            exclude_why=f"did not reach sync step {step} in time",
+        )
+
+    async def _lost_policy(
+        self,
+        mission: ActiveMission,
+        step: int,
+        missing: list[str],
+        what: str,
+        abort_result: str,
+        exclude_why: str,
+    ) -> None:
+        """The task's lost-agent policy for agents that did not reach barrier ``step``."""
         policy = mission.task.lost_agent_policy
         self._events.publish(
             "sync_timeout",
-            f"step {step}: still waiting for {missing} after {mission.task.sync_timeout_s:.0f} s; "
-            f"policy {policy}",
+            f"{what}; policy {policy}",
             severity="error",
             mission_id=mission.id,
             data={"step": step, "missing": missing},
         )
         if policy == "abort":
-            await self.abort(mission.id, f"sync step {step} timed out waiting for {missing}")
+            await self.abort(mission.id, abort_result)
             return
         for identity in missing:
-            await self._exclude(mission, identity, f"did not reach sync step {step} in time")
+            await self._exclude(mission, identity, exclude_why)
 
     async def _exclude(self, mission: ActiveMission, identity: str, why: str) -> None:
         mission.excluded.add(identity)
@@ -618,12 +636,13 @@ class MissionRunner:
             timer.cancel()
 
     def _working_on(self, mission: ActiveMission, identity: str) -> bool:
-        """True while the agent's reports show it flying an action or waiting at a barrier."""
+        """True while the agent's reports show it flying an action, waiting at a barrier, or held
+        by a pause (collision avoidance holds one agent at a time)."""
         session = self._agents.session(identity)
         status = session.status if session else None
         if status is None or status.mission_id != mission.id:
             return False
-        return status.step >= 0 or status.waiting_sync is not None
+        return status.step >= 0 or status.waiting_sync is not None or status.paused
 
     async def _watchdog_fired(self, mission: ActiveMission, step: int) -> None:
         self._watchdogs.pop(mission.id, None)
@@ -635,20 +654,15 @@ class MissionRunner:
         if not idle or mission.id in self.paused:
             self._arm_watchdog(mission)  # long legs: look again one timeout later
             return
-        policy = mission.task.lost_agent_policy
-        self._events.publish(
-            "sync_timeout",
+        await self._lost_policy(
+            mission,
+            step,
+            idle,
             f"step {step}: {idle} not working towards it {mission.task.sync_timeout_s:.0f} s after "
-            f"the mission start or the previous release; policy {policy}",
-            severity="error",
-            mission_id=mission.id,
-            data={"step": step, "missing": idle},
+            "the mission start or the previous release",
+            abort_result=f"sync step {step}: {idle} never arrived",
+            exclude_why=f"never reached sync step {step}",
         )
-        if policy == "abort":
-            await self.abort(mission.id, f"sync step {step}: {idle} never arrived")
-            return
-        for identity in idle:
-            await self._exclude(mission, identity, f"never reached sync step {step}")
         if mission.state == "running":
             self._arm_watchdog(mission)
 

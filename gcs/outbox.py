@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from protocol.packets import Body, Close, PacketType, PerformActions, packet_type_of
+from protocol.packets import PROTOCOL_VERSION, Body, Close, PacketType, PerformActions, packet_type_of
 from protocol.wire import encode
 
 log = logging.getLogger("gcs.outbox")
@@ -70,6 +70,7 @@ class Outbox:
     send_timeout_s: float
     max_pending_bytes: int
     first_seq: int = 1
+    version: int = PROTOCOL_VERSION  # the session's protocol version: a v1 peer gets v1 bodies
     max_frames: int = MAX_QUEUED_FRAMES
     on_cut_off: Callable[[str], None] | None = None
     last_tx: float = field(default_factory=time.monotonic)
@@ -151,7 +152,7 @@ class Outbox:
     def _enqueue(self, body: Body, urgent: bool | None, done: asyncio.Future[bool] | None) -> bool:
         if not self.open:
             return False
-        frame = encode(body, 0)
+        frame = encode(body, 0, self.version)
         item = _Outgoing(frame, packet_type_of(body), is_urgent(body) if urgent is None else urgent, done)
         return self._enqueue_frame(item)
 

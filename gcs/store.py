@@ -11,14 +11,27 @@ beside the writer. Bulk statements are chunked so no transaction holds the write
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import sqlite3
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 SCHEMA_VERSION = 3
+MAX_CID = 65_535  # the wire's cid range (docs/protocol.md, type 1)
+
+
+class StoreError(RuntimeError):
+    """The database cannot be used safely (damaged, or missing where one existed)."""
+
+
+class CidExhausted(Exception):
+    """Every connection ID is taken: a new identity is refused, never given a duplicate."""
+
 
 _MIGRATIONS: dict[int, str] = {
     1: """
@@ -144,15 +157,50 @@ class StoredEvent:
 class Store:
     """Thin, explicit SQL over one connection; every public method is one transaction."""
 
-    def __init__(self, path: Path | str) -> None:
+    def __init__(self, path: Path | str, *, allow_new: bool = False) -> None:
+        """Open (or create) the database at ``path``.
+
+        Refuses (:class:`StoreError`) a damaged database, and a missing one where one existed
+        before (its ``.created`` marker is there): a new database would hand out the connection
+        IDs again, so a task file addressed by CID would command other vehicles. ``allow_new``
+        (``gcs serve --new-database``) is the operator saying an empty database is what they want.
+        The directory is created 0700 and the database files are 0600.
+        """
         self.path = str(path)
         if self.path != ":memory:":
-            Path(self.path).parent.mkdir(parents=True, exist_ok=True)
+            file = Path(self.path)
+            marker = file.with_name(file.name + ".created")
+            if not file.parent.exists():
+                file.parent.mkdir(mode=0o700, parents=True)
+            if not file.exists():
+                if marker.exists() and not allow_new:
+                    raise StoreError(
+                        f"{file} is missing but a database existed there (marker {marker.name}); restore it "
+                        "from a backup, or start with --new-database to begin with an empty one "
+                        "(connection IDs will be assigned anew)"
+                    )
+                os.close(os.open(file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+                marker.write_text("fleetgcs database created here; see docs/security.md\n")
+            with contextlib.suppress(OSError):
+                os.chmod(file, 0o600)  # the WAL and shared-memory files take the database's mode
         self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=NORMAL")
-        self._db.execute("PRAGMA foreign_keys=ON")
-        self._migrate()
+        # Held around every write transaction in this process (the loop's small ones and the
+        # telemetry writer's chunks): a writer waiting here is woken the moment the other is
+        # done, where SQLite's own busy handler would sleep in growing steps (up to 100 ms).
+        self.write_lock = threading.Lock()
+        try:
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            check = self._db.execute("PRAGMA quick_check").fetchone()[0]
+            if check != "ok":
+                raise sqlite3.DatabaseError(check)
+            self._migrate()
+        except sqlite3.DatabaseError as exc:
+            self._db.close()
+            raise StoreError(
+                f"{self.path} is damaged or not a fleetgcs database ({exc}); restore it from a backup"
+            ) from None
 
     def _migrate(self) -> None:
         version = self._db.execute("PRAGMA user_version").fetchone()[0]
@@ -166,22 +214,32 @@ class Store:
 
     # --- agents ---------------------------------------------------------------------------------
 
+    def cid_of(self, identity: str) -> int | None:
+        """The connection ID ``identity`` already has, or None if it never joined (not enrolled)."""
+        row = self._db.execute("SELECT cid FROM agents WHERE identity=?", (identity,)).fetchone()
+        return None if row is None else int(row[0])
+
     def cid_for(self, identity: str, capabilities: dict[str, Any]) -> int:
         """The stable connection ID of ``identity``, allocating the next free one on first contact."""
         now = time.time()
-        row = self._db.execute("SELECT cid FROM agents WHERE identity=?", (identity,)).fetchone()
-        if row is not None:
+        with self._tx():
+            row = self._db.execute("SELECT cid FROM agents WHERE identity=?", (identity,)).fetchone()
+            if row is not None:
+                self._db.execute(
+                    "UPDATE agents SET last_seen=?, capabilities=? WHERE identity=?",
+                    (now, json.dumps(capabilities), identity),
+                )
+                return int(row[0])
+            next_cid = self._db.execute("SELECT COALESCE(MAX(cid), 0) + 1 FROM agents").fetchone()[0]
+            if next_cid > MAX_CID:
+                raise CidExhausted(
+                    f"all {MAX_CID} connection IDs are taken; retire identities (gcs agents retire) first"
+                )
             self._db.execute(
-                "UPDATE agents SET last_seen=?, capabilities=? WHERE identity=?",
-                (now, json.dumps(capabilities), identity),
+                "INSERT INTO agents(identity, cid, first_seen, last_seen, capabilities) VALUES (?,?,?,?,?)",
+                (identity, next_cid, now, now, json.dumps(capabilities)),
             )
-            return int(row[0])
-        next_cid = self._db.execute("SELECT COALESCE(MAX(cid), 0) + 1 FROM agents").fetchone()[0]
-        self._db.execute(
-            "INSERT INTO agents(identity, cid, first_seen, last_seen, capabilities) VALUES (?,?,?,?,?)",
-            (identity, next_cid, now, now, json.dumps(capabilities)),
-        )
-        return int(next_cid)
+            return int(next_cid)
 
     def identity_for_cid(self, cid: int) -> str | None:
         row = self._db.execute("SELECT identity FROM agents WHERE cid=?", (cid,)).fetchone()
@@ -204,7 +262,7 @@ class Store:
             )
 
     def finish_mission(self, mission_id: str, state: str, result: str) -> None:
-        self._db.execute(
+        self._write(
             "UPDATE missions SET state=?, finished=?, result=? WHERE id=?",
             (state, time.time(), result, mission_id),
         )
@@ -251,13 +309,13 @@ class Store:
         ]
 
     def set_completed_step(self, mission_id: str, agent: str, step: int) -> None:
-        self._db.execute(
+        self._write(
             "UPDATE mission_agents SET completed_step=MAX(completed_step, ?) WHERE mission_id=? AND agent=?",
             (step, mission_id, agent),
         )
 
     def exclude_agent(self, mission_id: str, agent: str) -> None:
-        self._db.execute(
+        self._write(
             "UPDATE mission_agents SET excluded=1 WHERE mission_id=? AND agent=?", (mission_id, agent)
         )
 
@@ -269,7 +327,7 @@ class Store:
         return {str(a): (int(s), bool(e)) for a, s, e in rows}
 
     def record_release(self, mission_id: str, step: int) -> None:
-        self._db.execute(
+        self._write(
             "INSERT OR IGNORE INTO releases(mission_id, step, released_at) VALUES (?,?,?)",
             (mission_id, step, time.time()),
         )
@@ -293,7 +351,7 @@ class Store:
     ) -> StoredEvent:
         when = time.time() if at is None else at
         payload = data or {}
-        cur = self._db.execute(
+        cur = self._write(
             "INSERT INTO events(time, kind, severity, agent, mission_id, message, data) "
             "VALUES (?,?,?,?,?,?,?)",
             (when, kind, severity, agent, mission_id, message, json.dumps(payload)),
@@ -334,11 +392,16 @@ class Store:
             raise ValueError("an in-memory store has no second connection")
         db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=30.0)
         db.execute("PRAGMA synchronous=NORMAL")
+        # WAL checkpoints become the bulk writer's job, run outside any write transaction
+        # (:func:`checkpoint`): a commit that crosses the auto-checkpoint threshold would copy
+        # megabytes inside the commit, on whichever connection (possibly the loop's) made it.
+        db.execute("PRAGMA wal_autocheckpoint=0")
+        self._db.execute("PRAGMA wal_autocheckpoint=0")
         return db
 
     def add_telemetry(self, rows: list[tuple[Any, ...]]) -> None:
         """Insert rows in ``TELEMETRY_COLUMNS`` order (chunked transactions)."""
-        insert_telemetry(self._db, rows)
+        insert_telemetry(self._db, rows, self.write_lock)
 
     def telemetry(
         self,
@@ -369,38 +432,51 @@ class Store:
 
     def prune_telemetry(self, older_than: float) -> int:
         """Delete samples received before ``older_than`` (UNIX time); returns how many."""
-        return prune_telemetry(self._db, older_than)
+        return prune_telemetry(self._db, older_than, self.write_lock)
+
+    def _write(self, sql: str, args: Any = ()) -> sqlite3.Cursor:
+        """One write statement (its own transaction) under the process's write lock."""
+        with self.write_lock:
+            return self._db.execute(sql, args)
 
     def _tx(self) -> _Transaction:
-        return _Transaction(self._db)
+        return _Transaction(self._db, self.write_lock)
 
 
-TELEMETRY_CHUNK = 2000
+TELEMETRY_CHUNK = 500
 """Rows per write transaction: bounds how long a bulk write holds SQLite's single write lock
 (a few milliseconds), so the event loop's small state writes never wait long for it."""
 
 
-def insert_telemetry(db: sqlite3.Connection, rows: list[tuple[Any, ...]]) -> None:
+def insert_telemetry(db: sqlite3.Connection, rows: list[tuple[Any, ...]], lock: threading.Lock) -> None:
     """Insert rows in ``TELEMETRY_COLUMNS`` order, ``TELEMETRY_CHUNK`` rows per transaction."""
     placeholders = ",".join("?" * len(TELEMETRY_COLUMNS))
     sql = f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) VALUES ({placeholders})"
     for start in range(0, len(rows), TELEMETRY_CHUNK):
-        with _Transaction(db):
+        with _Transaction(db, lock):
             db.executemany(sql, rows[start : start + TELEMETRY_CHUNK])
 
 
-def prune_telemetry(db: sqlite3.Connection, older_than: float, max_rows: int = 10_000_000) -> int:
+def prune_telemetry(
+    db: sqlite3.Connection, older_than: float, lock: threading.Lock, max_rows: int = 10_000_000
+) -> int:
     """Delete samples received before ``older_than`` in chunks; returns how many (at most ``max_rows``)."""
     removed = 0
     while removed < max_rows:
-        count = db.execute(
-            "DELETE FROM telemetry WHERE id IN (SELECT id FROM telemetry WHERE received < ? LIMIT ?)",
-            (older_than, TELEMETRY_CHUNK),
-        ).rowcount
+        with lock:
+            count = db.execute(
+                "DELETE FROM telemetry WHERE id IN (SELECT id FROM telemetry WHERE received < ? LIMIT ?)",
+                (older_than, TELEMETRY_CHUNK),
+            ).rowcount
         removed += int(count)
         if count < TELEMETRY_CHUNK:
             break
     return removed
+
+
+def checkpoint(db: sqlite3.Connection) -> None:
+    """Copy the WAL back into the database file as far as readers allow (never blocks writers)."""
+    db.execute("PRAGMA wal_checkpoint(PASSIVE)")
 
 
 def _newest_ids_sql() -> str:
@@ -444,7 +520,7 @@ def telemetry_page(
 _SAMPLE_JSON = """json_object(
  'received', received,
  'status', json_object(
-  'time', time,
+  'time', time, 'vehicle_time', json('null'),
   'position', json_object('lat', lat, 'lon', lon, 'alt_rel', alt_rel, 'alt_amsl', alt_amsl),
   'velocity', json_object('vn', vn, 've', ve, 'vd', vd),
   'heading_deg', heading_deg,
@@ -457,7 +533,8 @@ _SAMPLE_JSON = """json_object(
   'step', step,
   'completed_step', -1, 'queue_depth', 0, 'waiting_sync', NULL, 'paused', json('false'),
   'exceptions', json('[]'), 'autopilot_link', json('true'),
-  'buffered', json(CASE WHEN buffered THEN 'true' ELSE 'false' END), 'failsafe', json('null')))"""
+  'buffered', json(CASE WHEN buffered THEN 'true' ELSE 'false' END),
+  'failsafe', json('null'), 'failure', json('null'), 'vehicle_time', json('null')))"""
 
 
 def telemetry_page_json(
@@ -480,11 +557,20 @@ def telemetry_page_json(
 
 
 class _Transaction:
-    def __init__(self, db: sqlite3.Connection) -> None:
+    def __init__(self, db: sqlite3.Connection, lock: threading.Lock) -> None:
         self._db = db
+        self._lock = lock
 
     def __enter__(self) -> None:
-        self._db.execute("BEGIN")
+        self._lock.acquire()
+        try:
+            self._db.execute("BEGIN")
+        except BaseException:
+            self._lock.release()
+            raise
 
     def __exit__(self, exc_type: object, *_: object) -> None:
-        self._db.execute("ROLLBACK" if exc_type else "COMMIT")
+        try:
+            self._db.execute("ROLLBACK" if exc_type else "COMMIT")
+        finally:
+            self._lock.release()

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 from gcs.agents import AgentSession
 from gcs.config import TelemetryConfig
-from gcs.store import Store, insert_telemetry, prune_telemetry, telemetry_page_json
+from gcs.store import Store, checkpoint, insert_telemetry, prune_telemetry, telemetry_page_json
 from protocol.packets import StatusReport
 
 if TYPE_CHECKING:
@@ -128,7 +128,8 @@ class TelemetryWriter:
                 self._wake.clear()
                 with self._done:
                     target = self._requested
-                self._write(lambda rows: insert_telemetry(db, rows))
+                if self._write(lambda rows: insert_telemetry(db, rows, self._store.write_lock)):
+                    checkpoint(db)
                 with self._done:
                     self._completed = max(self._completed, target)
                     self._done.notify_all()
@@ -141,22 +142,25 @@ class TelemetryWriter:
         finally:
             db.close()
 
-    def _write(self, insert: Callable[[list[tuple[Any, ...]]], None]) -> None:
+    def _write(self, insert: Callable[[list[tuple[Any, ...]]], None]) -> bool:
+        """Write what is queued; True if anything was written."""
         with self._lock:
             batch = list(self._rows)
             self._rows.clear()
         if not batch:
-            return
+            return False
         try:
             insert(batch)
             self.written += len(batch)
         except sqlite3.Error:  # a full disk or a locked file costs this batch, not the daemon
             self.failed_batches += 1
             log.exception("telemetry: could not write %d samples", len(batch))
+            return False
+        return True
 
     def _prune(self, db: sqlite3.Connection) -> None:
         try:
-            removed = prune_telemetry(db, time.time() - self.config.retention_s)
+            removed = prune_telemetry(db, time.time() - self.config.retention_s, self._store.write_lock)
         except sqlite3.Error:
             log.exception("telemetry: pruning failed")
             return

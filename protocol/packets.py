@@ -1,7 +1,10 @@
 """Bodies of the seven packet types (CoUAS Table 2), as pydantic models.
 
 Each body travels as a UTF-8 JSON object inside one frame (see :mod:`protocol.wire`). Models
-forbid unknown fields so that a typo on one side is an error, not a silently ignored setting.
+forbid unknown fields so that a typo in *our* code is an error; on the wire, the decoder drops
+unknown fields outside commands before validating (docs/protocol.md, "must ignore"), so that
+adding an optional field is not a breaking change. Fields that a version-1 peer does not know
+are listed in :data:`V2_FIELDS` and left out when encoding for a version-1 session.
 Units: degrees (lat/lon/heading), metres, m/s, seconds, volts, amperes, percent.
 """
 
@@ -15,7 +18,11 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from protocol.actions import Action, AltitudeRel, Latitude, Longitude
 from protocol.geo import distance_m, point_in_polygon
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+"""The newest protocol version this code speaks (the session version is negotiated, see
+:mod:`protocol.session`)."""
+SUPPORTED_VERSIONS: tuple[int, ...] = (1, 2)
+"""Every protocol version this code speaks, oldest first."""
 
 Identity = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$")]
 HexNonce = Annotated[str, Field(min_length=32, max_length=128, pattern=r"^[0-9a-f]+$")]
@@ -34,6 +41,10 @@ class PacketType(enum.IntEnum):
     PERFORM_ACTIONS = 4
     SYNC = 5
     CLOSE = 6
+
+
+Code = Annotated[str, Field(min_length=1, max_length=32, pattern=r"^[a-z][a-z0-9_]*$")]
+"""A refusal or close code (v2); the known ones and what they mean are in :mod:`protocol.session`."""
 
 
 class _Body(BaseModel):
@@ -88,19 +99,26 @@ class RequestCid(_Body):
     ``probe`` (optional, default false) asks only for authentication: a check such as
     ``agent doctor`` gets an ``accepted`` without a CID and never becomes a fleet member.
 
-    ``compact_status`` (optional) offers the compact binary status body (protocol/status_binary.py,
-    frame type byte 0x82); the agent uses it only once the accepting type 1 says so.
+    ``compact_status`` (optional, v2 only, in the request with ``proof``) offers the compact binary
+    status body (protocol/status_binary.py, frame type byte 0x82); the agent uses it only once
+    the accepting type 1 says so.
     """
 
     identity: Identity
-    protocol_version: int = Field(ge=1, le=255)
+    protocol_version: int = Field(ge=1, le=255, description="the highest version the agent speaks")
+    versions: list[Annotated[int, Field(ge=1, le=255)]] | None = Field(
+        default=None,
+        min_length=1,
+        max_length=16,
+        description="v2: every version the agent speaks; absent = [protocol_version] (a v1 agent)",
+    )
     client_nonce: HexNonce
     capabilities: Capabilities = Capabilities()
     home: GeoPoint | None = None
     proof: HexMac | None = None
     resume: Resume | None = None
     probe: bool = False
-    compact_status: bool | None = None
+    compact_status: bool | None = Field(default=None, description="v2: offers the compact status body (0x82)")
 
 
 # --- type 1: response with connection ID -------------------------------------------------------
@@ -125,8 +143,8 @@ class ResponseCid(_Body):
 
     On ``accepted``, ``server_proof`` = hex HMAC-SHA256(key, "fleetgcs-daemon-v1|" identity "|"
     client_nonce "|" server_nonce) lets the agent check it talks to a daemon holding its key.
-    ``compact_status`` (on ``accepted``, only when the request offered it) lets the agent send
-    its status reports in the compact binary body.
+    ``compact_status`` (v2, on ``accepted``, only when the request with proof offered it) lets the
+    agent send its status reports in the compact binary body.
     """
 
     outcome: Literal["challenge", "accepted", "refused"]
@@ -136,7 +154,19 @@ class ResponseCid(_Body):
     reason: str | None = Field(default=None, max_length=512)
     parameters: AgentParameters | None = None
     server_time: Finite | None = None
-    compact_status: bool | None = None
+    protocol_version: int | None = Field(
+        default=None, ge=1, le=255, description="v2: the version the session speaks (with challenge/accepted)"
+    )
+    code: Code | None = Field(default=None, description="v2: with refused, what the agent should do")
+    retry_after_s: Annotated[float, Field(ge=0.0, le=86_400.0, allow_inf_nan=False)] | None = Field(
+        default=None, description="v2: with a retry code, wait at least this long"
+    )
+    lost: bool | None = Field(
+        default=None, description="v2: with accepted, true when the daemon had marked this agent lost"
+    )
+    compact_status: bool | None = Field(
+        default=None, description="v2: with accepted, the agent may send the compact status body (0x82)"
+    )
 
 
 # --- type 2: status report ---------------------------------------------------------------------
@@ -258,7 +288,7 @@ class SetParameters(_Body):
     """Type 3. Installs a geofence (``clear_geofence`` removes it) and/or other settings."""
 
     geofence: Geofence | None = None
-    clear_geofence: bool = False
+    clear_geofence: bool | None = Field(default=None, description="true: remove the fence (absent = false)")
     parameters: AgentParameters | None = None
 
 
@@ -330,6 +360,7 @@ class Close(_Body):
 
     reason: CloseReason
     message: str = Field(default="", max_length=512)
+    code: Code | None = Field(default=None, description="v2: what the peer should do (docs/protocol.md)")
 
 
 BODY_MODELS: dict[PacketType, type[_Body]] = {
@@ -345,6 +376,20 @@ BODY_MODELS: dict[PacketType, type[_Body]] = {
 Body = RequestCid | ResponseCid | StatusReport | SetParameters | PerformActions | SyncSignal | Close
 
 
+V2_FIELDS: dict[type[_Body], frozenset[str]] = {
+    RequestCid: frozenset({"versions", "compact_status"}),
+    ResponseCid: frozenset({"protocol_version", "code", "retry_after_s", "lost", "compact_status"}),
+    Close: frozenset({"code"}),
+}
+"""Fields added in version 2: never sent to a version-1 peer, which forbids unknown fields."""
+
+MUST_UNDERSTAND: dict[PacketType, tuple[str, ...]] = {
+    PacketType.PERFORM_ACTIONS: ("actions",),
+    PacketType.SET_PARAMETERS: ("geofence",),
+}
+"""Where an unknown field is an error, not ignored: ignoring part of a command or a fence is unsafe."""
+
+
 def packet_type_of(body: Body) -> PacketType:
     """The packet type that carries ``body``."""
     for ptype, model in BODY_MODELS.items():
@@ -355,7 +400,10 @@ def packet_type_of(body: Body) -> PacketType:
 
 __all__ = [
     "BODY_MODELS",
+    "MUST_UNDERSTAND",
     "PROTOCOL_VERSION",
+    "SUPPORTED_VERSIONS",
+    "V2_FIELDS",
     "Action",
     "ActionFailure",
     "AgentParameters",
@@ -366,6 +414,7 @@ __all__ = [
     "Capabilities",
     "Close",
     "CloseReason",
+    "Code",
     "CommandSource",
     "FenceCircle",
     "FenceVertex",

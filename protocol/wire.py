@@ -4,9 +4,10 @@ Header, all integers big-endian::
 
     offset size field
     0      2    magic        b"FG" (0x46 0x47)
-    2      1    version      PROTOCOL_VERSION (1)
+    2      1    version      FRAME_VERSION (1): the frame format, the same in protocol v1 and v2
     3      1    packet type  0..6; bit 7 (0x80) set = compact binary body (only 0x82, a type-2
-                             status in protocol/status_binary.py's layout, negotiated in the handshake)
+                             status in protocol/status_binary.py's layout, a v2 capability
+                             negotiated in the handshake: ``compact_status``)
     4      4    sequence     u32, per sender, +1 per frame, wraps at 2**32
     8      4    body length  u32, bytes of body that follow
     12     4    body CRC-32  u32, zlib.crc32 of the body bytes
@@ -14,6 +15,10 @@ Header, all integers big-endian::
 The length is checked against the receiver's maximum *before* any body byte is buffered, so an
 oversized frame costs the receiver 16 bytes. :class:`FrameDecoder` raises only
 :class:`ProtocolError`; after one, the stream is out of step and the connection must be closed.
+
+Bodies are parsed strictly (docs/protocol.md section 3): duplicate keys, NaN/Infinity and type
+coercion (``"3"`` or ``3.0`` for an int, ``"yes"`` for a bool) are errors; unknown fields are
+dropped, except inside commands (:data:`~protocol.packets.MUST_UNDERSTAND`).
 """
 
 from __future__ import annotations
@@ -29,7 +34,9 @@ from pydantic import ValidationError
 from protocol import status_binary
 from protocol.packets import (
     BODY_MODELS,
+    MUST_UNDERSTAND,
     PROTOCOL_VERSION,
+    V2_FIELDS,
     Body,
     PacketType,
     StatusReport,
@@ -41,6 +48,8 @@ HEADER = struct.Struct(">2sBBIII")
 HEADER_SIZE = HEADER.size  # 16
 DEFAULT_MAX_BODY = 1 << 20  # 1 MiB: a 2000-waypoint survey leg is ~150 KiB
 SEQ_MODULO = 1 << 32
+FRAME_VERSION = 1  # the header's version byte: the frame format, unchanged by protocol v2
+PRE_AUTH_MAX_BODY = 1024  # a handshake packet is well under 1 KiB; the daemon's limit before `accepted`
 COMPACT = 0x80
 """Packet-type bit: the body is the compact binary form (today only type 2: ``STATUS_COMPACT``)."""
 STATUS_COMPACT = COMPACT | PacketType.STATUS
@@ -65,21 +74,47 @@ class Frame:
     compact: bool = False  # the body came in the compact binary form (type byte 0x82)
 
 
-def encode(body: Body, seq: int, *, compact: bool = False) -> bytes:
+def encode(body: Body, seq: int, version: int = PROTOCOL_VERSION, *, compact: bool = False) -> bytes:
     """Serialise ``body`` into one frame with sequence number ``seq`` (taken modulo 2**32).
 
-    ``compact`` sends a status report in the binary layout (only after the peer accepted it).
+    ``version`` is the session's protocol version: for a version-1 peer the fields it does not
+    know (:data:`~protocol.packets.V2_FIELDS`) are left out, because it rejects unknown fields.
+    ``compact`` sends a status report in the binary layout (type byte 0x82); only a version-2
+    session whose ``accepted`` said ``compact_status`` may use it.
     """
-    if compact and isinstance(body, StatusReport):
+    if compact and version >= 2 and isinstance(body, StatusReport):
         payload = status_binary.encode(body)
         ptype = STATUS_COMPACT
     else:
-        payload = body.model_dump_json(exclude_none=True).encode("utf-8")
+        exclude = V2_FIELDS.get(type(body)) if version < 2 else None
+        payload = body.model_dump_json(exclude_none=True, exclude=set(exclude) if exclude else None).encode()
         ptype = packet_type_of(body)
     return (
-        HEADER.pack(MAGIC, PROTOCOL_VERSION, ptype, seq % SEQ_MODULO, len(payload), zlib.crc32(payload))
+        HEADER.pack(MAGIC, FRAME_VERSION, ptype, seq % SEQ_MODULO, len(payload), zlib.crc32(payload))
         + payload
     )
+
+
+def _no_duplicate_keys(pairs: list[tuple[str, object]]) -> dict[str, object]:
+    document = dict(pairs)
+    if len(document) != len(pairs):  # the common case costs one C-level dict() and a length check
+        seen: set[str] = set()
+        for key, _ in pairs:
+            if key in seen:
+                raise ValueError(f"duplicate key {key!r}")
+            seen.add(key)
+    return document
+
+
+def _no_constants(name: str) -> object:
+    raise ValueError(f"{name} is not JSON")
+
+
+def _drop(document: dict[str, object], loc: tuple[int | str, ...]) -> None:
+    target: object = document
+    for part in loc[:-1]:
+        target = target[part]  # type: ignore[index]
+    del target[loc[-1]]  # type: ignore[attr-defined]
 
 
 def decode_body(packet_type: int, payload: bytes) -> Body:
@@ -94,13 +129,24 @@ def decode_body(packet_type: int, payload: bytes) -> Body:
     except ValueError:
         raise ProtocolError(f"unknown packet type {packet_type} (expected 0..6)") from None
     try:
-        document = json.loads(payload.decode("utf-8"))
+        text = payload.decode("utf-8")
+        document = json.loads(text, object_pairs_hook=_no_duplicate_keys, parse_constant=_no_constants)
     except (ValueError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError, int digit limit
         raise ProtocolError(f"type {ptype.value} body is not UTF-8 JSON: {exc}", packet_type=ptype) from None
     if not isinstance(document, dict):
         raise ProtocolError(f"type {ptype.value} body must be a JSON object", packet_type=ptype)
+    model = BODY_MODELS[ptype]
     try:
-        return BODY_MODELS[ptype].model_validate(document)  # type: ignore[return-value]
+        try:
+            return model.model_validate_json(text, strict=True)  # type: ignore[return-value]
+        except ValidationError as exc:
+            errors = exc.errors()
+            protected = MUST_UNDERSTAND.get(ptype, ())
+            if not all(e["type"] == "extra_forbidden" and e["loc"][0] not in protected for e in errors):
+                raise
+            for error in sorted(errors, key=lambda e: len(e["loc"]), reverse=True):
+                _drop(document, error["loc"])  # must-ignore: an optional addition of a newer peer
+            return model.model_validate_json(json.dumps(document), strict=True)  # type: ignore[return-value]
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first.get("loc", ())) or "body"
@@ -146,8 +192,8 @@ class FrameDecoder:
         # Check what we can of the header as soon as bytes arrive, so garbage fails fast.
         if len(buf) >= 1 and buf[:2] != MAGIC[: min(2, len(buf))]:
             raise self._fail(f"bad magic {bytes(buf[:2])!r} (expected {MAGIC!r}): not a fleetgcs stream")
-        if len(buf) >= 3 and buf[2] != PROTOCOL_VERSION:
-            raise self._fail(f"unsupported protocol version {buf[2]} (this side speaks {PROTOCOL_VERSION})")
+        if len(buf) >= 3 and buf[2] != FRAME_VERSION:
+            raise self._fail(f"unsupported frame version {buf[2]} (this side speaks {FRAME_VERSION})")
         if len(buf) >= 4 and buf[3] > _MAX_TYPE and buf[3] != STATUS_COMPACT:
             raise self._fail(f"unknown packet type {buf[3]} (expected 0..6 or 0x82)", buf[3])
         if len(buf) < HEADER_SIZE:

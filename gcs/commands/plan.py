@@ -244,10 +244,9 @@ def _run_area(args: argparse.Namespace) -> int:
         print("error: give an AREA file (or --method psa/rsa)", file=sys.stderr)
         return 2
     path = Path(args.area)
+    text = path.read_text()  # a missing file or a directory: the CLI's one-line OSError message
     try:
-        area, survey = load_area_text(path.read_text(), path.stem)
-    except OSError as exc:
-        raise AreaFormatError(f"{path}: {exc}") from None
+        area, survey = load_area_text(text, path.stem)
     except AreaFormatError as exc:
         raise AreaFormatError(f"{path}: {exc}") from None
     drones = _drones(args)

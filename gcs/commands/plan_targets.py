@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gcs.cooperation.config import CollisionConfig
 from gcs.planning._fleet_io import FleetFileError, geojson_lines, load_missed_map, load_targets
 from gcs.planning._psa_mission import psa_mission
 from gcs.planning.geodesy import LocalFrame
@@ -31,6 +32,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--missed-map", type=Path, metavar="FILE", help="RSA missed-area grid map (JSON)")
     g.add_argument(
         "--link-range", type=float, metavar="M", help="PSA: drone link range w (overrides the file)"
+    )
+    g.add_argument(
+        "--min-separation",
+        type=float,
+        metavar="M",
+        help="PSA: closest two drones may come at any time, turns included (default: the collision "
+        "service's horizontal margin x release factor, 5 m)",
+    )
+    g.add_argument(
+        "--track-margin",
+        type=float,
+        metavar="M",
+        help="PSA: how far a flown track may stray from the plan; the plan keeps w and the separation "
+        "with this much to spare on each drone (default 2 m: the agent's acceptance radius, since "
+        "each leg starts up to that far from its planned start)",
     )
     g.add_argument("--channel-spacing", type=float, metavar="M", help="RSA: channel spacing d_nbh")
     g.add_argument("--flight-distance", type=float, metavar="M", help="RSA: allowed flight distance d_flt")
@@ -79,9 +95,19 @@ def _run_psa(args: argparse.Namespace, out: Path) -> int:
     link = float(_opt(args, "link_range", doc.config.link_range_m))  # type: ignore[arg-type]
     speed = float(_opt(args, "speed", doc.config.speed_mps))  # type: ignore[arg-type]
     alt = float(_opt(args, "alt", doc.config.alt_m))  # type: ignore[arg-type]
+    collision = CollisionConfig()
+    default_sep = collision.horizontal_margin_m * collision.release_factor
+    separation = float(_opt(args, "min_separation", doc.config.min_separation_m or default_sep))  # type: ignore[arg-type]
+    margin = float(_opt(args, "track_margin", doc.config.track_margin_m))  # type: ignore[arg-type]
     if drones < 1 or link <= 0 or speed <= 0 or alt <= 0:
         raise FleetFileError("drones, link range, speed and altitude must be positive")
-    plan = plan_psa(pts, drones, link, speed)
+    if separation < 0 or margin < 0:
+        raise FleetFileError("--min-separation and --track-margin must not be negative")
+    plan = plan_psa(pts, drones, link, speed, min_separation=separation, track_margin=margin)
+    if doc.homes is not None:
+        if len(doc.homes) != drones:
+            raise FleetFileError(f"the target file lists {len(doc.homes)} homes for {drones} drones")
+        plan = plan.from_homes(frame.points_to_local([(h.lat, h.lon) for h in doc.homes]))
     check = plan.check()
     traj = plan.trajectory
     names = [f"drone-{j + 1}" for j in range(drones)]
@@ -100,12 +126,29 @@ def _run_psa(args: argparse.Namespace, out: Path) -> int:
         "L_adjust_scan_m": c.scan_adjust,
         "L_adjust_turns_m": c.turn_adjust,
         "theorem1_bound_m": c.lower_bound,
-        "duration_s": float(traj.times[-1]),
+        "duration_s": float(plan.flown.times[-1]),
+        "link_range_m": link,
+        "min_separation_m": separation,
+        "track_margin_m": margin,
+        "planned_max_neighbour_m": check.max_neighbour_distance,
+        "planned_min_separation_m": check.min_separation,
+        "barriers": int(traj.sync.sum()),
         "check_ok": check.ok,
         "violations": [v.detail for v in check.violations[:20]],
     }
     _write(
-        out, psa_mission(traj, frame, alt, speed, names), geojson_lines(paths_ll, names, method="psa"), report
+        out,
+        psa_mission(
+            traj,
+            frame,
+            alt,
+            speed,
+            names,
+            assembly=None if plan.assembly is None else plan.assembly.trajectory,
+            assembly_speeds=None if plan.assembly is None else plan.assembly.speeds.tolist(),
+        ),
+        geojson_lines(paths_ll, names, method="psa"),
+        report,
     )
     hulls = [np.vstack([r.hull, r.hull[:1]]) for r in plan.rounds if len(r.hull) > 1]
     _plot(
@@ -116,7 +159,9 @@ def _run_psa(args: argparse.Namespace, out: Path) -> int:
     )
     print(
         f"psa: {len(pts)} targets, {len(plan.rounds)} rounds, L_fleet {c.fleet_length:.1f} m "
-        f"(bound {c.lower_bound:.1f} m), check {'ok' if check.ok else 'FAILED'} -> {out}"
+        f"(bound {c.lower_bound:.1f} m), neighbours <= {check.max_neighbour_distance:.1f} m "
+        f"(w {link:g} m), pairs >= {min(check.min_separation, 1e9):.1f} m, "
+        f"check {'ok' if check.ok else 'FAILED'} -> {out}"
     )
     return 0 if check.ok else 1
 

@@ -81,8 +81,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"gcs run: {problem_text(response)}", file=sys.stderr)
             return 2
         mission_id = response.json()["mission_id"]
-        print(f"mission {mission_id} started", flush=True)
-        try:
+        try:  # from here on Ctrl-C only stops the following, whenever it comes
+            print(f"mission {mission_id} started", flush=True)
             progress = follow(client, mission_id, args.timeout)
         except KeyboardInterrupt:
             print(

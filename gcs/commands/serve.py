@@ -17,6 +17,7 @@ from typing import Any
 from gcs.config import DaemonConfig, default_data_dir
 from gcs.config_file import ConfigFileError, load_daemon_config
 from gcs.daemon import serve_forever
+from gcs.store import StoreError
 from protocol.settings_file import LoggingConfig, configure_logging
 
 
@@ -96,6 +97,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         return run_until_signalled(serve_forever(config, args.ready_file))
+    except StoreError as exc:
+        print(f"gcs serve: cannot start: {exc}", file=sys.stderr)
+        return 2
     except OSError as exc:
         print(f"gcs serve: cannot start: {exc}", file=sys.stderr)
         return 2
@@ -126,6 +130,13 @@ def resolve_config(args: argparse.Namespace) -> tuple[DaemonConfig, LoggingConfi
         if getattr(cli, name) != getattr(defaults, name)
     }
     config, log = load_daemon_config(args.config, explicit)
+    changes: dict[str, object] = {}
+    if getattr(args, "new_database", False):
+        changes["new_database"] = True
+    if getattr(args, "no_enrollment", False):
+        changes["enroll_new_agents"] = False
+    if changes:
+        config = config.model_copy(update=changes)
     updates = {"json_format": True} if args.log_json else {}
     if args.log_file is not None:
         updates["file"] = args.log_file
@@ -173,4 +184,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--config", type=Path, help="TOML configuration file (docs/configuration.md)")
     parser.add_argument("--log-json", action="store_true", help="log one JSON object per line")
     parser.add_argument("--log-file", type=Path, help="log to this file, rotated at 10 MiB (5 kept)")
+    parser.add_argument(
+        "--new-database",
+        action="store_true",
+        help="start with an empty database where one existed and went missing (CIDs are assigned anew)",
+    )
+    parser.add_argument(
+        "--no-enrollment",
+        action="store_true",
+        help="only identities the database already knows may join (with per-agent keys: see gcs keygen)",
+    )
     parser.set_defaults(run=run, parser_defaults=parser.parse_args([]))

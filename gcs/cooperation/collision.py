@@ -168,6 +168,7 @@ class DroneState:
     desired: tuple[float, float, float] | None  # where it wants to go when not held
     yieldable: bool
     grounded: bool = False  # landed or disarmed: an obstacle, never a partner to wait for
+    remaining_m: float | None = None  # to its leg target, where it stops (None: unknown / not stopping)
 
 
 @dataclass(frozen=True)
@@ -295,7 +296,14 @@ class CollisionAvoider:
     # --- internals ------------------------------------------------------------------------------
 
     def _effective_all(self, drones: list[DroneState]) -> FloatArray:
-        """:meth:`_effective` for the whole fleet at once (numpy; this runs every tick)."""
+        """The velocity each drone is judged by (numpy; this runs every tick).
+
+        A held drone, or one about to start a leg (nearly still, with a leg to fly), is judged by
+        where it wants to go: its ~zero velocity would say "clear" the moment it stops, and it
+        would be released straight back into the conflict. The others by their actual velocity.
+        Nobody is predicted past its leg target: a drone that stops there within the horizon is
+        slowed so that it just reaches it (formation flight ends legs a few metres apart).
+        """
         actual = np.array([d.velocity for d in drones], dtype=float)
         zero = (0.0, 0.0, 0.0)
         desired = np.array([d.desired or zero for d in drones], dtype=float)
@@ -304,17 +312,11 @@ class CollisionAvoider:
         escaping = np.array([d.ident in self.escaping for d in drones], dtype=bool)
         slow = np.linalg.norm(actual, axis=1) < STATIONARY_MPS
         use_desired = ~escaping & (held | (slow & has_desired))
-        return np.where(use_desired[:, None], desired, actual)
-
-    def _effective(self, d: DroneState) -> tuple[float, float, float]:
-        """Held or just-starting drones are judged by where they want to go, not by their ~zero velocity."""
-        if d.ident in self.escaping:
-            return d.velocity
-        if d.ident in self.holds:
-            return d.desired or (0.0, 0.0, 0.0)
-        if d.desired is not None and float(np.linalg.norm(d.velocity)) < STATIONARY_MPS:
-            return d.desired
-        return d.velocity
+        vel = np.where(use_desired[:, None], desired, actual)
+        remaining = np.array([np.inf if d.remaining_m is None else d.remaining_m for d in drones])
+        reach = np.linalg.norm(vel, axis=1) * self.config.horizon_s
+        factor = np.where(reach > remaining, remaining / np.maximum(reach, _EPS), 1.0)
+        return np.asarray(vel * factor[:, None], dtype=float)
 
     def _pair_conflicts(self, pa: FloatArray, pb: FloatArray, va: FloatArray, vb: FloatArray) -> bool:
         dp, dv = (pb - pa).tolist(), (vb - va).tolist()

@@ -21,7 +21,7 @@ from gcs.cooperation.intents import (
     ReleaseIntent,
     ReplaceIntent,
 )
-from gcs.cooperation.tracking import TrackedAgent, leg_target_velocity
+from gcs.cooperation.tracking import TrackedAgent, leg_remaining_m, leg_target_velocity
 
 
 class CollisionMonitor:
@@ -67,6 +67,9 @@ class CollisionMonitor:
                     else leg_target_velocity(a, frame, self.config.default_speed_mps),
                     yieldable=yieldable,
                     grounded=grounded,
+                    remaining_m=None
+                    if grounded or a.ident in self.avoider.escaping
+                    else leg_remaining_m(a, frame),
                 )
             )
         decision = self.avoider.update(drones, now)

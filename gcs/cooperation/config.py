@@ -100,7 +100,10 @@ class DivergenceConfig(_Section):
     )
     max_replans_per_step: int = Field(default=5, ge=0, description="then only events")
     acceptance_radius_m: float = Field(
-        default=2.5, gt=0.0, description="waypoint arrival radius the daemon assumes when tracking progress"
+        default=2.0,
+        gt=0.0,
+        description="waypoint arrival radius the daemon assumes when tracking progress, unless it pushed one "
+        "to the agents (agent_parameters.acceptance_radius_m); the agent's own default is 2 m",
     )
     default_speed_mps: float = Field(default=5.0, gt=0.0, description="leg speed when the plan sets none")
 

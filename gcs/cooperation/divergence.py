@@ -15,6 +15,11 @@ one per ``cooldown_s``):
   the planned line in proportion to the distance still to fly; a near rejoin point brings it
   back onto the line the coverage was planned on.
 * lag above ``lag_event_m``: an event only (re-sending targets cannot make a vehicle faster).
+
+Legs come from :mod:`gcs.cooperation.legs`, modelled as the agent flies them (each leg starts
+where the agent was when it switched, within its acceptance radius of the previous target).
+Whether divergence may act at all is :func:`divergence_may_act`: never on a drone that waits
+at a barrier, is paused or held, returns or lands, or is in an emergency or failsafe.
 """
 
 from __future__ import annotations
@@ -26,6 +31,63 @@ from typing import Literal
 from gcs.cooperation.config import DivergenceConfig
 from gcs.cooperation.legs import Leg, Point
 from protocol.geo import ned_offset_m, offset_latlon
+from protocol.packets import StatusReport
+
+# Modes in which the vehicle is not flying its plan: returns, landings and brakes (holds).
+NON_PLAN_MODES = frozenset({"RTL", "SMART_RTL", "LAND", "BRAKE"})
+# Agent exceptions whose reaction may have taken the vehicle off its plan (agent/monitor.py).
+FAILSAFE_EXCEPTIONS = ("battery_low", "battery_critical", "fence_breach", "link_lost")
+
+
+def divergence_blocked(
+    status: StatusReport,
+    *,
+    held: bool = False,
+    emergency: bool = False,
+    escaping: bool = False,
+    detour: bool = False,
+) -> str | None:
+    """Why divergence must not act on this drone now, or None when it may.
+
+    ``held``: a hold by anyone (collision, connectivity, operator); ``emergency``: a daemon
+    emergency or operator emergency command; ``escaping``: a collision escape runs;
+    ``detour``: a replace the daemon sent is still being flown. A drone at a barrier is
+    never moved: it waits for the others, and a replan there once flew one 31 m away.
+    """
+    if not status.armed or status.landed:
+        return "not flying"
+    if status.waiting_sync is not None:
+        return f"waiting at the barrier of step {status.waiting_sync}"
+    if status.paused:
+        return "paused"
+    if held:
+        return "held"
+    if emergency:
+        return "in an emergency"
+    if escaping:
+        return "escaping a conflict"
+    if detour:
+        return "flying a detour"
+    if status.mode in NON_PLAN_MODES:
+        return f"in {status.mode}"
+    failsafe = [e for e in status.exceptions if e.split(":", 1)[0] in FAILSAFE_EXCEPTIONS]
+    if failsafe:
+        return f"agent failsafe ({failsafe[0]})"
+    return None
+
+
+def divergence_may_act(
+    status: StatusReport,
+    *,
+    held: bool = False,
+    emergency: bool = False,
+    escaping: bool = False,
+    detour: bool = False,
+) -> bool:
+    """May divergence correct or replan this drone now? (see :func:`divergence_blocked`)."""
+    return (
+        divergence_blocked(status, held=held, emergency=emergency, escaping=escaping, detour=detour) is None
+    )
 
 
 @dataclass(frozen=True)

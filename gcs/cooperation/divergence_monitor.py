@@ -9,25 +9,21 @@ barrier).
 from __future__ import annotations
 
 from gcs.cooperation.config import DivergenceConfig
-from gcs.cooperation.divergence import leg_error
+from gcs.cooperation.divergence import divergence_may_act, leg_error
 from gcs.cooperation.intents import EventIntent, HoldIntent, Intent, ReleaseIntent, ReplaceIntent
 from gcs.cooperation.tracking import TrackedAgent
 from protocol.packets import StatusReport
 
 
-def divergence_may_act(agent: TrackedAgent, status: StatusReport, held_or_outranked: bool) -> bool:
+def _may_act(agent: TrackedAgent, status: StatusReport, held_or_outranked: bool) -> bool:
     """Is the drone flying a plan leg that divergence may correct right now?"""
-    return not (
-        agent.plan is None
-        or agent.judge is None
-        or agent.detour_step is not None
-        or agent.emergency is not None
-        or held_or_outranked
-        or status.waiting_sync is not None
-        or status.paused
-        or status.landed
-        or not status.armed
-        or status.mode in ("RTL", "LAND")
+    if agent.plan is None or agent.judge is None:
+        return False
+    return divergence_may_act(
+        status,
+        held=held_or_outranked,
+        emergency=agent.emergency is not None,
+        detour=agent.detour_step is not None,
     )
 
 
@@ -39,7 +35,7 @@ class DivergenceMonitor:
     def on_status(
         self, agent: TrackedAgent, status: StatusReport, held_or_outranked: bool, now: float
     ) -> list[Intent]:
-        if not divergence_may_act(agent, status, held_or_outranked):
+        if not _may_act(agent, status, held_or_outranked):
             return []
         plan, judge = agent.plan, agent.judge
         assert plan is not None and judge is not None

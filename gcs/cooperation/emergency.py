@@ -20,9 +20,9 @@ from protocol.packets import Geofence, StatusReport
 
 def fence_violation(status: StatusReport, fence: Geofence | None) -> str | None:
     """Why the drone is outside ``fence`` (the one the daemon sent), or None."""
-    if fence is None or status.gps.fix < 3 or status.landed:
-        return None
     p = status.position
+    if fence is None or p is None or status.gps.fix < 3 or status.landed:
+        return None
     return fence.violation(p.lat, p.lon, p.alt_rel)
 
 
@@ -41,9 +41,9 @@ class BatteryEstimator:
     max_speed: float = 0.0
 
     def add(self, status: StatusReport) -> None:
-        if status.battery.pct is None or status.landed or not status.armed:
-            return
         p = status.position
+        if status.battery.pct is None or p is None or status.landed or not status.armed:
+            return
         if self.samples:
             t0, _, lat0, lon0, _ = self.samples[-1]
             dt = status.time - t0
@@ -90,10 +90,11 @@ def return_home_shortfall(
     pct = status.battery.pct
     rate = estimator.drop_rate()
     speed = estimator.ground_speed()
-    if pct is None or rate is None or speed is None or rate <= 0:
+    p = status.position
+    if pct is None or p is None or rate is None or speed is None or rate <= 0:
         return None
-    dist = distance_m(status.position.lat, status.position.lon, home[0], home[1])
-    descent_wall_s = max(status.position.alt_rel, 0.0) / (descent_mps * vehicle_time_scale)
+    dist = distance_m(p.lat, p.lon, home[0], home[1])
+    descent_wall_s = max(p.alt_rel, 0.0) / (descent_mps * vehicle_time_scale)
     time_home = dist / speed + descent_wall_s
     needed = rate * time_home * safety + reserve_pct
     text = (

@@ -47,7 +47,9 @@ def _cell(value: float | None, digits: int = 7) -> str:
 
 
 def status_row(status: StatusReport, time_s: float) -> list[str]:
+    """One CSV row; the caller writes only reports with a position."""
     p, v, b = status.position, status.velocity, status.battery
+    assert p is not None, "flight logs record positioned reports only"
     return [
         f"{time_s:.3f}", _cell(p.lat, 8), _cell(p.lon, 8), _cell(p.alt_rel, 3), _cell(p.alt_amsl, 3),
         _cell(v.vn, 3), _cell(v.ve, 3), _cell(v.vd, 3), _cell(status.heading_deg, 1),
@@ -101,7 +103,8 @@ class FlightLogWriter:
         return self.clock.time_scale
 
     def add(self, status: StatusReport) -> None:
-        self._writer.writerow(status_row(status, self.clock(status)))
+        if status.position is not None:  # no fix yet: no row
+            self._writer.writerow(status_row(status, self.clock(status)))
 
     def close(self) -> None:
         self._file.close()

@@ -1,11 +1,20 @@
-"""Where each drone is in its plan: the planned leg it flies now, and what is left of its plan.
+"""Where each drone is in its plan: the leg it flies now, as the agent flies it, and what is left.
 
 The daemon sent the whole action list at mission start (docs/protocol.md section 5); status
-reports say which step runs. From the two this module derives the current planned leg (start
-and target) for divergence and collision checks, and rebuilds the remaining actions from the
+reports say which step runs. From the two this module derives the current leg (start and
+target) for divergence and collision checks, and rebuilds the remaining actions from the
 drone's current position, which a ``replace`` needs: the running action becomes what is left of
 it (a ``go_by`` becomes a ``goto`` to its fixed target, ``waypoints`` keep the points not yet
 reached), later actions follow unchanged. Pure code: no sockets, no asyncio.
+
+Legs are modelled the way the agent flies them (agent/executor.py): an action (or a waypoint)
+is complete as soon as the vehicle is within the acceptance radius of its target, and the next
+one starts from wherever the vehicle is at that moment, so a chain of legs cuts each corner by
+up to the radius and a ``go_by`` offset is taken from that switch point, not from the previous
+planned target. Dead-reckoning exact legs instead adds up to a radius of error per ``go_by``
+and makes divergence "correct" drones that fly their plan perfectly. The switch point is
+estimated from the two reports around the switch (see :func:`switch_point`), never from the
+plan alone, so the error does not accumulate along a chain.
 """
 
 from __future__ import annotations
@@ -52,6 +61,38 @@ def planned_targets(actions: list[Action], home: Point) -> list[Point | None]:
     return out
 
 
+def agent_acceptance_radius(pushed_m: float | None, assumed_m: float) -> float:
+    """The radius the agent judges arrival with: the one the daemon pushed, else the assumed one."""
+    return pushed_m if pushed_m is not None else assumed_m
+
+
+def switch_point(target: Point | None, before: Point | None, after: Point, radius: float) -> Point:
+    """Where the agent was when it left a leg ending at ``target`` for the next one.
+
+    The agent switches the first time it is within ``radius`` of ``target``; it flies straight at
+    the target until then. The model point is therefore ``radius`` short of the target on the
+    line from the last report of the old leg (``before``); the estimate is the point of the
+    observed chord ``before -> after`` (the reports on either side of the switch) nearest to it,
+    so it always lies on the flown track whatever the error of ``target``. With no target (the
+    vehicle hovered: barrier, hold, pause) it is ``before``; with no report before the switch,
+    ``after``.
+    """
+    if before is None:
+        return after
+    if target is None:
+        return before
+    lat0, lon0 = before[0], before[1]
+    an, ae = ned_offset_m(lat0, lon0, after[0], after[1])
+    tn, te = ned_offset_m(lat0, lon0, target[0], target[1])
+    gap = math.hypot(tn, te)
+    back = min(radius, gap) / gap if gap > 1e-9 else 0.0
+    mn, me = tn * (1.0 - back), te * (1.0 - back)  # radius short of the target, toward ``before``
+    chord2 = an * an + ae * ae
+    f = 0.0 if chord2 <= 1e-12 else min(max((mn * an + me * ae) / chord2, 0.0), 1.0)
+    lat, lon = offset_latlon(lat0, lon0, f * an, f * ae)
+    return (lat, lon, before[2] + f * (after[2] - before[2]))
+
+
 def _speed_before(actions: list[Action], index: int) -> float | None:
     for action in reversed(actions[:index]):
         if isinstance(action, SetSpeed):
@@ -61,7 +102,12 @@ def _speed_before(actions: list[Action], index: int) -> float | None:
 
 @dataclass
 class AgentPlanState:
-    """Tracks one agent through its plan from its status reports."""
+    """Tracks one agent through its plan from its status reports.
+
+    ``acceptance_m`` must be the agent's own arrival radius (:func:`agent_acceptance_radius`).
+    ``step_start_pos`` is where the agent was when the running step started (estimated with
+    :func:`switch_point`); ``segment_start`` the same for the running waypoint segment.
+    """
 
     mission_id: str
     actions: list[Action]
@@ -73,27 +119,53 @@ class AgentPlanState:
     step_start_pos: Point | None = None
     waypoint: int = 0  # index of the next waypoint of a running waypoints action
     segment_started: float = 0.0
+    segment_start: Point | None = None
     replans: int = 0
     _targets: list[Point | None] = field(default_factory=list)
+    _last_pos: Point | None = None
+    _last_target: Point | None = None  # where the agent was heading at the last report
 
     def __post_init__(self) -> None:
         self._targets = planned_targets(self.actions, self.home)
 
     def update(self, status: StatusReport) -> None:
+        if status.position is None:
+            return  # no fix: nothing to place on the plan
         pos = (status.position.lat, status.position.lon, status.position.alt_rel)
         if status.paused and status.step < 0:
+            self._last_pos, self._last_target = pos, None  # held in place: resumes from here
             return  # a pause puts the running action back in the queue: still the same step
         if status.step != self.step:
+            previous = self._last_target
             self.step = status.step
             self.index = next((k for k, a in enumerate(self.actions) if a.step == status.step), -1)
             self.step_started = status.time
             self.segment_started = status.time
-            self.step_start_pos = pos
+            self.step_start_pos = switch_point(previous, self._last_pos, pos, self.acceptance_m)
+            self.segment_start = self.step_start_pos
             self.waypoint = 0
             self.replans = 0
         action = self.current_action
         if isinstance(action, Waypoints):
             self._advance_waypoints(action, pos, status.time)
+        self._last_pos = pos
+        # At a barrier the vehicle keeps flying to its target and hovers there: the next leg
+        # starts from the last waiting report (switch_point with target None keeps ``before``).
+        self._last_target = None if status.waiting_sync is not None else self._heading()
+
+    def _heading(self) -> Point | None:
+        """The target the agent flies to now, as the agent computed it."""
+        action = self.current_action
+        if isinstance(action, Goto):
+            return (action.lat, action.lon, action.alt)
+        if isinstance(action, GoBy):
+            return self._go_by_target(action)
+        if isinstance(action, Waypoints):
+            p = action.points[self.waypoint]
+            return (p.lat, p.lon, p.alt)
+        if isinstance(action, Takeoff) and self.step_start_pos is not None:
+            return (self.step_start_pos[0], self.step_start_pos[1], action.alt)
+        return None
 
     @property
     def current_action(self) -> Action | None:
@@ -103,6 +175,7 @@ class AgentPlanState:
         """Move to the next point when this one is reached, or when the drone is nearer the next
         segment than this one (sparse reports can skip the arrival itself)."""
         points = action.points
+        advanced = False
         while self.waypoint < len(points) - 1:
             p = points[self.waypoint]
             reached = distance_m(pos[0], pos[1], p.lat, p.lon) <= self.acceptance_m
@@ -112,6 +185,10 @@ class AgentPlanState:
                 break
             self.waypoint += 1
             self.segment_started = now
+            advanced = True
+        if advanced:
+            p = points[self.waypoint - 1]
+            self.segment_start = switch_point((p.lat, p.lon, p.alt), self._last_pos, pos, self.acceptance_m)
 
     def _segment_distance(self, action: Waypoints, k: int, pos: Point) -> float | None:
         start = self._waypoint_start(action, k)
@@ -125,10 +202,16 @@ class AgentPlanState:
         return math.hypot(pn - f * en, pe - f * ee)
 
     def _waypoint_start(self, action: Waypoints, k: int) -> Point | None:
+        """Start of segment k (the previous point; for the first, where the step started), used to
+        tell which segment a report is on."""
         if k > 0:
             p = action.points[k - 1]
             return (p.lat, p.lon, p.alt)
-        return self._previous_target()
+        return self.step_start_pos if self.step_start_pos is not None else self._previous_target()
+
+    def _leg_start(self) -> Point | None:
+        """Where the running segment started as the agent flew it, else the planned previous target."""
+        return self.segment_start if self.segment_start is not None else self._previous_target()
 
     def _previous_target(self) -> Point | None:
         for k in range(self.index - 1, -1, -1):
@@ -142,31 +225,27 @@ class AgentPlanState:
         return speed if speed is not None else _speed_before(self.actions, self.index)
 
     def leg(self, waiting_sync: int | None) -> Leg | None:
-        """The planned leg being flown, or the hover point while waiting at a sync step."""
+        """The leg being flown (from where the agent started it), or the hover point at a barrier."""
         if waiting_sync is not None:
             k = max((i for i, a in enumerate(self.actions) if a.step == waiting_sync), default=-1)
-            target = self._targets[k] if k >= 0 else None
+            if k < 0:
+                return None
+            target = self._targets[k]
+            if k == self.index and isinstance(self.actions[k], GoBy):
+                target = self._go_by_target(self.actions[k])  # type: ignore[arg-type]
             return Leg(waiting_sync, None, target, None) if target is not None else None
         action = self.current_action
         if action is None:
             return None
         if isinstance(action, Goto):
             return Leg(
-                action.step,
-                self._previous_target(),
-                (action.lat, action.lon, action.alt),
-                self._speed(action),
+                action.step, self._leg_start(), (action.lat, action.lon, action.alt), self._speed(action)
             )
         if isinstance(action, GoBy):
-            return Leg(action.step, self._previous_target(), self._go_by_target(action), self._speed(action))
+            return Leg(action.step, self._leg_start(), self._go_by_target(action), self._speed(action))
         if isinstance(action, Waypoints):
             p = action.points[self.waypoint]
-            return Leg(
-                action.step,
-                self._waypoint_start(action, self.waypoint),
-                (p.lat, p.lon, p.alt),
-                self._speed(action),
-            )
+            return Leg(action.step, self._leg_start(), (p.lat, p.lon, p.alt), self._speed(action))
         return None
 
     def _go_by_target(self, action: GoBy) -> Point:

@@ -78,7 +78,7 @@ class ReturnCoordinator:
     active: dict[str, _Return] = field(default_factory=dict)
 
     def start(self, idents: list[str], kind: ReturnKind, owner: Owner, reason: str) -> list[str]:
-        """Send each airborne drone its return program; returns who got one.
+        """Send each drone its return program; returns who got one (grounded ones included).
 
         A drone reported on the ground gets a stand-down (land: nothing to do if it is down, and
         it lands if the report was stale and its take-off had begun), so no queued take-off flies.
@@ -88,12 +88,15 @@ class ReturnCoordinator:
         mission_id = f"{RETURN_PREFIX}{kind}-{stamp}"
         views = {i: fleet[i] for i in idents if i in fleet}
         airborne = {i: v for i, v in views.items() if v.status.armed and not v.status.landed}
+        grounded = []
         for ident in idents:
             if ident not in airborne:
                 # Land, not an empty plan: its status may be stale and a take-off under way.
-                self.authority.replace(ident, owner, mission_id, [Land(step=0)], f"{reason} (on the ground)")
+                why = f"{reason} (on the ground)"
+                if self.authority.replace(ident, owner, mission_id, [Land(step=0)], why)[0]:
+                    grounded.append(ident)
         if not airborne:
-            return []
+            return grounded
         first = next(iter(airborne.values())).position
         frame = LocalFrame(first.lat, first.lon)
         returners = []
@@ -152,7 +155,7 @@ class ReturnCoordinator:
                 {"layer": plan.layer, "alt": round(alt_at_column, 1), "mission_id": mission_id},
             )
         self._frame = frame
-        return delivered
+        return delivered + grounded
 
     def tick(self) -> None:
         """Release the wait of every returning drone that is cleared to descend."""

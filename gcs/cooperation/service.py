@@ -42,6 +42,7 @@ from gcs.cooperation.intents import (
     ReplaceIntent,
     ReturnIntent,
 )
+from gcs.cooperation.legs import agent_acceptance_radius
 from gcs.cooperation.preflight import PreflightChecks, start_points
 from gcs.cooperation.recording import FlightRecorder
 from gcs.cooperation.tracking import TrackedAgent, track
@@ -231,7 +232,10 @@ class CooperationService:
                 agent,
                 status,
                 mission,
-                self.config.divergence.acceptance_radius_m,
+                agent_acceptance_radius(
+                    self.ctx.config.agent_parameters.acceptance_radius_m,
+                    self.config.divergence.acceptance_radius_m,
+                ),
                 DivergenceJudge(self.config.divergence),
             )
             self._record(agent, status)

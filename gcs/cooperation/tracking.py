@@ -78,6 +78,21 @@ def track(
     agent.plan.update(status)
 
 
+def leg_remaining_m(agent: TrackedAgent, frame: LocalFrame) -> float | None:
+    """Distance (3-D, metres) to the target of the leg the drone flies, where it will stop."""
+    plan = agent.plan
+    if plan is None:
+        return None
+    leg = plan.leg(agent.status.waiting_sync)
+    if leg is None:
+        return None
+    here = frame.point(agent.position.lat, agent.position.lon)
+    there = frame.point(leg.target[0], leg.target[1])
+    return float(
+        np.linalg.norm([there[0] - here[0], there[1] - here[1], leg.target[2] - agent.position.alt_rel])
+    )
+
+
 def leg_target_velocity(
     agent: TrackedAgent, frame: LocalFrame, default_speed: float
 ) -> tuple[float, float, float] | None:

@@ -1,7 +1,8 @@
 """File formats of the fleet planners (documented in docs/fleet-planners.md), validated with pydantic.
 
 * target file (``"format": "fleetgcs-targets"``): targets as ``{lat, lon}`` or ``{x, y}`` metres
-  east/north of ``origin``, plus ``config`` (drones, link_range_m, speed_mps, alt_m);
+  east/north of ``origin``, plus ``config`` (drones, link_range_m, speed_mps, alt_m,
+  min_separation_m, track_margin_m) and optional ``homes`` (one {lat, lon} per drone);
 * missed map (``"format": "fleetgcs-missed-map"``): geo-referenced grid of 1 detected / 0 missed,
   inline ``rows`` (north first) or ``npy`` (path of a 2-D .npy next to the JSON), plus RSA options.
 """
@@ -54,6 +55,11 @@ class PsaConfig(BaseModel):
     link_range_m: float = Field(default=20.0, gt=0, le=10_000)
     speed_mps: float = Field(default=4.0, gt=0, le=100)
     alt_m: float = Field(default=20.0, gt=0, le=10_000)
+    min_separation_m: float | None = Field(
+        default=None, ge=0, le=10_000, description="None = the collision margin x release factor"
+    )
+    # a leg starts up to the agent's acceptance radius (default 2 m) from its planned start
+    track_margin_m: float = Field(default=2.0, ge=0, le=10_000)
 
 
 class TargetFile(BaseModel):
@@ -62,6 +68,9 @@ class TargetFile(BaseModel):
     origin: LatLon | None = None
     targets: list[Target] = Field(min_length=1, max_length=100_000)
     config: PsaConfig = PsaConfig()
+    homes: list[LatLon] | None = Field(
+        default=None, description="PSA: one per drone, in drone order; times the assembly flight"
+    )
 
     @model_validator(mode="after")
     def _origin_when_local(self) -> TargetFile:

@@ -1,9 +1,12 @@
-"""Independent checker of fleet plans: connectivity (eq. 3), coverage (eq. 5), speed (eq. 1).
+"""Independent checker of fleet plans: connectivity (eq. 3), coverage (eq. 5), speed (eq. 1), separation.
 
 The planner's own claims are not trusted: this re-derives every constraint from the timed
 trajectories alone, so the tests and the daemon (before flying a plan) use the same verdict.
 Connectivity is checked at every knot and at every ``sample_dt`` seconds in between; coverage is
-exact (distance from each target to every flown segment).
+exact (distance from each target to every flown segment); separation is exact (closest approach
+of every pair on every interval between knots). With ``flown_speed`` the time-dependent checks
+run on the tracks as the task file flies them (:meth:`FleetTrajectory.flown`: one speed per leg,
+barriers at sync knots), not on the planner's own timing.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from gcs.planning._psa_trajectory import FleetTrajectory
 class Violation:
     """One broken constraint: what, when (seconds, or None) and a readable detail."""
 
-    kind: str  # "connectivity" | "fleet-split" | "coverage" | "speed"
+    kind: str  # "connectivity" | "fleet-split" | "coverage" | "speed" | "separation"
     time: float | None
     detail: str
 
@@ -37,6 +40,7 @@ class PlanReport:
     max_neighbour_distance: float  # worst over time of each drone's nearest-drone distance
     max_target_miss: float  # worst distance from a target to the nearest flown segment
     lengths: tuple[float, ...] = field(default=())
+    min_separation: float = float("inf")  # closest approach of any pair (exact), inf for one drone
 
     @property
     def ok(self) -> bool:
@@ -138,6 +142,42 @@ def _speed(trajectory: FleetTrajectory, max_speed: float | None, limit: int) -> 
     ]
 
 
+def _separation(
+    trajectory: FleetTrajectory, min_separation: float | None, limit: int
+) -> tuple[list[Violation], float]:
+    """Exact closest approach of every pair: each pair's offset is linear between two knots."""
+    m = trajectory.drones
+    if m < 2:
+        return [], float("inf")
+    jj, kk = np.triu_indices(m, 1)
+    rel = trajectory.positions[jj] - trajectory.positions[kk]  # (P, K, 2)
+    if rel.shape[1] == 1:
+        dist = np.hypot(rel[:, 0, 0], rel[:, 0, 1])[:, None]
+        when = np.zeros((len(jj), 1))
+    else:
+        a, d = rel[:, :-1], np.diff(rel, axis=1)
+        dd = (d * d).sum(-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = np.where(dd > 1e-18, np.clip(-(a * d).sum(-1) / dd, 0.0, 1.0), 0.0)
+        closest = a + f[..., None] * d
+        dist = np.hypot(closest[..., 0], closest[..., 1])  # (P, K-1)
+        t = trajectory.times
+        when = t[:-1][None, :] + f * np.diff(t)[None, :]
+    worst = float(dist.min())
+    out: list[Violation] = []
+    if min_separation is not None:
+        tol = 1e-6 * max(1.0, min_separation)
+        for p, k in np.argwhere(dist < min_separation - tol)[:limit]:
+            out.append(
+                Violation(
+                    "separation",
+                    float(when[p, k]),
+                    f"drones {jj[p]} and {kk[p]} {dist[p, k]:.2f} m apart (floor {min_separation:.2f} m)",
+                )
+            )
+    return out, worst
+
+
 def check_plan(
     trajectory: FleetTrajectory,
     targets: FloatArray,
@@ -147,20 +187,28 @@ def check_plan(
     visit_tol: float = 0.05,
     max_speed: float | None = None,
     limit: int = 50,
+    min_separation: float | None = None,
+    flown_speed: float | None = None,
 ) -> PlanReport:
     """Check eq. 3 (each drone within ``link_range`` of another), whole-fleet connectivity and eq. 5.
 
     ``visit_tol`` is how close (metres) a drone must pass to a target to count as visiting it;
-    at most ``limit`` violations of each kind are listed.
+    ``min_separation`` (metres) is the floor every pair must keep (collision margin);
+    ``flown_speed`` checks connectivity, separation and speed on the tracks as the task file
+    flies them at that speed rather than on the planner's timing. At most ``limit`` violations
+    of each kind are listed.
     """
-    times = _sample_times(trajectory, sample_dt)
-    conn, worst = _connectivity(trajectory, link_range, times, limit)
+    timed = trajectory.flown(flown_speed) if flown_speed is not None else trajectory
+    times = _sample_times(timed, sample_dt)
+    conn, worst = _connectivity(timed, link_range, times, limit)
+    sep, closest = _separation(timed, min_separation, limit)
     cov, miss = _coverage(trajectory, np.asarray(targets, dtype=float).reshape(-1, 2), visit_tol, limit)
-    spd = _speed(trajectory, max_speed, limit)
+    spd = _speed(timed, max_speed, limit)
     return PlanReport(
-        violations=tuple(conn + cov + spd),
+        violations=tuple(conn + sep + cov + spd),
         samples=len(times),
         max_neighbour_distance=worst,
         max_target_miss=miss,
         lengths=tuple(float(x) for x in trajectory.lengths()),
+        min_separation=closest,
     )

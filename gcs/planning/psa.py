@@ -11,7 +11,8 @@ Theorem 1's bound is not a bound on the optimum).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import itertools
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -27,9 +28,48 @@ from gcs.planning._psa_geometry import (
 )
 from gcs.planning._psa_trajectory import FleetTrajectory, TrajectoryBuilder, formation, pivot
 
-__all__ = ["FleetTrajectory", "PlanReport", "PsaCosts", "PsaPlan", "PsaRound", "check_plan", "plan_psa"]
+__all__ = [
+    "Assembly",
+    "FleetTrajectory",
+    "PlanReport",
+    "PsaCosts",
+    "PsaInfeasible",
+    "PsaPlan",
+    "PsaRound",
+    "check_plan",
+    "plan_assembly",
+    "plan_psa",
+    "spacing_bounds",
+]
 
 SCAN_TOL = 1e-6  # targets closer than this along an edge share a scan line (the paper's F_s)
+# The narrowest formation is this much wider than the separation floor, so that formation turns
+# need sub-steps of at most 2 * arccos(1 / 1.0824) = 45 degrees (cos 22.5 degrees = 1 / 1.0824).
+TURN_SPACING_FACTOR = 1.0 / float(np.cos(np.pi / 8))
+
+
+class PsaInfeasible(ValueError):
+    """The link range cannot hold both the connectivity bound and the separation floor."""
+
+
+def spacing_bounds(link_range: float, min_separation: float, track_margin: float) -> tuple[float, float]:
+    """(narrowest, widest) formation spacing for a link range, a separation floor and a track margin.
+
+    Each flown track may stray ``track_margin`` from the plan, so neighbours must be planned at
+    most ``w - 2 track_margin`` apart (connectivity) and at least ``min_separation + 2
+    track_margin`` apart everywhere, turns included; the narrowest spacing leaves room for turns
+    in 45-degree sub-steps. Raises :class:`PsaInfeasible` when the two bounds cross.
+    """
+    widest = link_range - 2.0 * track_margin
+    floor = min_separation + 2.0 * track_margin
+    narrowest = floor * TURN_SPACING_FACTOR
+    if widest < narrowest - 1e-9 or widest <= 0:
+        raise PsaInfeasible(
+            f"PSA cannot keep neighbours within the link range w = {link_range:g} m and at least "
+            f"{min_separation:g} m apart (collision margin) with {track_margin:g} m of tracking error: "
+            f"it needs w >= {narrowest + 2.0 * track_margin:.1f} m, or a smaller separation or track margin"
+        )
+    return narrowest, widest
 
 
 @dataclass(frozen=True)
@@ -64,6 +104,104 @@ class PsaCosts:
 
 
 @dataclass(frozen=True)
+class Assembly:
+    """The flight from the homes to the formation start, in synchronised sub-steps.
+
+    ``order[j]`` is the formation slot drone j takes; ``trajectory`` has one knot per sub-step
+    (homes first, formation start last), every knot a barrier, and ``speeds[k, j]`` is drone j's
+    speed on sub-step k: its distance over the sub-step's duration, so all drones arrive
+    together and each pair's offset moves in a straight line within a sub-step. The sub-steps
+    turn and stretch the homes' layout into the formation's about their centroid (a rigid
+    rotation when both are lines) so neighbours never cut across each other.
+    """
+
+    homes: FloatArray  # (m, 2)
+    order: np.ndarray  # (m,) int
+    speeds: FloatArray  # (K, m)
+    trajectory: FleetTrajectory  # K + 1 knots: homes ... formation start
+
+
+MIN_ASSEMBLY_SPEED = 0.2  # m/s; a drone already at its slot still gets a valid speed
+ASSEMBLY_ENUMERATE_UP_TO = 6  # drones: every slot order is tried up to this many (720 orders)
+ASSEMBLY_STEP_RAD = np.pi / 8  # the layout turns at most 22.5 degrees per sub-step
+
+
+def _pair_clearance(a: FloatArray, b: FloatArray) -> float:
+    """Closest approach of any pair whose offsets move linearly from rows of ``a`` to rows of ``b``."""
+    m = len(a)
+    if m < 2:
+        return float("inf")
+    jj, kk = np.triu_indices(m, 1)
+    ra, rb = a[jj] - a[kk], b[jj] - b[kk]
+    d = rb - ra
+    dd = (d * d).sum(-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        f = np.where(dd > 1e-18, np.clip(-(ra * d).sum(-1) / dd, 0.0, 1.0), 0.0)
+    closest = ra + f[:, None] * d
+    return float(np.hypot(closest[:, 0], closest[:, 1]).min())
+
+
+def _assembly_knots(homes: FloatArray, target: FloatArray) -> list[FloatArray]:
+    """Layouts from ``homes`` to ``target``: centroid moves straight, offsets turn and blend."""
+    ch, ct = homes.mean(axis=0), target.mean(axis=0)
+    h, f = homes - ch, target - ct
+    phi = float(np.arctan2((h[:, 0] * f[:, 1] - h[:, 1] * f[:, 0]).sum(), (h * f).sum()))
+    steps = max(1, int(np.ceil(abs(phi) / ASSEMBLY_STEP_RAD - 1e-9)))
+
+    def rot(a: float) -> FloatArray:
+        return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+    back = f @ rot(-phi).T  # the formation's offsets turned back onto the homes' orientation
+    knots = []
+    for i in range(steps + 1):
+        lam = i / steps
+        offsets = ((1.0 - lam) * h + lam * back) @ rot(lam * phi).T
+        knots.append((1.0 - lam) * ch + lam * ct + offsets)
+    knots[0], knots[-1] = homes.copy(), target.copy()
+    return knots
+
+
+def plan_assembly(homes: FloatArray, start: FloatArray, speed: float) -> Assembly:
+    """Assign formation slots to drones and time the assembly flight (see :class:`Assembly`).
+
+    The order maximises the closest approach during the assembly, then minimises the longest
+    flight; every order is tried for up to six drones, identity and reversed beyond.
+    """
+    homes = np.asarray(homes, dtype=float).reshape(-1, 2)
+    start = np.asarray(start, dtype=float).reshape(-1, 2)
+    m = len(start)
+    if len(homes) != m:
+        raise ValueError(f"{len(homes)} homes for {m} drones")
+    orders: list[tuple[int, ...]] = (
+        list(itertools.permutations(range(m)))
+        if m <= ASSEMBLY_ENUMERATE_UP_TO
+        else [tuple(range(m)), tuple(range(m - 1, -1, -1))]
+    )
+    best: tuple[float, float, tuple[int, ...]] | None = None
+    best_knots: list[FloatArray] = []
+    for o in orders:
+        knots = _assembly_knots(homes, start[list(o)])
+        clearance = min(_pair_clearance(a, b) for a, b in itertools.pairwise(knots))
+        length = float(sum(np.hypot(*(b - a).T).max() for a, b in itertools.pairwise(knots)))
+        key = (-round(clearance, 6), round(length, 6), o)
+        if best is None or key < best:
+            best, best_knots = key, knots
+    assert best is not None
+    times, speeds = [0.0], []
+    for a, b in itertools.pairwise(best_knots):
+        dist = np.hypot(*(b - a).T)
+        duration = max(float(dist.max()) / speed, 1e-6)
+        times.append(times[-1] + duration)
+        speeds.append(np.clip(dist / duration, MIN_ASSEMBLY_SPEED, speed))
+    traj = FleetTrajectory(
+        times=np.asarray(times),
+        positions=np.stack(best_knots, axis=1),
+        sync=np.ones(len(times), dtype=bool),
+    )
+    return Assembly(homes=homes, order=np.asarray(best[2]), speeds=np.asarray(speeds), trajectory=traj)
+
+
+@dataclass(frozen=True)
 class PsaPlan:
     """Trajectories, rounds and costs of a PSA plan."""
 
@@ -72,10 +210,60 @@ class PsaPlan:
     costs: PsaCosts
     link_range: float
     points: FloatArray = field(repr=False)
+    speed: float = 4.0
+    min_separation: float = 0.0
+    track_margin: float = 0.0
+    assembly: Assembly | None = None
+
+    def from_homes(self, homes: FloatArray) -> PsaPlan:
+        """This plan with drone j flying from ``homes[j]``: slots assigned, assembly timed.
+
+        The trajectory's rows are reordered so that row j is drone j's track.
+        """
+        assembly = plan_assembly(homes, self.trajectory.positions[:, 0], self.speed)
+        traj = replace(self.trajectory, positions=self.trajectory.positions[assembly.order])
+        return replace(self, trajectory=traj, assembly=assembly)
+
+    @property
+    def flown(self) -> FleetTrajectory:
+        """The tracks as the task file flies them (equal speed per leg, a barrier at each sync knot)."""
+        return self.trajectory.flown(self.speed)
 
     def check(self, sample_dt: float = 0.25) -> PlanReport:
-        """Re-verify connectivity and coverage on the produced trajectories."""
-        return check_plan(self.trajectory, self.points, self.link_range, sample_dt=sample_dt)
+        """Re-verify connectivity, separation and coverage on the tracks as they will be flown.
+
+        The bounds are the planning ones (``w - 2 track_margin`` and ``min_separation + 2
+        track_margin``), so any flight that stays within ``track_margin`` of its planned track
+        keeps every nearest neighbour within ``w`` and every pair ``min_separation`` apart.
+        """
+        sep = self.min_separation + 2.0 * self.track_margin if self.trajectory.drones > 1 else None
+        report = check_plan(
+            self.trajectory,
+            self.points,
+            self.link_range - 2.0 * self.track_margin,
+            sample_dt=sample_dt,
+            min_separation=sep,
+            flown_speed=self.speed,
+            max_speed=self.speed,
+        )
+        if self.assembly is None:
+            return report
+        # The assembly starts from the real homes: checked against w and the bare separation.
+        first = check_plan(
+            self.assembly.trajectory,
+            np.zeros((0, 2)),
+            self.link_range,
+            sample_dt=sample_dt,
+            min_separation=self.min_separation if self.trajectory.drones > 1 else None,
+        )
+        return PlanReport(
+            violations=first.violations + report.violations,
+            samples=first.samples + report.samples,
+            max_neighbour_distance=max(first.max_neighbour_distance, report.max_neighbour_distance),
+            max_target_miss=report.max_target_miss,
+            lengths=report.lengths,
+            min_separation=min(first.min_separation, report.min_separation),
+        )
 
 
 def _split_rounds(points: FloatArray, w_max: float) -> list[tuple[FloatArray, np.ndarray]]:
@@ -152,6 +340,7 @@ class _RoundScanner:
     drones: int
     link_range: float
     min_spacing: float
+    min_separation: float = 0.0
     scan_cost: float = 0.0
     turn_cost: float = 0.0
 
@@ -175,7 +364,9 @@ class _RoundScanner:
         if self.drones > 1:
             old = self.spacing
             self.spacing = old if spacing is None else spacing
-            self.turn_cost += pivot(self.builder, anchor, self.normal_now(), normal, old, self.spacing)
+            self.turn_cost += pivot(
+                self.builder, anchor, self.normal_now(), normal, old, self.spacing, self.min_separation
+            )
         else:
             self.builder.move_to(anchor.reshape(1, 2))
         self._last_normal = normal
@@ -184,7 +375,13 @@ class _RoundScanner:
     def fly_edge(
         self, frame: EdgeFrame, e: int, t_from: float, t_to: float, stops: list[tuple[float, FloatArray]]
     ) -> None:
-        """Along edge e from t_from to t_to, stopping for excursions at scan lines ``stops``."""
+        """Along edge e from t_from to t_to, stopping for excursions at scan lines ``stops``.
+
+        Every excursion runs along the formation line, so each of its ends is a barrier: a drone
+        that lags its neighbours there closes on them head-on (and the collision service sees a
+        conflict), while a lag along the edge only stretches the line a little. The drones stop
+        at both ends anyway (the excursion reverses), so the barriers cost almost nothing.
+        """
         inward = -frame.normal[e]
         for t, depths in sorted(stops, key=lambda s: s[0]):
             base = formation(frame.point(e, t), inward, self.spacing, self.drones)
@@ -192,8 +389,9 @@ class _RoundScanner:
             out, inn = excursion_shifts(depths, self.spacing, self.drones)
             for shift in (inn, -out):
                 if shift > 0 or shift < 0:
-                    self.builder.move_to(base + shift * inward)
-                    self.builder.move_to(base)
+                    self.builder.mark_sync()
+                    self.builder.move_to(base + shift * inward, sync=True)
+                    self.builder.move_to(base, sync=True)
                     self.scan_cost += 2.0 * abs(shift)
         self.builder.move_to(formation(frame.point(e, t_to), inward, self.spacing, self.drones))
         self.builder.mark_sync()
@@ -235,21 +433,31 @@ def plan_psa(
     link_range: float,
     speed: float = 4.0,
     *,
-    min_spacing: float = 5.0,
+    min_separation: float = 5.0,
+    track_margin: float = 0.0,
     adaptive_width: bool = True,
 ) -> PsaPlan:
     """Plan the fleet's timed trajectories visiting every target with a connected line formation.
 
-    ``adaptive_width`` narrows the formation (never below ``min_spacing`` metres, for collision
-    safety) when a ring's targets are all shallower than ``w_max``; ``False`` flies the paper's
-    fixed spacing ``link_range``.
+    Neighbours are planned at most ``link_range - 2 track_margin`` apart and every pair at least
+    ``min_separation + 2 track_margin`` apart at every instant of the flown tracks, formation
+    turns included (default floor 5 m: the collision service's 4 m horizontal margin times its
+    1.25 release factor). ``adaptive_width`` narrows the formation to a ring's deepest target
+    (never below what the separation floor needs); ``False`` flies the widest spacing.
+    Raises :class:`PsaInfeasible` when the link range cannot satisfy both bounds.
     """
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     if len(pts) == 0:
         raise ValueError("PSA needs at least one target")
-    if drones < 1 or link_range <= 0 or speed <= 0:
-        raise ValueError("PSA needs drones >= 1, link_range > 0 and speed > 0")
-    w_max = (drones - 1) * link_range
+    if drones < 1 or link_range <= 0 or speed <= 0 or min_separation < 0 or track_margin < 0:
+        raise ValueError("PSA needs drones >= 1, link_range > 0, speed > 0 and non-negative margins")
+    if drones > 1:
+        narrowest, widest = spacing_bounds(link_range, min_separation, track_margin)
+    else:
+        narrowest = widest = link_range
+    floor_sep = min_separation + 2.0 * track_margin if drones > 1 else 0.0
+    link_range_plan = widest
+    w_max = (drones - 1) * widest
     split = _split_rounds(pts, w_max)
     hulls = [h for h, _ in split]
     entries = _transfer_points(hulls)
@@ -257,9 +465,11 @@ def plan_psa(
     normal0 = (
         first_frame.normal[_edge_of(first_frame, entries[0])[0]] if first_frame else np.array([0.0, 1.0])
     )
-    floor = min_spacing if adaptive_width else link_range
-    builder = TrajectoryBuilder(formation(entries[0], -normal0, link_range, drones), speed)
-    scanner = _RoundScanner(builder, link_range, drones, link_range, floor, _last_normal=normal0)
+    floor = narrowest if adaptive_width else widest
+    builder = TrajectoryBuilder(formation(entries[0], -normal0, widest, drones), speed)
+    scanner = _RoundScanner(
+        builder, widest, drones, link_range_plan, floor, min_separation=floor_sep, _last_normal=normal0
+    )
     if first_frame is not None:  # start already at the first ring's width (no re-spacing cost)
         scanner.spacing = scanner.ring_spacing(locate(first_frame, pts[split[0][1]])[0])
         builder = TrajectoryBuilder(formation(entries[0], -normal0, scanner.spacing, drones), speed)
@@ -282,5 +492,12 @@ def plan_psa(
         fleet_length=float(trajectory.lengths().max()),
     )
     return PsaPlan(
-        trajectory=trajectory, rounds=tuple(rounds), costs=costs, link_range=link_range, points=pts
+        trajectory=trajectory,
+        rounds=tuple(rounds),
+        costs=costs,
+        link_range=link_range,
+        points=pts,
+        speed=speed,
+        min_separation=min_separation if drones > 1 else 0.0,
+        track_margin=track_margin,
     )

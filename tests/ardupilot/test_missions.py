@@ -175,12 +175,13 @@ def test_geofence_upload_reaches_the_autopilot(rig: Rig) -> None:
     rig.wait(lambda: rig.agents["drone-1"].monitor.geofence is not None, 10.0, "fence at the agent")
     try:
         values: dict[str, float] = {}
-        for _ in range(50):  # the agent uploads the fence, then sets FENCE_ENABLE last
-            values = {p: rig.param("drone-1", p) for p in ("FENCE_ENABLE", "FENCE_TYPE", "FENCE_ACTION")}
-            if values["FENCE_ENABLE"] == 1:
+        wanted = {"FENCE_ENABLE": 1.0, "FENCE_TYPE": 5.0, "FENCE_ACTION": 1.0}
+        for _ in range(150):  # the upload and its parameters settle one by one (bounded: 30 s)
+            values = {p: rig.param("drone-1", p) for p in wanted}
+            if values == wanted:
                 break
             time.sleep(0.2)
-        assert values == {"FENCE_ENABLE": 1.0, "FENCE_TYPE": 5.0, "FENCE_ACTION": 1.0}
+        assert values == wanted
         assert rig.param("drone-1", "FENCE_ALT_MAX") == pytest.approx(60.0)
     finally:
         rig.call(rig.d.set_geofence(None, ["drone-1"]))

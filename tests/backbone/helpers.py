@@ -122,3 +122,31 @@ def new_key() -> str:
 async def stop_agents(agents: list[RunningAgent]) -> None:
     for running in agents:
         await running.kill()
+
+
+def telemetry_row(agent: str, time_s: float, received: float) -> tuple[object, ...]:
+    """One telemetry row in the store's column order (TELEMETRY_COLUMNS), flying in GUIDED."""
+    return (
+        agent,
+        time_s,
+        received,
+        47.0,
+        8.0,
+        1.0,
+        400.0,
+        0,
+        0,
+        0,
+        0,
+        50.0,
+        12.0,
+        3.0,
+        "GUIDED",
+        1,
+        0,
+        3,
+        10,
+        2,
+        "m",
+        0,
+    )

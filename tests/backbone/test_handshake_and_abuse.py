@@ -16,6 +16,7 @@ from agent.link import DaemonLink
 from protocol import auth
 from protocol.packets import (
     PROTOCOL_VERSION,
+    SUPPORTED_VERSIONS,
     Body,
     Close,
     CloseReason,
@@ -27,18 +28,18 @@ from protocol.packets import (
     ResponseCid,
     StatusReport,
 )
-from protocol.wire import HEADER, MAGIC, Frame, FrameDecoder, encode
+from protocol.session import ClientHandshake, Refused
+from protocol.stream import FramedStream
+from protocol.wire import FRAME_VERSION, HEADER, MAGIC, Frame, FrameDecoder, encode
 from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
 
 
 class RawClient:
-    """A hand-driven protocol peer, to send exactly the bytes a test needs."""
+    """A hand-driven protocol peer on the shared framed stream, to send exactly what a test needs."""
 
     def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.reader, self.writer = reader, writer
-        self.decoder = FrameDecoder()
-        self.frames: list[Frame] = []
-        self.seq = 0
+        self.stream = FramedStream(reader, writer, version=PROTOCOL_VERSION)
 
     @classmethod
     async def connect(cls, port: int) -> RawClient:
@@ -46,26 +47,18 @@ class RawClient:
         return cls(reader, writer)
 
     async def send(self, body: Body) -> None:
-        self.seq += 1
-        self.writer.write(encode(body, self.seq))
-        await self.writer.drain()
+        await self.stream.send(body)
 
     async def send_raw(self, data: bytes) -> None:
         self.writer.write(data)
         await self.writer.drain()
 
     async def receive(self, timeout: float = 5.0) -> Frame | None:
-        """Next frame, or None when the daemon closed the connection."""
-        async with asyncio.timeout(timeout):
-            while not self.frames:
-                try:
-                    data = await self.reader.read(65_536)
-                except ConnectionResetError:  # closed with our unread bytes in its buffer: an RST
-                    return None
-                if not data:
-                    return None
-                self.frames.extend(self.decoder.feed(data))
-        return self.frames.pop(0)
+        """Next frame, or None when the daemon closed the connection (an RST included)."""
+        try:
+            return await self.stream.read_frame(timeout)
+        except ConnectionError:
+            return None
 
     async def receive_all_until_closed(self, timeout: float = 5.0) -> list[Body]:
         bodies: list[Body] = []
@@ -77,22 +70,22 @@ class RawClient:
         raise AssertionError("daemon kept talking instead of closing")
 
     async def handshake(
-        self, identity: str, key_hex: str, version: int = PROTOCOL_VERSION
+        self, identity: str, key_hex: str, version: int | None = None
     ) -> tuple[Body, str, str]:
-        client_nonce = auth.new_nonce()
-        await self.send(RequestCid(identity=identity, protocol_version=version, client_nonce=client_nonce))
+        """The shared client handshake, step by step; returns (last answer, server nonce, client nonce)."""
+        versions = [version] if version is not None else list(SUPPORTED_VERSIONS)
+        session = ClientHandshake(identity, bytes.fromhex(key_hex), versions=versions)
+        await self.send(session.hello())
         challenge = await self.receive()
         assert challenge is not None
-        if not isinstance(challenge.body, ResponseCid) or challenge.body.outcome != "challenge":
-            return challenge.body, "", client_nonce
-        server_nonce = challenge.body.server_nonce or ""
-        proof = auth.agent_proof(bytes.fromhex(key_hex), identity, server_nonce, client_nonce)
-        await self.send(
-            RequestCid(identity=identity, protocol_version=version, client_nonce=client_nonce, proof=proof)
-        )
+        try:
+            proof = session.on_challenge(challenge.body)
+        except Refused:
+            return challenge.body, "", session.client_nonce
+        await self.send(proof)
         answer = await self.receive()
         assert answer is not None
-        return answer.body, server_nonce, client_nonce
+        return answer.body, session.server_nonce or "", session.client_nonce
 
     def close(self) -> None:
         self.writer.close()
@@ -126,7 +119,7 @@ async def test_wrong_key_is_refused_and_logged(tmp_path: Path) -> None:
         assert isinstance(answer, ResponseCid) and answer.outcome == "refused"
         assert "wrong key" in (answer.reason or "")
         rest = await client.receive_all_until_closed()
-        assert rest == [Close(reason=CloseReason.REFUSED, message=answer.reason or "")]
+        assert rest == [Close(reason=CloseReason.REFUSED, message=answer.reason or "", code="wrong_key")]
         assert daemon.events.history(kind="agent_refused")
         assert daemon.agents.session("intruder") is None
 
@@ -178,9 +171,10 @@ async def test_wrong_protocol_version_is_refused(tmp_path: Path) -> None:
     key = new_key()
     async with running_daemon(tmp_path, key) as daemon:
         client = await RawClient.connect(daemon.listen_port)
-        answer, _, _ = await client.handshake("future", key, version=2)
+        answer, _, _ = await client.handshake("future", key, version=9)
         assert isinstance(answer, ResponseCid) and answer.outcome == "refused"
-        assert "protocol version 2 not supported" in (answer.reason or "")
+        assert "protocol version(s) [9] not supported" in (answer.reason or "")
+        assert answer.code == "version_unsupported"
 
 
 async def test_silent_connection_is_cut_after_handshake_timeout(tmp_path: Path) -> None:
@@ -189,7 +183,9 @@ async def test_silent_connection_is_cut_after_handshake_timeout(tmp_path: Path) 
         client = await RawClient.connect(daemon.listen_port)
         await client.send_raw(MAGIC)  # a slow-loris: two bytes, then nothing
         bodies = await client.receive_all_until_closed(timeout=3.0)
-        assert bodies == [Close(reason=CloseReason.PROTOCOL_ERROR, message="handshake timeout")]
+        assert bodies == [
+            Close(reason=CloseReason.PROTOCOL_ERROR, message="handshake timeout", code="handshake_timeout")
+        ]
         assert daemon.events.history(kind="handshake_timeout")
 
 
@@ -258,7 +254,7 @@ async def test_malformed_input_never_disturbs_a_running_mission(tmp_path: Path) 
             abusers: list[tuple[str, bytes]] = [
                 ("garbage", secrets.token_bytes(4096)),
                 ("http", b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"),
-                ("oversized", HEADER.pack(MAGIC, PROTOCOL_VERSION, 2, 1, 512 << 20, 0)),
+                ("oversized", HEADER.pack(MAGIC, FRAME_VERSION, 2, 1, 512 << 20, 0)),
                 ("wrong version", HEADER.pack(MAGIC, 99, 0, 1, 2, 0) + b"{}"),
                 ("invalid body", encode(Close(reason=CloseReason.NORMAL), 1)[:16] + b"{nope}"),
                 ("truncated", encode(Close(reason=CloseReason.NORMAL), 1)[:10]),
@@ -306,7 +302,7 @@ async def test_flooding_agent_is_cut_off_and_others_keep_flying(tmp_path: Path) 
             # The close may be lost to a TCP reset (the flooder's unread frames); the event is not.
             assert all(isinstance(b, ResponseCid | StatusReport) for b in bodies[:-1])
             if bodies and isinstance(bodies[-1], Close):
-                assert "frames/s" in bodies[-1].message
+                assert "frames/s" in bodies[-1].message and bodies[-1].code == "rate_limited"
             cut = daemon.events.history(kind="agent_cut_off")
             assert [e.agent for e in cut] == ["flooder"]
             before = daemon.agents.session("steady").status_count  # type: ignore[union-attr]

@@ -14,7 +14,15 @@ from pathlib import Path
 from gcs.config import TelemetryConfig
 from gcs.store import _MIGRATIONS, SCHEMA_VERSION, Store
 from gcs.telemetry import CSV_COLUMNS, split_flights
-from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
+from tests.backbone.helpers import (
+    new_key,
+    running_daemon,
+    start_agent,
+    stop_agents,
+    survey_mission,
+    telemetry_row,
+    wait_for,
+)
 
 BIN = Path(sys.executable).parent
 
@@ -92,30 +100,7 @@ async def test_downsampling_keeps_one_sample_per_period(tmp_path: Path) -> None:
 
 def test_retention_prunes_old_samples(tmp_path: Path) -> None:
     store = Store(tmp_path / "db.sqlite")
-    row = (
-        "a",
-        1.0,
-        0.0,
-        47.0,
-        8.0,
-        1.0,
-        400.0,
-        0,
-        0,
-        0,
-        0,
-        50.0,
-        12.0,
-        3.0,
-        "GUIDED",
-        1,
-        0,
-        3,
-        10,
-        2,
-        "m",
-        0,
-    )
+    row = telemetry_row("a", 1.0, 0.0)
     now = time.time()
     store.add_telemetry([(*row[:2], now - 3600, *row[3:]), (*row[:2], now, *row[3:])])
     assert store.prune_telemetry(now - 60) == 1

@@ -109,3 +109,21 @@ async def test_mutual_tls_requires_a_client_certificate_from_the_fleet_ca(tmp_pa
             assert daemon.agents.session("anonymous") is None and daemon.agents.session("impostor") is None
         finally:
             await stop_agents([good, anonymous, impostor])
+
+
+async def test_a_client_certificate_logs_in_only_as_its_own_identity(tmp_path: Path) -> None:
+    """drone-1's certificate, with the fleet key, cannot log in as drone-2 (code certificate_mismatch)."""
+    pki = make_pki(tmp_path)
+    key = new_key()
+    overrides = {"tls_cert": pki["server_cert"], "tls_key": pki["server_key"], "tls_client_ca": pki["ca"]}
+    tls = {"tls_ca": pki["ca"], "tls_cert": pki["client_cert"], "tls_key": pki["client_key"]}
+    async with running_daemon(tmp_path, key, **overrides) as daemon:
+        own = start_agent("drone-1", daemon.listen_port, key, **tls)
+        other = start_agent("drone-2", daemon.listen_port, key, index=1, **tls)
+        try:
+            await wait_for(lambda: daemon.agents.session("drone-1") is not None, 10, "drone-1 joins")
+            await wait_for(lambda: other.agent.link.stopped is not None, 10, "drone-2 refused for good")
+            assert other.agent.link.last_code == "certificate_mismatch"
+            assert daemon.agents.session("drone-2") is None
+        finally:
+            await stop_agents([own, other])

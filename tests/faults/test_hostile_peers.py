@@ -18,7 +18,7 @@ from pathlib import Path
 from gcs.config import DaemonConfig
 from protocol import auth
 from protocol.packets import PROTOCOL_VERSION, Close, CloseReason, Position, RequestCid, StatusReport
-from protocol.wire import HEADER, MAGIC, encode
+from protocol.wire import FRAME_VERSION, HEADER, MAGIC, encode
 from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
 from tests.backbone.test_handshake_and_abuse import RawClient
 from tests.faults.common import first_occurrences, record_releases, released_steps
@@ -198,5 +198,5 @@ async def test_agent_survives_a_corrupt_frame_from_the_link(tmp_path: Path) -> N
 
 async def test_agent_survives_a_frame_with_a_huge_integer(tmp_path: Path) -> None:
     body = b'{"parameters":{"status_period_s":' + b"1" * 5000 + b"}}"
-    poison = HEADER.pack(MAGIC, PROTOCOL_VERSION, 3, 99, len(body), zlib.crc32(body)) + body
+    poison = HEADER.pack(MAGIC, FRAME_VERSION, 3, 99, len(body), zlib.crc32(body)) + body
     await _agent_through_proxy_gets(tmp_path, poison)

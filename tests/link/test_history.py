@@ -16,7 +16,7 @@ from gcs.live import StatusSample
 from gcs.store import TELEMETRY_COLUMNS, Store
 from gcs.telemetry import TelemetryWriter
 from protocol.packets import StatusReport
-from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, wait_for
+from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, telemetry_row, wait_for
 
 BIG_ROWS = 2_000_000
 PERIOD_S = 0.1
@@ -135,30 +135,7 @@ def test_telemetry_writer_drops_the_oldest_rows_when_behind(tmp_path: Path) -> N
     writer = TelemetryWriter(store, TelemetryConfig(flush_s=60.0), max_rows=5)
     writer.start()
     try:
-        row = (
-            "w",
-            0.0,
-            0.0,
-            47.0,
-            8.0,
-            1.0,
-            400.0,
-            0,
-            0,
-            0,
-            0,
-            50.0,
-            12.0,
-            3.0,
-            "GUIDED",
-            1,
-            0,
-            3,
-            10,
-            2,
-            "m",
-            0,
-        )
+        row = telemetry_row("w", 0.0, 0.0)
         for n in range(8):  # the thread sleeps for flush_s: nothing is written meanwhile
             writer.add((row[0], float(n), time.time(), *row[3:]))  # recent: retention keeps it
         assert (writer.pending, writer.dropped) == (5, 3)

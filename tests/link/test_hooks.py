@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from gcs.agents import AgentSession
-from gcs.dispatch import HookDispatcher, HookKind
+from gcs.dispatch import HookDispatcher, HookKind, HookList
 from gcs.metrics import DaemonMetrics
 from protocol.packets import Resume, StatusReport
 from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
@@ -114,11 +114,11 @@ async def test_consumer_coalesces_statuses_but_never_drops_syncs() -> None:
             seen.append(("sync", agent, n))
 
     service = Service()
-    hooks: dict[HookKind, list[object]] = {
-        "join": [],
-        "status": [service.on_status],
-        "sync": [service.on_sync],
-        "lost": [],
+    hooks: dict[HookKind, HookList[object]] = {
+        "join": HookList(),
+        "status": HookList([service.on_status]),
+        "sync": HookList([service.on_sync]),
+        "lost": HookList(),
     }
     dispatcher = HookDispatcher(hooks, capacity=4)  # type: ignore[arg-type]
     dispatcher.publish("status", "a", "a", 0)
@@ -151,11 +151,46 @@ async def test_drain_hooks_waits_for_follow_up_work() -> None:
         await asyncio.sleep(0.2)
         done.append(time.monotonic())
 
-    hooks: dict[HookKind, list[object]] = {"join": [], "status": [], "sync": [], "lost": [hook]}
+    hooks: dict[HookKind, HookList[object]] = {
+        "join": HookList(),
+        "status": HookList(),
+        "sync": HookList(),
+        "lost": HookList([hook]),
+    }
     dispatcher = HookDispatcher(hooks)  # type: ignore[arg-type]
     for name in ("a", "b", "c"):
         dispatcher.publish("lost", name, name)
     assert not await dispatcher.drain(timeout=0.1)
     assert await dispatcher.drain(timeout=5.0)
     assert len(done) == 3
+    await dispatcher.close()
+
+
+async def test_a_removed_hook_gets_no_queued_events() -> None:
+    """A service that stops (removes its hooks) is not called for events queued before."""
+    gate = asyncio.Event()
+    calls: list[int] = []
+
+    async def first(n: int) -> None:
+        await gate.wait()
+        calls.append(n)
+
+    async def second(n: int) -> None:
+        calls.append(-n)
+
+    lost: HookList[object] = HookList([first, second])
+    hooks: dict[HookKind, HookList[object]] = {
+        "join": HookList(),
+        "status": HookList(),
+        "sync": HookList(),
+        "lost": lost,
+    }
+    dispatcher = HookDispatcher(hooks)  # type: ignore[arg-type]
+    for n in (1, 2, 3):
+        dispatcher.publish("lost", "a", n)
+    await asyncio.sleep(0.01)  # first is inside its call for 1; second has run all three
+    lost.remove(first)
+    gate.set()
+    assert await dispatcher.drain(timeout=5.0)
+    assert calls == [-1, -2, -3, 1]  # 2 and 3 were queued for first after it was removed
     await dispatcher.close()

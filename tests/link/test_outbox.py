@@ -42,6 +42,10 @@ async def test_a_peer_that_stops_reading_does_not_delay_another_agents_pause(tmp
                 await wait_for(lambda n=attempt: len(received) > n, 2.0, f"command {attempt} at fast")
                 delays.append(received[attempt][0] - sent_at)
                 await asyncio.sleep(0.05)
+            print(
+                "\nurgent command to 'fast' while 'deaf' is stuck, delays (ms):",
+                [round(d * 1000, 1) for d in delays],
+            )
             assert max(delays) < HOLD_BOUND_S, delays
             assert not stuck.done(), "the stuck peer's send resolved although it never read"
             # The stuck peer is cut off after the send timeout; the other agent never noticed.
@@ -61,7 +65,8 @@ async def test_a_peer_that_stops_reading_does_not_delay_another_agents_pause(tmp
 
 async def test_urgent_frames_overtake_queued_normal_traffic(tmp_path: Path) -> None:
     key = new_key()
-    async with running_daemon(tmp_path, key, send_timeout_s=20.0) as daemon:
+    # The raw peer sends no status: a long liveness limit keeps a loaded machine from losing it.
+    async with running_daemon(tmp_path, key, send_timeout_s=20.0, lost_after_periods=400.0) as daemon:
         slow = await RawClient.connect(daemon.listen_port)
         try:
             await slow.handshake("slow", key)

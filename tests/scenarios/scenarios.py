@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 from gcs.api_planning import DroneInfo
-from protocol.actions import Goto, Land, Takeoff
+from protocol.actions import Goto, Hold, Land, Takeoff
 from protocol.taskfile import AgentPlan, TaskFile
 from tests.cooperation.rig import HOME, Rig, at
 
@@ -107,6 +107,26 @@ def barrier_task(names: list[str]) -> TaskFile:
                     Takeoff(step=0, alt=8.0 + 4 * k, sync=True),
                     Goto(step=1, lat=legs[name][0], lon=legs[name][1], alt=8.0 + 4 * k, speed=3.0, sync=True),
                     Goto(step=2, lat=nxt[0] + 1e-4 * k, lon=nxt[1], alt=8.0 + 4 * k, speed=5.0),
+                    Land(step=3),
+                ],
+            )
+            for k, name in enumerate(names)
+        ],
+    )
+
+
+def stack_task(names: list[str], hold_s: float = 200.0) -> TaskFile:
+    """The drones hover in a vertical stack (8, 13, 18 m ...) over one point, then hold."""
+    spot = at(30, 5)
+    return TaskFile(
+        name="stack",
+        plans=[
+            AgentPlan(
+                agent=name,
+                actions=[
+                    Takeoff(step=0, alt=8.0 + 5 * k, sync=True),
+                    Goto(step=1, lat=spot[0], lon=spot[1], alt=8.0 + 5 * k, speed=4.0, sync=True),
+                    Hold(step=2, seconds=hold_s),
                     Land(step=3),
                 ],
             )

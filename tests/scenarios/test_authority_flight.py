@@ -29,6 +29,7 @@ from tests.scenarios.scenarios import (
     head_on,
     infos,
     separation,
+    stack_task,
 )
 
 pytestmark = pytest.mark.slow
@@ -100,20 +101,7 @@ async def test_rtl_all_from_held_state_lands_everyone_apart(tmp_path: Path) -> N
 async def test_land_all_from_a_stack_lands_in_sequence_apart(tmp_path: Path) -> None:
     """Three drones hover in a vertical stack; land-all must not land one on top of another."""
     async with rig(tmp_path, 3, COOP, spacing_m=5.0) as r:
-        spot = at(30, 5)
-        plans = [
-            AgentPlan(
-                agent=name,
-                actions=[
-                    Takeoff(step=0, alt=8.0 + 5 * k, sync=True),
-                    Goto(step=1, lat=spot[0], lon=spot[1], alt=8.0 + 5 * k, speed=4.0, sync=True),
-                    Hold(step=2, seconds=200),
-                    Land(step=3),
-                ],
-            )
-            for k, name in enumerate(r.names)
-        ]
-        mission_id = await r.daemon.missions.submit(TaskFile(name="stack", plans=plans))
+        mission_id = await r.daemon.missions.submit(stack_task(r.names))
         await wait_for(lambda: all((s := r.status(n)) and s.step >= 2 for n in r.names), 60, "stacked")
         await r.daemon.operator.hold(None, "test")
         start = len(r.truth)
