@@ -141,6 +141,7 @@ class DaemonLink:
         self.last_code: str | None = None  # code of the last refusal or close the daemon sent
         self.stopped: str | None = None  # why the link gave up for good (a `stop` code)
         self.was_lost = False  # the daemon said it had marked us lost (v2 `accepted.lost`)
+        self.compact_status = False  # the daemon accepted the compact binary status body (v2)
         self.replayed = 0  # buffered status reports sent after outages
         self.thinned = 0  # buffered status reports left out of a replay
         self._stream: FramedStream | None = None
@@ -262,8 +263,13 @@ class DaemonLink:
 
     async def _session(self, stream: FramedStream) -> None:
         self._stream = stream
+        self.compact_status = False
         handshake = ClientHandshake(
-            self.config.identity, self._key, versions=self.versions, capabilities=self.config.capabilities
+            self.config.identity,
+            self._key,
+            versions=self.versions,
+            capabilities=self.config.capabilities,
+            compact_status=True,
         )
         accepted = await client_handshake(
             stream,
@@ -273,6 +279,7 @@ class DaemonLink:
             timeout=self.config.handshake_timeout_s,
         )
         self.cid, self.version, self.was_lost = accepted.cid, accepted.version, accepted.lost
+        self.compact_status = accepted.compact_status  # client_handshake set the stream to match
         if accepted.parameters is not None:
             await self._on_parameters(SetParameters(parameters=accepted.parameters))
         self.connected = True

@@ -60,6 +60,10 @@ def raw_frame(ptype: int, body: bytes, *, version: int = PROTOCOL_VERSION, crc: 
 
 
 def valid_frames() -> dict[str, bytes]:
+    return {name: encode(body, 1) for name, body in valid_bodies().items()}
+
+
+def valid_bodies() -> dict[str, Body]:
     nonce = "0123456789abcdef" * 2  # fixed, so regenerating gives the same files
     status = StatusReport(
         time=1_700_000_000.5,
@@ -130,13 +134,19 @@ def valid_frames() -> dict[str, bytes]:
         "t5_release": SyncSignal(mission_id="m-1", step=3, kind="release"),
         "t6_close": Close(reason=CloseReason.PROTOCOL_ERROR, message="bad magic"),
     }
-    return {name: encode(body, 1) for name, body in bodies.items()}
+    return bodies
 
 
 def seeds() -> dict[str, bytes]:
     frames = valid_frames()
     out = {f"valid_{name}.bin": WHOLE + frame for name, frame in frames.items()}
     out["valid_t2_status_bytewise.bin"] = BYTEWISE + frames["t2_status"]
+    # The negotiated compact binary status body (type byte 0x82), with and without a JSON tail.
+    status_body = valid_bodies()["t2_status"]
+    assert isinstance(status_body, StatusReport)
+    out["valid_t2_status_compact_tail.bin"] = WHOLE + encode(status_body, 1, compact=True)
+    plain = status_body.model_copy(update={"exceptions": []})
+    out["valid_t2_status_compact_bytewise.bin"] = BYTEWISE + encode(plain, 1, compact=True)
     out["valid_session_stream.bin"] = FIX_CRC + b"".join(
         frames[n] for n in ("t0_hello", "t1_challenge", "t0_proof", "t1_accepted", "t2_status", "t5_finished")
     )

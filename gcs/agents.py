@@ -11,6 +11,10 @@ until then no other packet is accepted. Any protocol error closes only that conn
 Nothing is awaited on the read path: the frame loop decodes, records (``session.status``...)
 and publishes to the hook consumers (gcs/dispatch.py), which run ``on_join`` / ``on_status`` /
 ``on_sync`` / ``on_lost`` hooks in one task per hook owner, outside the handshake budget.
+Status reports are handed over in one batch per event-loop iteration (everything every frame
+loop received in it); any other event first flushes the batch, so each consumer still sees one
+agent's events in the order they arrived. A v2 agent may send them in the compact binary body
+(``compact_status``, negotiated by the session layer).
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 from gcs.config import DaemonConfig
-from gcs.dispatch import ConsumerStats, HookDispatcher, HookList
+from gcs.dispatch import ConsumerStats, HookDispatcher, HookKind, HookList
 from gcs.events import EventBus
 from gcs.keys import KeyRing
 from gcs.outbox import Outbox
@@ -42,10 +46,11 @@ from protocol.packets import (
     SetParameters,
     StatusReport,
     SyncSignal,
+    packet_type_of,
 )
 from protocol.session import Code, Refused, ServerHandshake, close_for
 from protocol.stream import FramedStream
-from protocol.wire import PRE_AUTH_MAX_BODY, Frame, ProtocolError
+from protocol.wire import PRE_AUTH_MAX_BODY, Frame, ProtocolError, encode
 
 log = logging.getLogger("gcs.agents")
 
@@ -100,6 +105,7 @@ class AgentSession:
     exception_names: frozenset[str] = frozenset()
     exception_budget: TokenBucket | None = None
     exceptions_suppressed: int = 0
+    compact_status: bool = False  # negotiated: status may come as the compact binary body
 
     @property
     def last_tx(self) -> float:
@@ -176,7 +182,12 @@ class AgentManager:
             {"join": self.on_join, "status": self.on_status, "sync": self.on_sync, "lost": self.on_lost}
         )
         self._tasks: set[asyncio.Task[None]] = set()
+        self._status_batch: list[tuple[AgentSession, StatusReport]] = []
+        self._flush_scheduled = False
+        self._hooks_closed = False
         self._pending_handshakes = 0
+        self.ingest_frames = 0  # frames recorded by the frame loops
+        self.ingest_busy_s = 0.0  # event-loop time recording them took (checks, record, publish)
         self.busy_refusals = 0
         self.accepting = True  # False: handshakes are refused with code `starting`
         # Cluster mode (gcs/cluster): agents linked to other daemons, and the shared CID registry.
@@ -212,6 +223,27 @@ class AgentManager:
         if session is None:
             return False
         return session.post(body, urgent=urgent)
+
+    def burst(self, identities: list[str], body: Body) -> int:
+        """Send ``body`` to every connected agent of ``identities`` in one pass; how many got it.
+
+        Encoded once per protocol version; each agent's socket is written right away (behind
+        what its outbox still holds), with no task switch per agent: a barrier release reaches
+        1,000 agents in one go.
+        """
+        frames: dict[int, bytes] = {}
+        ptype = packet_type_of(body)
+        sent = 0
+        for identity in identities:
+            session = self.session(identity)
+            if session is None:
+                continue
+            frame = frames.get(session.version)
+            if frame is None:
+                frame = frames[session.version] = encode(body, 0, session.version)
+            if session.outbox.write_now(frame, ptype):
+                sent += 1
+        return sent
 
     # --- connections ----------------------------------------------------------------------------
 
@@ -344,6 +376,7 @@ class AgentManager:
             peer=peer,
             outbox=outbox,
             version=stream.version,
+            compact_status=handshake.compact_status,
         )
         outbox.on_cut_off = lambda reason: self._cut_off(session, reason)
         outbox.start()
@@ -373,7 +406,7 @@ class AgentManager:
             },
         )
         # Join hooks run in their services' consumers, outside this handshake's time budget.
-        self._hooks.publish("join", session.identity, session, request.resume)
+        self._publish("join", session.identity, session, request.resume)
         return session
 
     def _parameters(self) -> AgentParameters:
@@ -400,7 +433,10 @@ class AgentManager:
                     else (self.config.max_frames_per_s, self.config.frame_burst)
                 )
                 raise RateLimited(f"more than {rate:g} {kind}/s (burst {burst}); cut off")
+            started = time.perf_counter()
             self._handle(session, frame)
+            self.ingest_frames += 1
+            self.ingest_busy_s += time.perf_counter() - started
             if not session.open:
                 return
 
@@ -408,17 +444,22 @@ class AgentManager:
         """Record what the frame says and hand it to the hook consumers; nothing is awaited here."""
         body = frame.body
         if isinstance(body, StatusReport):
+            if frame.compact and not session.compact_status:
+                raise ProtocolError("compact status body (type 0x82) sent without negotiating it")
             self._exception_events(session, body)
             session.status_count += 1
             if body.buffered:  # history: it never overwrites the newer live state
                 session.replayed_count += 1
             else:
                 session.status = body
-            self._hooks.publish("status", session.identity, session, body)
+            self._status_batch.append((session, body))
+            if not self._flush_scheduled:
+                self._flush_scheduled = True
+                asyncio.get_running_loop().call_soon(self._flush_statuses)
         elif isinstance(body, SyncSignal):
             if body.kind != "finished":
                 raise ProtocolError("agents may only send 'finished' sync signals")
-            self._hooks.publish("sync", session.identity, session, body)
+            self._publish("sync", session.identity, session, body)
         elif isinstance(body, Close):
             self._events.publish(
                 "agent_closed",
@@ -432,6 +473,20 @@ class AgentManager:
                 "is not valid from an agent after the handshake"
             )
 
+    def _flush_statuses(self) -> None:
+        """Hand the reports received since the last flush to the status consumers, as one batch."""
+        self._flush_scheduled = False
+        batch, self._status_batch = self._status_batch, []
+        if not self._hooks_closed:
+            self._hooks.publish_batch(batch)
+
+    def _publish(self, kind: HookKind, agent: str, *args: object) -> None:
+        """Publish a non-status event behind every status already received (per-agent order)."""
+        if self._status_batch:
+            self._flush_statuses()
+        if not self._hooks_closed:
+            self._hooks.publish(kind, agent, *args)
+
     def _exception_events(self, session: AgentSession, status: StatusReport) -> None:
         """Turn exceptions that appear in a status report into events (once each, bounded).
 
@@ -439,6 +494,8 @@ class AgentManager:
         are counted, with one warning per suppressed run, so an agent cycling through new names
         cannot fill the database.
         """
+        if not status.exceptions and not session.exception_names:
+            return  # the common case: nothing raised before or now
         before = session.exception_names
         names = frozenset(e.split(":", 1)[0] for e in status.exceptions)
         session.exception_names = names
@@ -507,7 +564,7 @@ class AgentManager:
                     severity="warning",
                     agent=identity,
                 )
-                self._hooks.publish("lost", identity, identity)
+                self._publish("lost", identity, identity)
             await self._hooks.prune()
 
     async def close_all(self, reason: CloseReason, message: str) -> None:
@@ -515,6 +572,7 @@ class AgentManager:
         await asyncio.gather(*(s.close(reason, message) for s in sessions))
         if self._tasks:  # closed transports end every frame loop; give them a moment to clean up
             await asyncio.wait(list(self._tasks), timeout=2.0)
+        self._hooks_closed = True  # a flush still scheduled must not start new consumers
         await self._hooks.close()
 
     # --- hook consumers -------------------------------------------------------------------------
@@ -524,6 +582,8 @@ class AgentManager:
 
         For tests and services that need "everything received so far has been seen by the hooks".
         """
+        if self._status_batch:
+            self._flush_statuses()
         return await self._hooks.drain(timeout)
 
     def hook_stats(self) -> list[ConsumerStats]:

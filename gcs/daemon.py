@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import secrets
 import ssl
@@ -40,6 +41,21 @@ if TYPE_CHECKING:
     from gcs.cluster.node import ClusterNode
 
 log = logging.getLogger("gcs.daemon")
+_heap_frozen = False
+
+
+def _freeze_startup_heap() -> None:
+    """Move what is loaded at start-up (modules, pydantic schemas, services) out of the collector's sight.
+
+    It lives as long as the process, so a full collection need not scan it: that took full
+    collections from 60-130 ms to a few ms (docs/performance.md). Once per process, so tests
+    that start many daemons do not freeze each other's garbage.
+    """
+    global _heap_frozen
+    if not _heap_frozen:
+        _heap_frozen = True
+        gc.freeze()
+
 
 SERVICE_STOP_TIMEOUT_S = 5.0
 
@@ -140,6 +156,7 @@ class Daemon:
             self.agents, self.missions, self.authority, self.returns, self.events
         )
         self.agents.on_status.insert(0, self._observe_status)
+        self._returns_tick_due = False
         self.api_token = load_api_token(config)
         self._server: asyncio.base_events.Server | None = None
         self._http_task: asyncio.Task[None] | None = None
@@ -212,6 +229,12 @@ class Daemon:
         if session.home is None and p is not None and status.landed and not status.armed:
             # An agent that joined before its autopilot had a home: where it stands is its home.
             session.home = GeoPoint(lat=p.lat, lon=p.lon, alt_amsl=p.alt_amsl)
+        if self.returns.active and not self._returns_tick_due:  # O(fleet): once per batch, not per report
+            self._returns_tick_due = True
+            asyncio.get_running_loop().call_soon(self._returns_tick)
+
+    def _returns_tick(self) -> None:
+        self._returns_tick_due = False
         self.returns.tick()
 
     async def start(self) -> None:
@@ -237,6 +260,7 @@ class Daemon:
             await service.start(context)
         if self.config.http_host:
             await self._start_http()
+        _freeze_startup_heap()
         self.events.publish(
             "daemon_started",
             f"agents on {self.config.listen_host}:{self.listen_port}"

@@ -8,11 +8,18 @@ the hooks of one service (say ``MissionRunner._on_join`` / ``_on_status`` / ``_o
 ``_on_lost``) see one agent's events in the order they happened, as they did when they ran in
 the frame loop, and a slow or failing service delays only itself.
 
-Each consumer's queue is bounded (``capacity`` events). When it is full, a status report is
-coalesced with the same agent's status still waiting (a status carries full state), or else the
-oldest waiting status is dropped; joins, syncs and losts are never dropped (their rate is bound
-by the agent count and the per-agent frame limit), they are counted as ``overflow`` instead.
-Everything is counted per consumer (``stats()``, exported by gcs/metrics.py).
+Status reports arrive in batches (``publish_batch``: the agent manager hands over everything the
+frame loops received in one event-loop iteration at once), so a report costs each consumer one
+list entry, not one queue item and one task switch. A consumer runs its queue in steps of
+``STEP_BUDGET_S`` and then yields, so with thousands of connections it still gets its share of
+the loop and a backlog never stalls it.
+
+Each consumer's queue is bounded (``capacity`` events, a batch counting its reports). When it is
+full, a status report is coalesced with the same agent's status still waiting (a status carries
+full state), or else the oldest waiting status (a whole batch, for batches) is dropped; joins,
+syncs and losts are never dropped (their rate is bound by the agent count and the per-agent
+frame limit), they are counted as ``overflow`` instead. Everything is counted per consumer
+(``stats()``, exported by gcs/metrics.py), including the loop time its hooks took (``busy_s``).
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ log = logging.getLogger("gcs.dispatch")
 
 HookKind = Literal["join", "status", "sync", "lost"]
 Hook = Callable[..., Awaitable[None]]
+StatusBatch = list[tuple[Any, Any]]  # (session, report) pairs, in arrival order
 
 DEFAULT_CAPACITY = 10_000
 STEP_BUDGET_S = 0.02
@@ -95,10 +103,11 @@ class HookList(list[_H]):
 class _Item:
     kind: HookKind
     hook: Hook
-    agent: str
+    agent: str  # "" for a batch
     args: tuple[Any, ...]
     version: int  # of the hook list when published: unchanged means still registered
     live: bool = True
+    batch: StatusBatch | None = None  # a status batch: hook(session, report) for each pair
 
 
 @dataclass(frozen=True, slots=True)
@@ -110,6 +119,7 @@ class ConsumerStats:
     dropped: int
     overflow: int
     failed: int
+    busy_s: float = 0.0  # time spent in this consumer's hooks (event-loop time), for benchmarks
 
 
 @dataclass(eq=False)
@@ -125,6 +135,7 @@ class Consumer:
     dropped: int = 0
     overflow: int = 0
     failed: int = 0
+    busy_s: float = 0.0
     _queue: collections.deque[_Item] = field(default_factory=collections.deque)
     _size: int = 0  # live items in the queue
     _latest: dict[str, _Item] = field(default_factory=dict)  # agent -> its newest queued item
@@ -142,6 +153,23 @@ class Consumer:
     def queued(self) -> int:
         return self._size
 
+    def offer_batch(self, item: _Item) -> None:
+        """Queue one status batch (``item.batch``: shared, never changed, by every consumer it goes to)."""
+        size = len(item.batch or ())
+        for _ in range(len(self._queue)):
+            if self._size + size <= self.capacity:
+                break
+            dropped = self._drop_oldest_status()
+            if not dropped:
+                break
+            self.dropped += dropped
+        self._queue.append(item)
+        self._size += size
+        if not self._awake:
+            self._awake = True
+            self._idle.clear()
+            self._wakeup.set()
+
     def offer(self, item: _Item) -> None:
         if self._size >= self.capacity:
             if item.kind == "status":
@@ -150,8 +178,7 @@ class Consumer:
                     latest.args = item.args  # the newer report replaces the one still waiting
                     self.coalesced += 1
                     return
-                if self._drop_oldest_status():
-                    self.dropped += 1
+                self.dropped += self._drop_oldest_status()
             else:
                 self.overflow += 1
         self._queue.append(item)
@@ -162,15 +189,19 @@ class Consumer:
             self._idle.clear()
             self._wakeup.set()
 
-    def _drop_oldest_status(self) -> bool:
+    def _drop_oldest_status(self) -> int:
+        """Drop the oldest waiting status (or status batch); how many reports went."""
         for queued in self._queue:
             if queued.live and queued.kind == "status":
                 queued.live = False
+                if queued.batch is not None:
+                    self._size -= len(queued.batch)
+                    return len(queued.batch)
                 self._size -= 1
                 if self._latest.get(queued.agent) is queued:
                     del self._latest[queued.agent]
-                return True
-        return False
+                return 1
+        return 0
 
     async def _run(self) -> None:
         queue, latest, lists = self._queue, self._latest, self.lists
@@ -186,22 +217,22 @@ class Consumer:
             item = queue.popleft()
             if not item.live:
                 continue
-            self._size -= 1
-            if latest.get(item.agent) is item:
-                del latest[item.agent]
+            if item.batch is not None:
+                self._size -= len(item.batch)
+            else:
+                self._size -= 1
+                if latest.get(item.agent) is item:
+                    del latest[item.agent]
             hooks = lists[item.kind]
             if item.version != hooks.version and item.hook not in hooks:
                 continue  # the service removed its hook (stopped) after the event was queued
-            try:
-                await item.hook(*item.args)
-                self.delivered += 1
-            except asyncio.CancelledError:
-                raise
-            except Exception:  # a failing hook costs its own event, never the consumer
-                self.failed += 1
-                if self.failed <= 10 or self.failed % 1000 == 0:
-                    log.exception("%s hook of %s failed (%d failures)", item.kind, self.name, self.failed)
+            if item.batch is None:
+                await self._call(item.kind, item.hook, item.args)
+            else:
+                for pair in item.batch:
+                    await self._call("status", item.hook, pair)
             now = time.monotonic()
+            self.busy_s += now - started
             if now - started > SLOW_HOOK_S and started - self._last_slow_log > 60.0:
                 self._last_slow_log = started
                 log.warning(
@@ -212,6 +243,17 @@ class Consumer:
                 await asyncio.sleep(0)
                 step_started = started = time.monotonic()
 
+    async def _call(self, kind: HookKind, hook: Hook, args: tuple[Any, ...]) -> None:
+        try:
+            await hook(*args)
+            self.delivered += 1
+        except asyncio.CancelledError:
+            raise
+        except Exception:  # a failing hook costs its own event, never the consumer
+            self.failed += 1
+            if self.failed <= 10 or self.failed % 1000 == 0:
+                log.exception("%s hook of %s failed (%d failures)", kind, self.name, self.failed)
+
     async def stop(self) -> None:
         if self._task is not None:
             self._task.cancel()
@@ -219,7 +261,14 @@ class Consumer:
 
     def stats(self) -> ConsumerStats:
         return ConsumerStats(
-            self.name, self._size, self.delivered, self.coalesced, self.dropped, self.overflow, self.failed
+            self.name,
+            self._size,
+            self.delivered,
+            self.coalesced,
+            self.dropped,
+            self.overflow,
+            self.failed,
+            self.busy_s,
         )
 
 
@@ -235,12 +284,23 @@ class HookDispatcher:
 
     def publish(self, kind: HookKind, agent: str, *args: Any) -> None:
         """Queue ``hook(*args)`` for every hook of ``kind``; never blocks, never raises for a hook."""
+        for hook, consumer in self._route(kind):
+            consumer.offer(_Item(kind, hook, agent, args, self._hooks[kind].version))
+
+    def publish_batch(self, batch: StatusBatch) -> None:
+        """Queue ``hook(session, report)`` for every pair of ``batch`` and every status hook."""
+        if batch:
+            version = self._hooks["status"].version
+            for hook, consumer in self._route("status"):
+                consumer.offer_batch(_Item("status", hook, "", (), version, batch=batch))
+
+    def _route(self, kind: HookKind) -> list[tuple[Hook, Consumer]]:
+        """(hook, its consumer) for every hook of ``kind``, cached until the hook list changes."""
         version = self._hooks[kind].version
         route = self._routes.get(kind)
         if route is None or route[0] != version:
             route = self._routes[kind] = (version, [(h, self._consumer(h)) for h in self._hooks[kind]])
-        for hook, consumer in route[1]:
-            consumer.offer(_Item(kind, hook, agent, args, version))
+        return route[1]
 
     def _consumer(self, hook: Hook) -> Consumer:
         owner = _owner(hook)
@@ -304,4 +364,4 @@ def _owner(hook: Hook) -> object:
     return hook.__self__ if hasattr(hook, "__self__") else hook
 
 
-__all__ = ["ConsumerStats", "HookDispatcher", "HookKind", "HookList"]
+__all__ = ["ConsumerStats", "HookDispatcher", "HookKind", "HookList", "StatusBatch"]

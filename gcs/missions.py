@@ -454,20 +454,19 @@ class MissionRunner:
             mission.barriers.mark_released(step)  # another daemon released it; it told the agents
             return
         mission.barriers.mark_released(step)
-        self._store.record_release(mission.id, step)
+        self._store.record_release(mission.id, step)  # persisted once, before anyone hears of it
         timer = mission.timers.pop(step, None)
         if timer is not None:
             timer.cancel()
         members = sorted(mission.barriers.members)
+        # One burst: encoded once, written to every member's socket in this pass.
+        self._agents.burst(members, SyncSignal(mission_id=mission.id, step=step, kind="release"))
         self._events.publish(
             "sync_released",
             f"step {step} released to {len(members)} agents",
             mission_id=mission.id,
             data={"step": step, "agents": members},
         )
-        signal = SyncSignal(mission_id=mission.id, step=step, kind="release")
-        for identity in members:  # each agent's own outbox; nobody waits for the slowest
-            self._agents.post(identity, signal)
         self._arm_watchdog(mission)
 
     async def _barrier_timeout(self, mission: ActiveMission, step: int) -> None:

@@ -82,6 +82,7 @@ class Outbox:
     _wakeup: asyncio.Event = field(default_factory=asyncio.Event)
     _task: asyncio.Task[None] | None = None
     _in_flight: list[_Outgoing] = field(default_factory=list)
+    _drain_due: bool = False  # write_now wrote past the queue: the writer drains it
 
     def __post_init__(self) -> None:
         self._seq = self.first_seq
@@ -120,11 +121,43 @@ class Outbox:
             self.cut_off(f"a frame was not written within {timeout:g} s")
             return False
 
+    def write_now(self, frame: bytes, ptype: int) -> bool:
+        """Write a pre-encoded normal-lane frame (any seq; it gets ours) to the socket right now.
+
+        For a burst to many agents (a barrier release): one ``transport.write`` per agent in one
+        pass, no task switch per agent. When frames are already queued it queues behind them
+        (order is kept); the writer task still drains, so a stuck peer is cut off as usual.
+        """
+        if not self.open:
+            return False
+        if self._queue:
+            return self._enqueue_frame(_Outgoing(frame, ptype, False))
+        if len(frame) + _buffered(self.writer) > self.max_pending_bytes:
+            self.cut_off(f"more than {self.max_pending_bytes} bytes waiting for a peer that does not read")
+            return False
+        self._seq += 1
+        out = bytearray(frame)
+        _SEQ.pack_into(out, _SEQ_OFFSET, self._seq % (1 << 32))
+        try:
+            self.writer.write(out)
+        except (OSError, RuntimeError) as exc:
+            self.cut_off(f"write failed: {exc}")
+            return False
+        self.last_tx = time.monotonic()
+        self.written += 1
+        self._drain_due = True
+        self._wakeup.set()
+        return True
+
     def _enqueue(self, body: Body, urgent: bool | None, done: asyncio.Future[bool] | None) -> bool:
         if not self.open:
             return False
         frame = encode(body, 0, self.version)
         item = _Outgoing(frame, packet_type_of(body), is_urgent(body) if urgent is None else urgent, done)
+        return self._enqueue_frame(item)
+
+    def _enqueue_frame(self, item: _Outgoing) -> bool:
+        frame = item.frame
         if len(self._queue) >= self.max_frames:
             self.cut_off(f"more than {self.max_frames} frames waiting for a peer that does not read")
             return False
@@ -154,6 +187,11 @@ class Outbox:
         try:
             while self.open:
                 if not self._queue:
+                    if self._drain_due:
+                        self._drain_due = False
+                        async with asyncio.timeout(self.send_timeout_s):
+                            await self.writer.drain()
+                        continue
                     self._wakeup.clear()
                     await self._wakeup.wait()
                     continue

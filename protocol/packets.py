@@ -98,6 +98,10 @@ class RequestCid(_Body):
 
     ``probe`` (optional, default false) asks only for authentication: a check such as
     ``agent doctor`` gets an ``accepted`` without a CID and never becomes a fleet member.
+
+    ``compact_status`` (optional, v2 only, in the request with ``proof``) offers the compact binary
+    status body (protocol/status_binary.py, frame type byte 0x82); the agent uses it only once
+    the accepting type 1 says so.
     """
 
     identity: Identity
@@ -114,6 +118,7 @@ class RequestCid(_Body):
     proof: HexMac | None = None
     resume: Resume | None = None
     probe: bool = False
+    compact_status: bool | None = Field(default=None, description="v2: offers the compact status body (0x82)")
 
 
 # --- type 1: response with connection ID -------------------------------------------------------
@@ -138,6 +143,8 @@ class ResponseCid(_Body):
 
     On ``accepted``, ``server_proof`` = hex HMAC-SHA256(key, "fleetgcs-daemon-v1|" identity "|"
     client_nonce "|" server_nonce) lets the agent check it talks to a daemon holding its key.
+    ``compact_status`` (v2, on ``accepted``, only when the request with proof offered it) lets the
+    agent send its status reports in the compact binary body.
     """
 
     outcome: Literal["challenge", "accepted", "refused"]
@@ -156,6 +163,9 @@ class ResponseCid(_Body):
     )
     lost: bool | None = Field(
         default=None, description="v2: with accepted, true when the daemon had marked this agent lost"
+    )
+    compact_status: bool | None = Field(
+        default=None, description="v2: with accepted, the agent may send the compact status body (0x82)"
     )
 
 
@@ -367,8 +377,8 @@ Body = RequestCid | ResponseCid | StatusReport | SetParameters | PerformActions 
 
 
 V2_FIELDS: dict[type[_Body], frozenset[str]] = {
-    RequestCid: frozenset({"versions"}),
-    ResponseCid: frozenset({"protocol_version", "code", "retry_after_s", "lost"}),
+    RequestCid: frozenset({"versions", "compact_status"}),
+    ResponseCid: frozenset({"protocol_version", "code", "retry_after_s", "lost", "compact_status"}),
     Close: frozenset({"code"}),
 }
 """Fields added in version 2: never sent to a version-1 peer, which forbids unknown fields."""

@@ -20,6 +20,11 @@ Server::
     send(hs.on_hello(receive()))                 # challenge (Refused if unknown identity...)
     auth = hs.on_proof(receive())                # Authenticated(request, version, ...)
     send(hs.accept(cid=..., parameters=...))     # or hs.refusal(code, reason)
+
+Capabilities (version 2 only): ``compact_status`` (the binary status body, type byte 0x82) is
+offered by ``ClientHandshake(compact_status=True)`` in the packet with the proof, granted by a
+``ServerHandshake(compact_status=True)`` in ``accepted``, and in force when ``Accepted.compact_status``
+(client) / ``ServerHandshake.compact_status`` (server) is true.
 """
 
 from __future__ import annotations
@@ -155,13 +160,15 @@ class Accepted:
     parameters: AgentParameters | None
     server_time: float | None
     lost: bool
+    compact_status: bool = False  # the agent may send status in the compact binary body (0x82)
 
 
 class ClientHandshake:
     """The agent's side: hello, proof, check the daemon's proof. One object per connection.
 
     ``versions`` is what the agent offers; ``[1]`` sends a version-1 hello (the fallback for a
-    version-1 daemon, which rejects the v2 ``versions`` field).
+    version-1 daemon, which rejects the v2 ``versions`` field). ``compact_status`` offers the
+    compact status body, a version-2 capability (offered only when the challenge names version 2).
     """
 
     def __init__(
@@ -173,8 +180,10 @@ class ClientHandshake:
         capabilities: Capabilities | None = None,
         probe: bool = False,
         nonce: str | None = None,
+        compact_status: bool = False,
     ) -> None:
         self.identity = identity
+        self.compact_status = compact_status
         self.versions = sorted(set(versions))
         self.capabilities = capabilities or Capabilities()
         self.probe = probe
@@ -220,6 +229,7 @@ class ClientHandshake:
             capabilities=self.capabilities,
             home=home,
             resume=resume,
+            compact_status=True if self.compact_status and (body.protocol_version or 1) >= 2 else None,
             proof=auth.agent_proof(self._key, self.identity, body.server_nonce, self.client_nonce),
         )
 
@@ -239,7 +249,8 @@ class ClientHandshake:
         if version not in self.versions:
             raise ProtocolError(f"the daemon accepted with version {version}, not offered")
         self.state = "done"
-        return Accepted(body.cid, version, body.parameters, body.server_time, bool(body.lost))
+        compact = version >= 2 and self.compact_status and body.compact_status is True
+        return Accepted(body.cid, version, body.parameters, body.server_time, bool(body.lost), compact)
 
     def _refusal(self, body: Body) -> None:
         if isinstance(body, ResponseCid) and body.outcome == "refused":
@@ -280,7 +291,10 @@ class Authenticated:
 
 
 class ServerHandshake:
-    """The daemon's side. ``key_for(identity)`` is the key to check, None = unknown identity."""
+    """The daemon's side. ``key_for(identity)`` is the key to check, None = unknown identity.
+
+    ``compact_status``: the daemon takes the compact status body from a v2 agent that offers it.
+    """
 
     def __init__(
         self,
@@ -288,8 +302,11 @@ class ServerHandshake:
         *,
         versions: Sequence[int] = SUPPORTED_VERSIONS,
         nonce: str | None = None,
+        compact_status: bool = True,
     ) -> None:
         self._key_for = key_for
+        self.compact_supported = compact_status
+        self.compact_status = False  # negotiated: set by accept()
         self.supported = tuple(versions)
         self.server_nonce = nonce or auth.new_nonce()
         self.version = 1  # what refusals are shaped for until a hello names a common version
@@ -339,6 +356,7 @@ class ServerHandshake:
         if not auth.proofs_equal(body.proof, expected):
             raise Refused(Code.WRONG_KEY, f"authentication failed for {hello.identity!r}: wrong key")
         self.state = "decide"
+        self.compact_status = self.compact_supported and self.version >= 2 and body.compact_status is True
         return Authenticated(body, self.version, self._key, hello.probe or body.probe)
 
     def accept(
@@ -363,6 +381,7 @@ class ServerHandshake:
             server_time=server_time,
             protocol_version=self.version if v2 else None,
             lost=lost if v2 else None,
+            compact_status=True if self.compact_status else None,
         )
 
     def refusal(self, code: Code, reason: str, retry_after_s: float | None = None) -> list[Body]:

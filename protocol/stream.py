@@ -37,6 +37,7 @@ class FramedStream:
         self.writer = writer
         self.decoder = FrameDecoder(max_body)
         self.version = version
+        self.compact_status = False  # negotiated (v2): status reports go out in the binary body
         self.seq = 0  # of the last frame sent
         self.backlog: deque[Frame] = deque()  # decoded, not yet read
 
@@ -66,7 +67,7 @@ class FramedStream:
     def frame(self, body: Body) -> bytes:
         """Encode ``body`` with the next sequence number (for callers that batch writes)."""
         self.seq = (self.seq + 1) % SEQ_MODULO
-        return encode(body, self.seq, self.version)
+        return encode(body, self.seq, self.version, compact=self.compact_status)
 
     def write(self, *bodies: Body) -> None:
         """Queue ``bodies`` on the transport, numbered in order; no waiting."""
@@ -97,7 +98,8 @@ async def client_handshake(
 ) -> Accepted:
     """Run ``handshake`` over ``stream``; raises Refused / ProtocolError / ConnectionError / TimeoutError.
 
-    On success ``stream.version`` is the negotiated version.
+    On success ``stream.version`` is the negotiated version and ``stream.compact_status`` whether
+    status reports are sent in the compact body.
     """
     stream.version = max(handshake.versions)  # the hello is shaped by what we offer
     async with asyncio.timeout(timeout):
@@ -106,6 +108,7 @@ async def client_handshake(
         await stream.send(handshake.on_challenge(challenge.body, home=home, resume=resume))
         accepted = handshake.on_answer((await stream.read_frame()).body)
     stream.version = accepted.version
+    stream.compact_status = accepted.compact_status
     return accepted
 
 

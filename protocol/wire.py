@@ -5,7 +5,9 @@ Header, all integers big-endian::
     offset size field
     0      2    magic        b"FG" (0x46 0x47)
     2      1    version      FRAME_VERSION (1): the frame format, the same in protocol v1 and v2
-    3      1    packet type  0..6
+    3      1    packet type  0..6; bit 7 (0x80) set = compact binary body (only 0x82, a type-2
+                             status in protocol/status_binary.py's layout, a v2 capability
+                             negotiated in the handshake: ``compact_status``)
     4      4    sequence     u32, per sender, +1 per frame, wraps at 2**32
     8      4    body length  u32, bytes of body that follow
     12     4    body CRC-32  u32, zlib.crc32 of the body bytes
@@ -29,6 +31,7 @@ from dataclasses import dataclass
 
 from pydantic import ValidationError
 
+from protocol import status_binary
 from protocol.packets import (
     BODY_MODELS,
     MUST_UNDERSTAND,
@@ -36,6 +39,7 @@ from protocol.packets import (
     V2_FIELDS,
     Body,
     PacketType,
+    StatusReport,
     packet_type_of,
 )
 
@@ -46,6 +50,10 @@ DEFAULT_MAX_BODY = 1 << 20  # 1 MiB: a 2000-waypoint survey leg is ~150 KiB
 SEQ_MODULO = 1 << 32
 FRAME_VERSION = 1  # the header's version byte: the frame format, unchanged by protocol v2
 PRE_AUTH_MAX_BODY = 1024  # a handshake packet is well under 1 KiB; the daemon's limit before `accepted`
+COMPACT = 0x80
+"""Packet-type bit: the body is the compact binary form (today only type 2: ``STATUS_COMPACT``)."""
+STATUS_COMPACT = COMPACT | PacketType.STATUS
+_MAX_TYPE = max(PacketType)
 
 
 class ProtocolError(Exception):
@@ -63,17 +71,24 @@ class Frame:
     packet_type: PacketType
     seq: int
     body: Body
+    compact: bool = False  # the body came in the compact binary form (type byte 0x82)
 
 
-def encode(body: Body, seq: int, version: int = PROTOCOL_VERSION) -> bytes:
+def encode(body: Body, seq: int, version: int = PROTOCOL_VERSION, *, compact: bool = False) -> bytes:
     """Serialise ``body`` into one frame with sequence number ``seq`` (taken modulo 2**32).
 
     ``version`` is the session's protocol version: for a version-1 peer the fields it does not
     know (:data:`~protocol.packets.V2_FIELDS`) are left out, because it rejects unknown fields.
+    ``compact`` sends a status report in the binary layout (type byte 0x82); only a version-2
+    session whose ``accepted`` said ``compact_status`` may use it.
     """
-    exclude = V2_FIELDS.get(type(body)) if version < 2 else None
-    payload = body.model_dump_json(exclude_none=True, exclude=set(exclude) if exclude else None).encode()
-    ptype = packet_type_of(body)
+    if compact and version >= 2 and isinstance(body, StatusReport):
+        payload = status_binary.encode(body)
+        ptype = STATUS_COMPACT
+    else:
+        exclude = V2_FIELDS.get(type(body)) if version < 2 else None
+        payload = body.model_dump_json(exclude_none=True, exclude=set(exclude) if exclude else None).encode()
+        ptype = packet_type_of(body)
     return (
         HEADER.pack(MAGIC, FRAME_VERSION, ptype, seq % SEQ_MODULO, len(payload), zlib.crc32(payload))
         + payload
@@ -104,6 +119,11 @@ def _drop(document: dict[str, object], loc: tuple[int | str, ...]) -> None:
 
 def decode_body(packet_type: int, payload: bytes) -> Body:
     """Validate a body for ``packet_type``; raise :class:`ProtocolError` on any problem."""
+    if packet_type == STATUS_COMPACT:
+        try:
+            return status_binary.decode(payload)
+        except status_binary.StatusBodyError as exc:
+            raise ProtocolError(str(exc), packet_type=PacketType.STATUS) from None
     try:
         ptype = PacketType(packet_type)
     except ValueError:
@@ -174,8 +194,8 @@ class FrameDecoder:
             raise self._fail(f"bad magic {bytes(buf[:2])!r} (expected {MAGIC!r}): not a fleetgcs stream")
         if len(buf) >= 3 and buf[2] != FRAME_VERSION:
             raise self._fail(f"unsupported frame version {buf[2]} (this side speaks {FRAME_VERSION})")
-        if len(buf) >= 4 and buf[3] > max(PacketType):
-            raise self._fail(f"unknown packet type {buf[3]} (expected 0..6)", buf[3])
+        if len(buf) >= 4 and buf[3] > _MAX_TYPE and buf[3] != STATUS_COMPACT:
+            raise self._fail(f"unknown packet type {buf[3]} (expected 0..6 or 0x82)", buf[3])
         if len(buf) < HEADER_SIZE:
             return None
         _, _, ptype, seq, length, crc = HEADER.unpack_from(buf)
@@ -193,7 +213,7 @@ class FrameDecoder:
             self._failed = exc
             self._buffer.clear()
             raise
-        return Frame(PacketType(ptype), seq, body)
+        return Frame(PacketType(ptype & ~COMPACT), seq, body, ptype == STATUS_COMPACT)
 
 
 def decode_one(data: bytes, max_body: int = DEFAULT_MAX_BODY) -> Frame:

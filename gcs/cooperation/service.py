@@ -6,6 +6,11 @@ pure and return intents; this service applies them through the vehicle authority
 publishes their events through a throttle so a persistent condition cannot bury the log. A
 ticker re-asserts holds (seed 000: "for safety reasons ... sent periodically"), runs the
 fleet-wide checks when reports are scarce and catches drones whose status stopped arriving.
+
+Per report only the agent's own picture is updated (tracking, emergency and divergence edges);
+the fleet-wide checks (collision, connectivity: O(fleet) each) run on their own fixed tick of
+``collision.min_check_interval_s`` when a report has arrived since the last one, never inside
+the status consumer, so their cost does not grow with the report rate.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ from protocol.packets import AgentParameters, Resume, SetParameters, StatusRepor
 log = logging.getLogger("gcs.cooperation")
 
 EMERGENCY_MISSION = "cooperation-emergency"
+FLEET_CHECK_DUTY = 4.0  # the fleet-check tick is at least this many times one check's duration
 LOST_LINK_ACTION = {"event": "continue", "hold": "hold", "return": "rtl", "rtl": "rtl"}
 
 
@@ -72,7 +78,8 @@ class CooperationService:
         self._throttle: EventThrottle | None = None
         self._preflight: PreflightChecks | None = None
         self._tasks: list[asyncio.Task[None]] = []
-        self._last_fleet_check = 0.0
+        self._fleet_due = False  # a report arrived since the last fleet-wide check
+        self.fleet_check_s = 0.0  # how long the last fleet-wide check took (loop time)
 
     @property
     def avoider(self) -> Any:
@@ -97,7 +104,10 @@ class CooperationService:
         ctx.missions.preflight_checks.append(self._preflight)
         if self.config.energy.model_path is not None:
             self.energy_model = EnergyModel.load(self.config.energy.model_path)
-        self._tasks = [asyncio.create_task(self._ticker(), name="cooperation-ticker")]
+        self._tasks = [
+            asyncio.create_task(self._ticker(), name="cooperation-ticker"),
+            asyncio.create_task(self._fleet_ticker(), name="cooperation-fleet-checks"),
+        ]
 
     async def stop(self) -> None:
         for task in self._tasks:
@@ -235,9 +245,7 @@ class CooperationService:
             if self.config.divergence.enabled:
                 busy = self.ctx.authority.is_held(ident) or self._outranked(ident, "divergence")
                 intents += self.divergence.on_status(agent, status, busy, now)
-            if now - self._last_fleet_check >= self.config.collision.min_check_interval_s:
-                self._last_fleet_check = now
-                intents += self._fleet_checks(now)
+            self._fleet_due = True
             await self.apply(intents)
         except Exception:  # a bug here must not cost the agent its connection
             log.exception("cooperation: status handling failed for %s", ident)
@@ -294,6 +302,28 @@ class CooperationService:
         if cfg.link_range_m is not None:
             return cfg.link_range_m
         return self._ctx.config.agent_parameters.link_range_m if self._ctx else None
+
+    async def _fleet_ticker(self) -> None:
+        """The fleet-wide checks on a fixed tick, over the latest picture of every agent.
+
+        The tick is ``min_check_interval_s``, stretched to ``FLEET_CHECK_DUTY`` times the last
+        check's own duration when a very large fleet makes one pass long: the checks never take
+        more than a quarter of the event loop, whatever the fleet size.
+        """
+        base = max(0.01, self.config.collision.min_check_interval_s)
+        period = base
+        while True:
+            await asyncio.sleep(period)
+            if not self._fleet_due:
+                continue
+            self._fleet_due = False
+            started = time.monotonic()
+            try:
+                await self.apply(self._fleet_checks(started))
+            except Exception:  # a bug here must not end the checks
+                log.exception("cooperation: fleet-wide check failed")
+            self.fleet_check_s = time.monotonic() - started
+            period = max(base, FLEET_CHECK_DUTY * self.fleet_check_s)
 
     async def _ticker(self) -> None:
         """Re-assert holds periodically, run checks between reports, catch drones whose reports stopped."""

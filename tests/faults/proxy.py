@@ -105,7 +105,7 @@ class FrameSplitter:
             end = HEADER_SIZE + length
             if len(buf) < end:
                 break
-            out.append((ptype, seq, bytes(buf[:end])))
+            out.append((ptype & 0x7F, seq, bytes(buf[:end])))  # 0x82 (compact status) is type 2
             del buf[:end]
         return out
 

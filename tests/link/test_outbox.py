@@ -129,3 +129,30 @@ def _label(frame: Frame) -> str:
     if isinstance(body, SyncSignal):
         return f"release-{body.step}"
     return type(body).__name__
+
+
+async def test_a_burst_is_written_in_one_pass_in_order_with_fresh_seqs(tmp_path: Path) -> None:
+    """AgentManager.burst (barrier releases): one encoding, every socket written at once, behind
+    whatever the agent's outbox still holds, and numbered in the session's own sequence."""
+    key = new_key()
+    async with running_daemon(tmp_path, key) as daemon:
+        clients = [await RawClient.connect(daemon.listen_port) for _ in range(3)]
+        try:
+            for i, client in enumerate(clients):
+                await client.handshake(f"b-{i}", key)
+            first = daemon.agents.session("b-0")
+            assert first is not None
+            first.post(SetParameters(parameters=AgentParameters(link_range_m=500.0)))  # queued ahead
+            release = SyncSignal(mission_id="m", step=4, kind="release")
+            assert daemon.agents.burst(["b-0", "b-1", "b-2", "nobody"], release) == 3
+            for i, client in enumerate(clients):
+                frames = [await client.receive(5.0) for _ in range(2 if i == 0 else 1)]
+                bodies = [f.body for f in frames if f is not None]
+                assert bodies[-1] == release, bodies
+                if i == 0:
+                    assert isinstance(bodies[0], SetParameters)  # the queued frame went first
+                seqs = [f.seq for f in frames if f is not None]
+                assert seqs == sorted(seqs) and seqs[0] == 3  # challenge 1, accepted 2, then ours
+        finally:
+            for client in clients:
+                client.close()

@@ -70,6 +70,39 @@ def test_a_v1_peer_gets_v1_shapes_and_a_v1_hello_has_no_v2_field() -> None:
     assert all("code" not in r and "retry_after_s" not in r for r in refusal)
 
 
+@pytest.mark.parametrize(
+    ("client_versions", "offer", "server_versions", "grant", "expected"),
+    [
+        ((1, 2), True, (1, 2), True, True),
+        ((1, 2), False, (1, 2), True, False),  # not offered
+        ((1, 2), True, (1, 2), False, False),  # not granted
+        ((1,), True, (1, 2), True, False),  # a version-1 session has no capabilities
+        ((1, 2), True, (1,), True, False),
+    ],
+)
+def test_compact_status_is_a_v2_capability_both_sides_must_want(
+    client_versions: tuple[int, ...],
+    offer: bool,
+    server_versions: tuple[int, ...],
+    grant: bool,
+    expected: bool,
+) -> None:
+    client = ClientHandshake("d-1", KEY, versions=client_versions, compact_status=offer)
+    server = ServerHandshake(lambda _: KEY, versions=server_versions, compact_status=grant)
+    authenticated, accepted = _run(client, server)
+    assert accepted.compact_status is expected and server.compact_status is expected
+    assert (authenticated.request.compact_status is True) == (offer and accepted.version >= 2)
+    # The status encoding follows: 0x82 only on a negotiated v2 session, JSON otherwise.
+    status = StatusReport(time=1.0, mode="GUIDED")
+    frame = encode(status, 3, accepted.version, compact=accepted.compact_status)
+    assert frame[3] == (0x82 if expected else 2)
+    decoded = decode_one(frame)
+    assert decoded.body == status and decoded.compact is expected
+    # Never a v2 field on a v1 session, even if a caller set it.
+    v1_accepted = encode(ResponseCid(outcome="accepted", cid=1, compact_status=True), 1, 1)
+    assert b"compact_status" not in v1_accepted
+
+
 def test_a_codeless_refusal_of_a_v2_hello_means_a_v1_daemon() -> None:
     client = ClientHandshake("d", KEY)
     client.hello()
