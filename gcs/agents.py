@@ -238,6 +238,9 @@ class AgentManager:
             session = self.session(identity)
             if session is None:
                 continue
+            if identity in self.remote:  # linked to another daemon of the cluster: forwarded there
+                sent += session.post(body)
+                continue
             frame = frames.get(session.version)
             if frame is None:
                 frame = frames[session.version] = encode(body, 0, session.version)

@@ -21,6 +21,7 @@ async def test_link_moves_to_the_next_daemon(tmp_path: Path) -> None:
             agent = start_agent("r0", dead, key, 0, daemons=addresses)
             try:
                 await wait_for(lambda: first.agents.session("r0") is not None, 10, "join via the 2nd address")
+                await wait_for(lambda: agent.agent.link.sessions == 1, 10, "the agent counts its session")
                 sessions = agent.agent.link.sessions
                 await first.stop()  # the daemon it is linked to goes away
                 stopped = True
