@@ -22,7 +22,7 @@ from pydantic import BaseModel
 from gcs.agents import AgentManager, AgentSession
 from gcs.authority import Owner, VehicleAuthority
 from gcs.cooperation.geo import LocalFrame
-from gcs.cooperation.returns import Returner, assign_layers
+from gcs.cooperation.returns import RETURN_PREFIX, Returner, assign_layers
 from gcs.events import EventBus
 from gcs.store import Store
 from gcs.sync import BarrierSet
@@ -40,7 +40,6 @@ PreflightCheck = Callable[[TaskFile, dict[str, list[Action]]], Awaitable[None]]
 ReturnHome = Callable[[list[str], Literal["rtl", "land"], Owner, str], list[str]]
 """Starts a deconflicted return (``gcs.cooperation.return_coordinator``); returns who got it."""
 
-RETURN_PREFIX = "return-"
 RETURN_BASE_ALT_M = 15.0
 RETURN_LAYER_STEP_M = 3.0
 RETURN_SPACING_M = 6.0

@@ -24,6 +24,7 @@ from typing import Literal
 from gcs.authority import Owner, VehicleAuthority
 from gcs.cooperation.geo import LocalFrame
 from gcs.cooperation.returns import (
+    RETURN_PREFIX,
     Airborne,
     Returner,
     ReturnPlan,
@@ -34,7 +35,6 @@ from gcs.cooperation.returns import (
 from protocol.actions import Action, Goto, Hold, Land, ReturnToLaunch
 from protocol.packets import GeoPoint, Position, StatusReport
 
-RETURN_PREFIX = "return-"
 CLEARANCE = 1.5
 """A drone descends only when no lower drone is within this many horizontal margins of it."""
 ReturnKind = Literal["rtl", "land"]

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 Point2 = tuple[float, float]
+RETURN_PREFIX = "return-"
+"""Mission ids of return programs: their sync points are the coordinator's, not a mission's."""
 
 
 @dataclass(frozen=True)

@@ -81,10 +81,6 @@ class CooperationService:
         self._fleet_due = False  # a report arrived since the last fleet-wide check
         self.fleet_check_s = 0.0  # how long the last fleet-wide check took (loop time)
 
-    @property
-    def avoider(self) -> Any:
-        return self.collision.avoider
-
     # --- lifecycle ------------------------------------------------------------------------------
 
     async def start(self, ctx: ServiceContext) -> None:
@@ -277,25 +273,22 @@ class CooperationService:
         limit = self._stale_limit()
         return [a for a in self.agents.values() if a.connected and now - a.received <= limit]
 
+    def _collision_pass(self, fresh: list[TrackedAgent], now: float) -> list[Intent]:
+        """One fleet-wide collision check; drones under a higher source's control never yield."""
+        assert self.frame is not None
+        return self.collision.check(fresh, self.frame, lambda i: self._outranked(i, "collision"), now)
+
     def _fleet_checks(self, now: float) -> list[Intent]:
         intents: list[Intent] = []
         if self.frame is None:
             return intents
         fresh = self._fresh(now)
         if self.config.collision.enabled:
-            intents += self.collision.check(fresh, self.frame, lambda i: self._outranked(i, "collision"), now)
+            intents += self._collision_pass(fresh, now)
         w = self._link_range()
         if self.config.connectivity.enabled and w is not None and self.base is not None:
             intents += self.connectivity.check(fresh, self.frame, self.base, w, now)
         return intents
-
-    async def check_collisions(self, now: float) -> None:
-        """One collision pass right now (tests)."""
-        if self.frame is not None:
-            intents = self.collision.check(
-                self._fresh(now), self.frame, lambda i: self._outranked(i, "collision"), now
-            )
-            await self.apply(intents)
 
     def _link_range(self) -> float | None:
         cfg = self.config.connectivity
@@ -343,9 +336,7 @@ class CooperationService:
                 if self.config.emergency.enabled:
                     intents += self.emergency.stale(list(self.agents.values()), self._stale_limit(), now)
                 if self.config.collision.enabled and self.frame is not None and self.collision.avoider.holds:
-                    intents += self.collision.check(
-                        self._fresh(now), self.frame, lambda i: self._outranked(i, "collision"), now
-                    )
+                    intents += self._collision_pass(self._fresh(now), now)
                 await self.apply(intents)
             except Exception:
                 log.exception("cooperation ticker failed")
