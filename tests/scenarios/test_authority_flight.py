@@ -159,7 +159,7 @@ async def test_fence_emergency_hold_survives_a_collision_escape(tmp_path: Path) 
                 actions=[
                     Takeoff(step=0, alt=10.0),
                     Goto(step=1, lat=west[0], lon=west[1], alt=10.0, speed=3.0),
-                    Goto(step=2, lat=east[0], lon=east[1], alt=10.0, speed=3.0),  # straight through drone-2
+                    Goto(step=2, lat=east[0], lon=east[1], alt=10.0, speed=2.0),  # straight through drone-2
                     Land(step=3),
                 ],
             ),
