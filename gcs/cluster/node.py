@@ -168,7 +168,6 @@ class ClusterNode:
 
     async def _lease_tick(self) -> None:
         await self._sweep_remote()
-        await self.state.check_followers()
         missions = self.daemon.missions
         for mission_id in list(missions.active):
             if not await self.state.renew_lease(mission_id):

@@ -56,6 +56,8 @@ MIRROR_LOAD_TIMEOUT_S = 10.0
 SETUP_TIMEOUT_S = 20.0
 CONNECT_TIMEOUT_S = 5.0
 CAS_TIMEOUT_S = 10.0
+FOLLOWER_CHECK_PERIOD_S = 1.0
+FOLLOWER_CHECK_TIMEOUT_S = 2.0
 
 Write = Callable[[], Awaitable[object]]
 
@@ -111,6 +113,7 @@ class ClusterState:
             if name != "leases":  # leases expire without a marker on 2.9: always read them fresh
                 await self._follow(name)
         self._tasks.append(asyncio.create_task(self._writer(), name="cluster-writer"))
+        self._tasks.append(asyncio.create_task(self._watch_followers(), name="cluster-mirror-check"))
 
     async def _connect(self) -> Client:
         """Connect; the first connection tries every server in turn, reconnects never give up."""
@@ -206,20 +209,43 @@ class ClusterState:
         """Reload a mirror still behind what its bucket held at the previous check.
 
         An ordered consumer whose NATS server died (without our connection moving) is silent
-        until its heartbeat check resets it; the bucket's last sequence shows the lag.
+        until its heartbeat check resets it; the bucket's last sequence shows the lag. Each bucket
+        is checked on its own with a short timeout: JetStream re-electing a leader after a node
+        died must not stop the other buckets' checks.
         """
         assert self.js is not None
         for name in list(self._followers):
-            info = await self.js.stream_info(f"KV_fleet_{name}")
+            try:
+                info = await asyncio.wait_for(
+                    self.js.stream_info(f"KV_fleet_{name}"), FOLLOWER_CHECK_TIMEOUT_S
+                )
+            except (nats.errors.Error, nats.js.errors.Error, TimeoutError) as exc:
+                log.debug("mirror check of %s: %r", name, exc)
+                continue
             last = int(info.state.last_seq or 0)
             before = self._behind.pop(name, None)
             if before is not None and self._seen.get(name, 0) < before:
-                log.warning(
-                    "mirror of %s stalled at %d (bucket at %d); reloading", name, self._seen[name], last
-                )
-                await self._follow(name)
+                seen = self._seen.get(name, 0)
+                log.warning("mirror of %s stalled at %d (bucket at %d); reloading", name, seen, last)
+                try:
+                    await self._follow(name)
+                except (nats.errors.Error, nats.js.errors.Error, TimeoutError) as exc:
+                    log.warning("reloading the mirror of %s failed (%r); next check retries", name, exc)
+                    self._behind[name] = last
             elif last > self._seen.get(name, 0):
                 self._behind[name] = last
+
+    async def _watch_followers(self) -> None:
+        """Check the mirrors every FOLLOWER_CHECK_PERIOD_S, apart from the lease round (which a slow
+        JetStream answer must never delay past the lease's TTL)."""
+        while True:
+            await asyncio.sleep(FOLLOWER_CHECK_PERIOD_S)
+            if self.nc is None or not self.nc.is_connected:
+                continue
+            try:
+                await self.check_followers()
+            except Exception:
+                log.warning("mirror check failed", exc_info=True)
 
     async def _reconnected(self) -> None:
         log.info(

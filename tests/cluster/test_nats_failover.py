@@ -45,7 +45,7 @@ async def test_nats_node_killed_mid_mission(tmp_path: Path, nats_cluster: NatsCl
             stored = a.store.mission(mission_id)
             assert stored is not None and stored.state == "completed", stored
             steps = set(task.plans[0].sync_steps())
-            await wait_for(lambda: b.store.released_steps(mission_id) == steps, 10, "b's mirror to follow")
+            await wait_for(lambda: b.store.released_steps(mission_id) == steps, 30, "b's mirror to follow")
             for daemon in (a, b):
                 async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{daemon.http_port}") as api:
                     fleet = {r["identity"]: r for r in (await api.get("/api/v1/cluster/fleet")).json()}
