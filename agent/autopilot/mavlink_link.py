@@ -563,6 +563,7 @@ class MavlinkLink:
         attempts = self.command_retries if retries is None else max(1, retries)
         self.ensure_link(what)
         sub = self.subscribe(["PARAM_VALUE"], lambda m: m.param_id == name)
+        seen: float | None = None  # the last echo that differed from the value asked for
         try:
             for _ in range(attempts):
                 if value is None:
@@ -581,7 +582,14 @@ class MavlinkLink:
                     if reply is None:
                         self.ensure_link(what)
                         continue
-                    return float(reply.param_value)
+                    got = float(reply.param_value)
+                    if value is None or math.isclose(got, value, rel_tol=1e-5, abs_tol=1e-5):
+                        return got
+                    # Another link's read (a GCS, a test) is answered to every link: an echo of
+                    # the old value may precede ours. Wait for ours; only the end decides "refused".
+                    seen = got
+            if seen is not None:
+                return seen
             raise CommandTimeout(what, timeout * attempts)
         finally:
             self.unsubscribe(sub)
