@@ -204,6 +204,7 @@ class CollisionAvoider:
         self._last_conflict: dict[str, float] = {}
         self._held_since: dict[str, float] = {}
         self._reported: set[tuple[str, str]] = set()
+        self._cannot_escape: set[str] = set()  # held because their escape could not be planned
 
     @property
     def held(self) -> set[str]:
@@ -215,8 +216,26 @@ class CollisionAvoider:
         self.escaping.pop(ident, None)
         self._last_conflict.pop(ident, None)
         self._held_since.pop(ident, None)
+        self._cannot_escape.discard(ident)
         for blockers in self.holds.values():
             blockers.discard(ident)
+
+    def escape_impossible(self, escape: Escape, now: float) -> None:
+        """The escape could not be planned (e.g. the drone is still taking off): hold it instead.
+
+        The hold is tracked like any other, so it is released once the pair is clear and expires
+        after ``max_hold_s``; for that long the drone is not chosen to escape again (its partner
+        climbs clear instead, if it can), and when the hold expires it is released, not re-escaped.
+        """
+        self.escaping.pop(escape.ident, None)
+        self.holds[escape.ident] = {o.strip() for o in escape.other.split(",") if o.strip()}
+        self._held_since[escape.ident] = now
+        self._last_conflict[escape.ident] = now
+        self._cannot_escape.add(escape.ident)
+
+    def _may_escape(self, ident: str) -> bool:
+        """False while a hold that replaced an impossible escape lasts (see escape_impossible)."""
+        return ident not in self._cannot_escape
 
     def update(self, drones: list[DroneState], now: float) -> Decision:
         decision = Decision()
@@ -273,7 +292,8 @@ class CollisionAvoider:
             del wanted[ident]
             self.holds.pop(ident, None)
             self._held_since.pop(ident, None)
-            if self.config.escape == "none" or not me.yieldable:
+            if self.config.escape == "none" or not me.yieldable or ident in self._cannot_escape:
+                self._cannot_escape.discard(ident)
                 decision.resume.append(ident)
                 decision.events.append(
                     (
@@ -370,8 +390,12 @@ class CollisionAvoider:
                 return
         # No single hold resolves it: the drone that will not move by itself, else the preferred
         # yielder, climbs clear while the other waits.
-        still = [d for d in candidates if float(np.linalg.norm(state[d.ident][1])) < STATIONARY_MPS]
-        escaper = still[0] if still else candidates[0]
+        able = [d for d in candidates if self._may_escape(d.ident)]
+        if not able:  # neither can climb out now: the preferred yielder waits (bounded by max_hold_s)
+            wanted.setdefault(candidates[0].ident, set()).add((b if candidates[0] is a else a).ident)
+            return
+        still = [d for d in able if float(np.linalg.norm(state[d.ident][1])) < STATIONARY_MPS]
+        escaper = still[0] if still else able[0]
         other = b if escaper is a else a
         if other.yieldable:
             wanted.setdefault(other.ident, set()).add(escaper.ident)
@@ -435,6 +459,7 @@ class CollisionAvoider:
             if now - self._last_conflict.get(ident, -1e18) >= self.config.release_after_s:
                 del self.holds[ident]
                 self._held_since.pop(ident, None)
+                self._cannot_escape.discard(ident)
                 decision.resume.append(ident)
 
     def _report(self, a: DroneState, b: DroneState, kind: str, message: str, decision: Decision) -> None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 
-from gcs.cooperation.collision import CollisionAvoider, Decision, DroneState
+from gcs.cooperation.collision import CollisionAvoider, Decision, DroneState, Escape
 from gcs.cooperation.config import CollisionConfig
 from gcs.cooperation.geo import LocalFrame
 from gcs.cooperation.intents import (
@@ -83,7 +83,7 @@ class CollisionMonitor:
             intents.append(ReleaseIntent(ident, "collision", "collision avoidance: clear"))
             intents.append(EventIntent("collision_release", "clear of other drones; resumed", ident))
         for escape in decision.escapes:
-            intents += self._escape(tracked[escape.ident], escape.target_up, escape.reason)
+            intents += self._escape(tracked[escape.ident], escape, now)
         for kind, message, data in decision.events:
             who = data.get("agent")
             agent = who if isinstance(who, str) else None
@@ -92,13 +92,14 @@ class CollisionMonitor:
             intents.append(EventIntent(kind, message, agent, "warning", dict(data)))
         return intents
 
-    def _escape(self, agent: TrackedAgent, target_amsl: float, reason: str) -> list[Intent]:
+    def _escape(self, agent: TrackedAgent, escape: Escape, now: float) -> list[Intent]:
         s = agent.status
         p = agent.position
-        alt_rel = max(target_amsl - (p.alt_amsl - p.alt_rel), self.config.min_escape_alt_m)
+        reason = escape.reason
+        alt_rel = max(escape.target_up - (p.alt_amsl - p.alt_rel), self.config.min_escape_alt_m)
         detour = agent.plan.detour(s, (p.lat, p.lon, alt_rel), agent.completed) if agent.plan else None
         if detour is None:
-            self.avoider.escaping.pop(agent.ident, None)
+            self.avoider.escape_impossible(escape, now)
             return [
                 HoldIntent(agent.ident, "collision", reason),
                 EventIntent(

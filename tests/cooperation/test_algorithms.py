@@ -117,6 +117,40 @@ def test_drone_that_cannot_yield_is_never_held() -> None:
     assert list(decision.pause) == ["b"]  # b has the lower CID but a is returning home
 
 
+def test_escape_that_cannot_be_planned_becomes_a_tracked_hold_the_partner_climbs_and_it_expires() -> None:
+    """The CI trap: a drone still taking off cannot be re-planned; it was held by nobody's count.
+
+    Its partner, hovering at a barrier 3 m away at its altitude, climbs clear instead; the held
+    drone is released once the pair is clear; a hold whose escape stays impossible expires.
+    """
+    config = CollisionConfig(release_after_s=0.0)
+    avoider = CollisionAvoider(config)
+    hovering = DroneState("a", 1, (0.0, 0.0, 30.0), (0.0, 0.0, 0.0), None, True)
+    taking_off = DroneState("b", 2, (3.0, 0.0, 28.5), (0.0, 0.0, 0.0), None, True)
+    decision = avoider.update([hovering, taking_off], 0.0)
+    assert [e.ident for e in decision.escapes] == ["b"]
+    avoider.escape_impossible(decision.escapes[0], 0.0)  # what the monitor does when no detour exists
+    assert avoider.holds["b"] == {"a"}  # tracked (a waits for b to climb, as with any escape)
+    decision = avoider.update([hovering, taking_off], 0.1)
+    assert [e.ident for e in decision.escapes] == ["a"]  # the partner climbs, b stays held
+    assert avoider.held == {"b"} and not decision.resume
+    climbed = DroneState("a", 1, (0.0, 0.0, 34.0), (0.0, 0.0, 0.0), None, True)
+    decision = avoider.update([climbed, taking_off], 2.0)
+    assert decision.resume == ["b"] and not avoider.holds  # clear: released, nothing left behind
+
+    # Neither can escape (the partner is returning home): the hold is bounded, then released.
+    avoider = CollisionAvoider(config)
+    returning = DroneState("a", 1, (0.0, 0.0, 30.0), (0.0, 0.0, 0.0), None, False)
+    decision = avoider.update([returning, taking_off], 0.0)
+    assert [e.ident for e in decision.escapes] == ["b"]
+    avoider.escape_impossible(decision.escapes[0], 0.0)
+    decision = avoider.update([returning, taking_off], 1.0)
+    assert not decision.escapes and avoider.held == {"b"}
+    decision = avoider.update([returning, taking_off], config.max_hold_s + 0.5)
+    assert "b" in decision.resume and not decision.escapes
+    assert any(kind == "collision_hold_expired" for kind, _, _ in decision.events)
+
+
 # --- legs and divergence ------------------------------------------------------------------------
 
 

@@ -42,7 +42,10 @@ async def fly_to_end(r: Rig, task: TaskFile, timeout: float) -> None:
     mission_id = await r.daemon.missions.submit(task)
     await wait_for(lambda: mission_id not in r.daemon.missions.active, timeout, "mission end")
     progress = r.daemon.missions.progress(mission_id)
-    assert progress is not None and progress.state == "completed", progress
+    if progress is None or progress.state != "completed":
+        shown = [e for e in r.daemon.events.history() if e.kind.startswith(("collision", "sync", "agent_"))]
+        trail = "; ".join(f"{e.kind} {e.agent or ''}: {e.message}" for e in shown[-15:])
+        raise AssertionError(f"{progress}\nlast collision/sync/agent events: {trail}")
     await wait_for(lambda: all(r.landed(n) for n in r.names), 60, "every drone landed")
 
 
