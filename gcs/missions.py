@@ -453,19 +453,22 @@ class MissionRunner:
             mission.barriers.mark_released(step)  # another daemon released it; it told the agents
             return
         mission.barriers.mark_released(step)
-        self._store.record_release(mission.id, step)  # persisted once, before anyone hears of it
+        members = sorted(mission.barriers.members)
+        # Persisted once, with its event in the same transaction (a kill -9 between the two lost
+        # the event once), before anyone hears of it.
+        with self._store.atomic():
+            self._store.record_release(mission.id, step)
+            self._events.publish(
+                "sync_released",
+                f"step {step} released to {len(members)} agents",
+                mission_id=mission.id,
+                data={"step": step, "agents": members},
+            )
         timer = mission.timers.pop(step, None)
         if timer is not None:
             timer.cancel()
-        members = sorted(mission.barriers.members)
         # One burst: encoded once, written to every member's socket in this pass.
         self._agents.burst(members, SyncSignal(mission_id=mission.id, step=step, kind="release"))
-        self._events.publish(
-            "sync_released",
-            f"step {step} released to {len(members)} agents",
-            mission_id=mission.id,
-            data={"step": step, "agents": members},
-        )
         self._arm_watchdog(mission)
 
     async def _barrier_timeout(self, mission: ActiveMission, step: int) -> None:

@@ -187,7 +187,7 @@ class Store:
         # Held around every write transaction in this process (the loop's small ones and the
         # telemetry writer's chunks): a writer waiting here is woken the moment the other is
         # done, where SQLite's own busy handler would sleep in growing steps (up to 100 ms).
-        self.write_lock = threading.Lock()
+        self.write_lock = threading.RLock()  # re-entrant: single writes inside an atomic() block
         try:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
@@ -442,13 +442,20 @@ class Store:
     def _tx(self) -> _Transaction:
         return _Transaction(self._db, self.write_lock)
 
+    def atomic(self) -> _Transaction:
+        """Several of this store's writes as one transaction: a crash keeps all of them or none."""
+        return self._tx()
+
+
+WriteLock = threading.RLock
+"""The store's write lock type (shared with the telemetry writer thread's connection)."""
 
 TELEMETRY_CHUNK = 500
 """Rows per write transaction: bounds how long a bulk write holds SQLite's single write lock
 (a few milliseconds), so the event loop's small state writes never wait long for it."""
 
 
-def insert_telemetry(db: sqlite3.Connection, rows: list[tuple[Any, ...]], lock: threading.Lock) -> None:
+def insert_telemetry(db: sqlite3.Connection, rows: list[tuple[Any, ...]], lock: WriteLock) -> None:
     """Insert rows in ``TELEMETRY_COLUMNS`` order, ``TELEMETRY_CHUNK`` rows per transaction."""
     placeholders = ",".join("?" * len(TELEMETRY_COLUMNS))
     sql = f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) VALUES ({placeholders})"
@@ -458,7 +465,7 @@ def insert_telemetry(db: sqlite3.Connection, rows: list[tuple[Any, ...]], lock: 
 
 
 def prune_telemetry(
-    db: sqlite3.Connection, older_than: float, lock: threading.Lock, max_rows: int = 10_000_000
+    db: sqlite3.Connection, older_than: float, lock: WriteLock, max_rows: int = 10_000_000
 ) -> int:
     """Delete samples received before ``older_than`` in chunks; returns how many (at most ``max_rows``)."""
     removed = 0
@@ -557,7 +564,7 @@ def telemetry_page_json(
 
 
 class _Transaction:
-    def __init__(self, db: sqlite3.Connection, lock: threading.Lock) -> None:
+    def __init__(self, db: sqlite3.Connection, lock: WriteLock) -> None:
         self._db = db
         self._lock = lock
 
