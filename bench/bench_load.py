@@ -127,7 +127,8 @@ async def _server(
     from protocol.taskfile import TaskFile
     from protocol.wire import HEADER, HEADER_SIZE, FrameDecoder
 
-    latencies: list[float] = []
+    latencies: list[float] = []  # agent timestamp -> written into the daemon's status table
+    hook_latencies: list[float] = []  # agent timestamp -> a status hook (behind the status tick)
     arrivals: dict[int, float] = {}
     counter = {"frames": 0}
     daemon: Daemon | None = None
@@ -153,18 +154,25 @@ async def _server(
         daemon = Daemon(config)
 
         async def on_status(_: object, status: Any) -> None:
-            latencies.append(time.time() - status.time)
+            hook_latencies.append(time.time() - status.time)
 
-        from protocol.packets import SyncSignal
+        from protocol.packets import StatusReport, SyncSignal
 
         handle = daemon.agents._handle
+        unpack_time = struct.Struct("<d").unpack_from
+
+        def probe(payload: bytes) -> None:  # every compact report the ingest writes into the table
+            latencies.append(time.time() - unpack_time(payload, 4)[0])
 
         def handle_and_stamp(session: Any, frame: Any) -> None:
             if isinstance(frame.body, SyncSignal):  # stamped as the frame loop gets it, before any hook
                 arrivals[frame.body.step] = time.time()  # the last one wins: the barrier's last arrival
+            elif isinstance(frame.body, StatusReport):  # the decoded path (JSON clients)
+                latencies.append(time.time() - frame.body.time)
             handle(session, frame)
 
         daemon.agents._handle = handle_and_stamp  # type: ignore[method-assign]
+        daemon.agents.ingest_probe = probe
         daemon.agents.on_status.append(on_status)
         await daemon.start()
         port = daemon.listen_port
@@ -205,6 +213,7 @@ async def _server(
             for pauses in gc_pauses.values():
                 pauses.clear()
             latencies.clear()
+            hook_latencies.clear()
             counter["frames"] = 0
             cpu_mark = time.process_time()
             marks = _service_marks(daemon)
@@ -226,9 +235,12 @@ async def _server(
                         for g, p in gc_pauses.items()
                     },
                     "received": received,
+                    "hook_seen": len(hook_latencies),
                     "p50_ms": percentile(latencies, 0.50) * 1000,
                     "p99_ms": percentile(latencies, 0.99) * 1000,
                     "max_ms": max(latencies, default=float("nan")) * 1000,
+                    "hook_p50_ms": percentile(hook_latencies, 0.50) * 1000,
+                    "hook_p99_ms": percentile(hook_latencies, 0.99) * 1000,
                     "connected": connected,
                     "rss_kb": rss_kb(),
                     "cpu_s": time.process_time() - cpu_mark,
@@ -260,7 +272,11 @@ def _service_marks(daemon: Any) -> dict[str, float]:
     """Busy seconds and event counts so far: ingest (decode + record) and each hook consumer."""
     if daemon is None:
         return {}
-    marks = {"ingest": daemon.agents.ingest_busy_s, "ingest#": float(daemon.agents.ingest_frames)}
+    marks = {
+        "ingest": daemon.agents.ingest_busy_s,
+        "ingest#": float(daemon.agents.ingest_frames),
+        "status tick": daemon.agents.tick_busy_s,
+    }
     for s in daemon.agents.hook_stats():
         marks[s.name], marks[s.name + "#"] = s.busy_s, float(s.delivered)
     return marks
@@ -410,17 +426,27 @@ async def _worker(
     gate = asyncio.Semaphore(32)
 
     async def connect(client: Client) -> bool:
+        from protocol.session import Refused
+
         async with gate:
-            try:
-                client.reader, client.writer = await asyncio.open_connection("127.0.0.1", port)
-                client.stream = FramedStream(client.reader, client.writer)
-                if authenticate:
-                    await asyncio.wait_for(_handshake(client, key), 60)
-            except Exception:  # refused, timed out, reset: this one client is lost, the bench goes on
-                client.closed = True
-                return False
-            readers.append(asyncio.create_task(_client_reader(client)))
-            return True
+            for attempt in range(20):  # a `busy` refusal (too many handshakes at once) is retried
+                try:
+                    client.reader, client.writer = await asyncio.open_connection("127.0.0.1", port)
+                    client.stream = FramedStream(client.reader, client.writer)
+                    if authenticate:
+                        await asyncio.wait_for(_handshake(client, key), 60)
+                except Refused as exc:
+                    if exc.action != "retry" or attempt == 19:
+                        client.closed = True
+                        return False
+                    await asyncio.sleep(0.2 + random.random() * 0.5)
+                    continue
+                except Exception:  # timed out, reset: this one client is lost, the bench goes on
+                    client.closed = True
+                    return False
+                readers.append(asyncio.create_task(_client_reader(client)))
+                return True
+            return False
 
     async def status_loop(client: Client, period: float, stop_at: float) -> None:
         next_at = time.monotonic() + random.random() * period
@@ -594,6 +620,9 @@ def fleet_trial(agents: int, seconds: float) -> dict[str, Any]:
         "latency_p50_ms": stats["p50_ms"],
         "latency_p99_ms": stats["p99_ms"],
         "latency_max_ms": stats["max_ms"],
+        "hook_seen": stats["hook_seen"],
+        "hook_latency_p50_ms": stats["hook_p50_ms"],
+        "hook_latency_p99_ms": stats["hook_p99_ms"],
         "daemon_cpu_share": stats["cpu_s"] / (seconds + 1.0),
         "client_workers_cpu_share": sum(r["cpu_s"] for r in sent_rows) / seconds,
         "daemon_rss_mb": stats["rss_kb"] / 1024,
@@ -643,7 +672,8 @@ def _print_fleet(row: dict[str, Any]) -> None:
     print(
         f"  {row['agents']:>6} agents  {row['ingest_msgs_per_s']:8.0f} msg/s  loss {row['loss']:6.2%}  "
         f"dropped {row['dropped_agents']:>3}  p50 {row['latency_p50_ms']:7.2f} ms  "
-        f"p99 {row['latency_p99_ms']:8.2f} ms  cpu {row['daemon_cpu_share']:4.0%} "
+        f"p99 {row['latency_p99_ms']:8.2f} ms  (hooks p99 {row['hook_latency_p99_ms']:6.1f} ms, "
+        f"{row['hook_seen'] / max(1, row['received']):4.0%} seen)  cpu {row['daemon_cpu_share']:4.0%} "
         f"(clients {row['client_workers_cpu_share']:4.0%})  rss/agent {row['rss_per_agent_kb']:6.1f} KiB  "
         f"{'PASS' if row['passed'] else 'fail'}  (full gc: {row['gc_pauses']['gen2']})",
         flush=True,

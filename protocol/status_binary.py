@@ -55,7 +55,32 @@ from pydantic import ValidationError
 from protocol.packets import Battery, Gps, Position, StatusReport, VelocityNed
 
 LAYOUT_VERSION = 1
-FIXED = struct.Struct("<BBBB13diiIi")
+FIXED_FIELDS: tuple[tuple[str, str], ...] = (
+    ("layout", "B"),
+    ("flags", "B"),
+    ("fix", "B"),
+    ("satellites", "B"),
+    ("time", "d"),
+    ("vehicle_time", "d"),
+    ("lat", "d"),
+    ("lon", "d"),
+    ("alt_rel", "d"),
+    ("alt_amsl", "d"),
+    ("vn", "d"),
+    ("ve", "d"),
+    ("vd", "d"),
+    ("heading_deg", "d"),
+    ("battery_pct", "d"),
+    ("voltage_v", "d"),
+    ("current_a", "d"),
+    ("step", "i"),
+    ("completed_step", "i"),
+    ("queue_depth", "I"),
+    ("waiting_sync", "i"),
+)
+"""The fixed part, field by field (``struct`` codes, little-endian, no padding): the daemon's fleet
+table reads the same layout as a NumPy structured dtype built from this list."""
+FIXED = struct.Struct("<" + "".join(code for _, code in FIXED_FIELDS))
 FIXED_SIZE = FIXED.size  # 124
 assert FIXED_SIZE == 124
 
@@ -191,7 +216,7 @@ def decode(payload: bytes) -> StatusReport:
         version,
         flags,
         fix,
-        sats,
+        _sats,
         t,
         vt,
         lat,
@@ -207,9 +232,9 @@ def decode(payload: bytes) -> StatusReport:
         amps,
         step,
         completed,
-        queue_depth,
+        _queue_depth,
         waiting,
-    ) = FIXED.unpack_from(payload)
+    ) = fields = FIXED.unpack_from(payload)
     if version != LAYOUT_VERSION:
         raise StatusBodyError(f"compact status layout {version} not supported (this side reads 1)")
     if flags >> 7:
@@ -232,11 +257,60 @@ def decode(payload: bytes) -> StatusReport:
         )
     isfinite = math.isfinite
     has_position = bool(flags & HAS_POSITION)
-    position = {"lat": lat, "lon": lon, "alt_rel": alt_rel, "alt_amsl": alt_amsl} if has_position else None
-    values: dict[str, Any] = {
+    values = _values(fields, mode, mission)
+    if has_tail:
+        return _with_tail(values, payload[mission_end:])
+    # The fast path: the same constraints pydantic would check (protocol/packets.py), by hand.
+    if not (
+        isfinite(t)
+        and isfinite(vn)
+        and isfinite(ve)
+        and isfinite(vd)
+        and 0.0 <= heading <= 360.0
+        and (vt != vt or (isfinite(vt) and vt >= 0.0))
+        and (pct != pct or 0.0 <= pct <= 100.0)
+        and (volts != volts or 0.0 <= volts <= 1000.0)
+        and (amps != amps or -1000.0 <= amps <= 1000.0)
+        and fix <= 8
+        and step >= -1
+        and completed >= -1
+        and waiting >= -1
+        and len(mode) <= 32
+        and (mission is None or len(mission) <= 64)
+    ):
+        return _with_tail(values, b"")  # pydantic names the offending field
+    if has_position and not (
+        -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and isfinite(alt_rel) and isfinite(alt_amsl)
+    ):
+        return _with_tail(values, b"")
+    return _assemble(values)
+
+
+def _assemble(values: dict[str, Any]) -> StatusReport:
+    """The report of ``values`` already checked against the protocol's ranges (no validation)."""
+    position = values["position"]
+    if position is not None:
+        values["position"] = _model(Position, position)
+    values["velocity"] = _model(VelocityNed, values["velocity"])
+    values["battery"] = _model(Battery, values["battery"])
+    gps = values["gps"]
+    values["gps"] = _gps(gps["fix"], gps["satellites"])
+    report: StatusReport = _model(StatusReport, values)
+    return report
+
+
+def _values(fields: tuple[Any, ...], mode: str, mission: str | None) -> dict[str, Any]:
+    """The report's fields from the fixed part (in :data:`FIXED_FIELDS` order), mode and mission."""
+    (_, flags, fix, sats, t, vt, lat, lon, alt_rel, alt_amsl, vn, ve, vd, heading, pct, volts, amps) = fields[
+        :17
+    ]
+    step, completed, queue_depth, waiting = fields[17:]
+    return {
         "time": t,
         "vehicle_time": None if vt != vt else vt,
-        "position": position,
+        "position": {"lat": lat, "lon": lon, "alt_rel": alt_rel, "alt_amsl": alt_amsl}
+        if flags & HAS_POSITION
+        else None,
         "velocity": {"vn": vn, "ve": ve, "vd": vd},
         "heading_deg": heading,
         "battery": {
@@ -260,38 +334,13 @@ def decode(payload: bytes) -> StatusReport:
         "failure": None,
         "failsafe": None,
     }
-    if has_tail:
-        return _with_tail(values, payload[mission_end:])
-    # The fast path: the same constraints pydantic would check (protocol/packets.py), by hand.
-    if not (
-        isfinite(t)
-        and isfinite(vn)
-        and isfinite(ve)
-        and isfinite(vd)
-        and 0.0 <= heading <= 360.0
-        and (vt != vt or (isfinite(vt) and vt >= 0.0))
-        and (pct != pct or 0.0 <= pct <= 100.0)
-        and (volts != volts or 0.0 <= volts <= 1000.0)
-        and (amps != amps or -1000.0 <= amps <= 1000.0)
-        and fix <= 8
-        and step >= -1
-        and completed >= -1
-        and waiting >= -1
-        and len(mode) <= 32
-        and (mission is None or len(mission) <= 64)
-    ):
-        return _with_tail(values, b"")  # pydantic names the offending field
-    if position is not None and not (
-        -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and isfinite(alt_rel) and isfinite(alt_amsl)
-    ):
-        return _with_tail(values, b"")
-    if position is not None:
-        values["position"] = _model(Position, position)
-    values["velocity"] = _model(VelocityNed, values["velocity"])
-    values["battery"] = _model(Battery, values["battery"])
-    values["gps"] = _gps(fix, sats)
-    report: StatusReport = _model(StatusReport, values)
-    return report
+
+
+def from_checked(fields: tuple[Any, ...], mode: str, mission: str | None) -> StatusReport:
+    """The report of a tail-less body whose fixed ``fields`` (in :data:`FIXED_FIELDS` order),
+    ``mode`` and ``mission`` were checked against the protocol's ranges already (the daemon's fleet
+    table checks whole columns at once, gcs/agents_table.py): what :func:`decode` gives for it."""
+    return _assemble(_values(fields, mode, mission))
 
 
 def _with_tail(values: dict[str, Any], tail: bytes) -> StatusReport:
@@ -314,4 +363,12 @@ def _with_tail(values: dict[str, Any], tail: bytes) -> StatusReport:
         raise StatusBodyError("compact status body: JSON tail nests too deeply") from None
 
 
-__all__ = ["FIXED_SIZE", "LAYOUT_VERSION", "StatusBodyError", "decode", "encode"]
+__all__ = [
+    "FIXED_FIELDS",
+    "FIXED_SIZE",
+    "LAYOUT_VERSION",
+    "StatusBodyError",
+    "decode",
+    "encode",
+    "from_checked",
+]
