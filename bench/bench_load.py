@@ -124,6 +124,15 @@ async def _server(
         asyncio.get_running_loop().slow_callback_duration = float(os.environ["BENCH_SLOW_CALLBACK_MS"]) / 1000
     from gcs.config import DaemonConfig
     from gcs.daemon import Daemon
+
+    if os.environ.get("BENCH_STEP_BUDGET_S"):  # diagnosis: the hook consumers' time slice
+        import gcs.dispatch
+
+        gcs.dispatch.STEP_BUDGET_S = float(os.environ["BENCH_STEP_BUDGET_S"])
+    if os.environ.get("BENCH_STATUS_TICK_S"):  # diagnosis: the status tick
+        import gcs.agents
+
+        gcs.agents.STATUS_TICK_S = float(os.environ["BENCH_STATUS_TICK_S"])
     from protocol.taskfile import TaskFile
     from protocol.wire import HEADER, HEADER_SIZE, FrameDecoder
 

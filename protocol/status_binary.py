@@ -48,6 +48,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from collections.abc import Callable
 from typing import Any
 
 from pydantic import ValidationError
@@ -256,13 +257,10 @@ def decode(payload: bytes) -> StatusReport:
             f"compact status body: {size - mission_end} bytes after mission_id, tail flag {has_tail}"
         )
     isfinite = math.isfinite
-    has_position = bool(flags & HAS_POSITION)
-    values = _values(fields, mode, mission)
-    if has_tail:
-        return _with_tail(values, payload[mission_end:])
     # The fast path: the same constraints pydantic would check (protocol/packets.py), by hand.
-    if not (
-        isfinite(t)
+    checked = (
+        not has_tail
+        and isfinite(t)
         and isfinite(vn)
         and isfinite(ve)
         and isfinite(vd)
@@ -277,30 +275,26 @@ def decode(payload: bytes) -> StatusReport:
         and waiting >= -1
         and len(mode) <= 32
         and (mission is None or len(mission) <= 64)
-    ):
-        return _with_tail(values, b"")  # pydantic names the offending field
-    if has_position and not (
-        -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and isfinite(alt_rel) and isfinite(alt_amsl)
-    ):
-        return _with_tail(values, b"")
-    return _assemble(values)
+        and (
+            not flags & HAS_POSITION
+            or (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and isfinite(alt_rel) and isfinite(alt_amsl))
+        )
+    )
+    if checked:
+        return from_checked(fields, mode, mission)
+    # The tail merged, or pydantic names the offending field.
+    return _with_tail(_values(fields, mode, mission, _plain), payload[mission_end:])
 
 
-def _assemble(values: dict[str, Any]) -> StatusReport:
-    """The report of ``values`` already checked against the protocol's ranges (no validation)."""
-    position = values["position"]
-    if position is not None:
-        values["position"] = _model(Position, position)
-    values["velocity"] = _model(VelocityNed, values["velocity"])
-    values["battery"] = _model(Battery, values["battery"])
-    gps = values["gps"]
-    values["gps"] = _gps(gps["fix"], gps["satellites"])
-    report: StatusReport = _model(StatusReport, values)
-    return report
+def _plain(_: type[Any], values: dict[str, Any]) -> dict[str, Any]:
+    return values
 
 
-def _values(fields: tuple[Any, ...], mode: str, mission: str | None) -> dict[str, Any]:
-    """The report's fields from the fixed part (in :data:`FIXED_FIELDS` order), mode and mission."""
+def _values(
+    fields: tuple[Any, ...], mode: str, mission: str | None, nest: Callable[[type[Any], dict[str, Any]], Any]
+) -> dict[str, Any]:
+    """The report's fields from the fixed part (in :data:`FIXED_FIELDS` order), mode and mission;
+    ``nest`` makes the nested parts (models, or plain dicts for pydantic to validate)."""
     (_, flags, fix, sats, t, vt, lat, lon, alt_rel, alt_amsl, vn, ve, vd, heading, pct, volts, amps) = fields[
         :17
     ]
@@ -308,20 +302,23 @@ def _values(fields: tuple[Any, ...], mode: str, mission: str | None) -> dict[str
     return {
         "time": t,
         "vehicle_time": None if vt != vt else vt,
-        "position": {"lat": lat, "lon": lon, "alt_rel": alt_rel, "alt_amsl": alt_amsl}
+        "position": nest(Position, {"lat": lat, "lon": lon, "alt_rel": alt_rel, "alt_amsl": alt_amsl})
         if flags & HAS_POSITION
         else None,
-        "velocity": {"vn": vn, "ve": ve, "vd": vd},
+        "velocity": nest(VelocityNed, {"vn": vn, "ve": ve, "vd": vd}),
         "heading_deg": heading,
-        "battery": {
-            "pct": None if pct != pct else pct,
-            "voltage_v": None if volts != volts else volts,
-            "current_a": None if amps != amps else amps,
-        },
+        "battery": nest(
+            Battery,
+            {
+                "pct": None if pct != pct else pct,
+                "voltage_v": None if volts != volts else volts,
+                "current_a": None if amps != amps else amps,
+            },
+        ),
         "mode": mode,
         "armed": bool(flags & ARMED),
         "landed": bool(flags & LANDED),
-        "gps": {"fix": fix, "satellites": sats},
+        "gps": _gps(fix, sats) if nest is _model else {"fix": fix, "satellites": sats},
         "mission_id": mission,
         "step": step,
         "completed_step": completed,
@@ -340,7 +337,8 @@ def from_checked(fields: tuple[Any, ...], mode: str, mission: str | None) -> Sta
     """The report of a tail-less body whose fixed ``fields`` (in :data:`FIXED_FIELDS` order),
     ``mode`` and ``mission`` were checked against the protocol's ranges already (the daemon's fleet
     table checks whole columns at once, gcs/agents_table.py): what :func:`decode` gives for it."""
-    return _assemble(_values(fields, mode, mission))
+    report: StatusReport = _model(StatusReport, _values(fields, mode, mission, _model))
+    return report
 
 
 def _with_tail(values: dict[str, Any], tail: bytes) -> StatusReport:
