@@ -112,6 +112,10 @@ async def _server(
             gc_pauses[info["generation"]].append(time.perf_counter() - gc_started[0])
 
     gc.callbacks.append(gc_watch)
+    if os.environ.get("BENCH_TRACEMALLOC"):  # diagnosis: where the daemon's memory goes (slow)
+        import tracemalloc
+
+        tracemalloc.start(int(os.environ["BENCH_TRACEMALLOC"]))
     if os.environ.get("BENCH_GC"):  # diagnosis: e.g. "freeze" or "off"
         import gc
 
@@ -136,6 +140,8 @@ async def _server(
     from protocol.taskfile import TaskFile
     from protocol.wire import HEADER, HEADER_SIZE, FrameDecoder
 
+    probe: Any = None
+    released: dict[int, float] = {}  # step -> when the daemon's release burst was written
     latencies: list[float] = []  # agent timestamp -> written into the daemon's status table
     hook_latencies: list[float] = []  # agent timestamp -> a status hook (behind the status tick)
     arrivals: dict[int, float] = {}
@@ -170,8 +176,10 @@ async def _server(
         handle = daemon.agents._handle
         unpack_time = struct.Struct("<d").unpack_from
 
-        def probe(payload: bytes) -> None:  # every compact report the ingest writes into the table
+        def stamp_ingest(payload: bytes) -> None:  # every compact report the ingest writes into the table
             latencies.append(time.time() - unpack_time(payload, 4)[0])
+
+        probe = stamp_ingest
 
         def handle_and_stamp(session: Any, frame: Any) -> None:
             if isinstance(frame.body, SyncSignal):  # stamped as the frame loop gets it, before any hook
@@ -180,7 +188,16 @@ async def _server(
                 latencies.append(time.time() - frame.body.time)
             handle(session, frame)
 
+        burst = daemon.agents.burst
+
+        def burst_and_stamp(identities: list[str], body: Any) -> int:
+            sent = burst(identities, body)
+            if isinstance(body, SyncSignal) and body.kind == "release":
+                released[body.step] = time.time()  # every member's socket written
+            return sent
+
         daemon.agents._handle = handle_and_stamp  # type: ignore[method-assign]
+        daemon.agents.burst = burst_and_stamp  # type: ignore[method-assign]
         daemon.agents.ingest_probe = probe
         daemon.agents.on_status.append(on_status)
         await daemon.start()
@@ -212,13 +229,22 @@ async def _server(
         port = server.sockets[0].getsockname()[1]
 
     loop = asyncio.get_running_loop()
+    baseline: Any = None
+    if os.environ.get("BENCH_TRACEMALLOC"):
+        import tracemalloc
+
+        baseline = tracemalloc.take_snapshot()
     conn.send(("ready", port, rss_kb()))
     cpu_mark = time.process_time()
     profiler = cProfile.Profile() if profile else None
     marks: dict[str, float] = {}
     for _ in range(1_000_000):
         command, *args = await loop.run_in_executor(None, conn.recv)
-        if command == "reset":
+        if command == "reset":  # (latency=True): False = count ingested frames only (flood trial)
+            counter["latency"] = int(args[0]) if args else 1
+            if daemon is not None:
+                daemon.agents.ingest_probe = probe if counter["latency"] else None
+                counter["ingest0"] = daemon.agents.ingest_frames
             for pauses in gc_pauses.values():
                 pauses.clear()
             latencies.clear()
@@ -230,10 +256,21 @@ async def _server(
                 profiler.enable()
             conn.send("ok")
         elif command == "stats":
+            if os.environ.get("BENCH_TRACEMALLOC"):
+                import tracemalloc
+
+                group = os.environ.get("BENCH_TRACEMALLOC_BY", "lineno")
+                top = tracemalloc.take_snapshot().compare_to(baseline, group)[:30]
+                print("\n".join(str(stat) for stat in top), file=sys.stderr, flush=True)
             if profiler is not None and profile:
                 profiler.disable()
                 profiler.dump_stats(profile)
-            received = len(latencies) if kind == "daemon" else counter["frames"]
+            if daemon is None:
+                received = counter["frames"]
+            elif counter["latency"]:
+                received = len(latencies)
+            else:  # the bench's own per-frame stamp is off: the daemon's ingest counter
+                received = daemon.agents.ingest_frames - counter["ingest0"]
             connected = len(daemon.agents.connected()) if daemon else 0
             conn.send(
                 {
@@ -262,7 +299,7 @@ async def _server(
         elif command == "events":
             conn.send(_event_kinds(daemon))
         elif command == "arrival":
-            conn.send(arrivals.get(args[0]))
+            conn.send((arrivals.get(args[0]), released.get(args[0])))
         elif command == "stop":
             break
     stop_note = "clean"
@@ -404,18 +441,28 @@ async def _handshake(client: Client, key: bytes) -> None:
 
 
 async def _client_reader(client: Client) -> None:
-    """Drain what the daemon sends (the shared frame loop); note releases and closes."""
+    """Drain what the daemon sends; note releases (stamped when their bytes arrive) and closes."""
     from protocol.packets import Close, SyncSignal
     from protocol.wire import ProtocolError
 
-    assert client.stream is not None
+    stream = client.stream
+    assert stream is not None
+    frames = list(stream.backlog)
+    stream.backlog.clear()
+    now = time.time()
     with contextlib.suppress(ConnectionError, ProtocolError):
-        async for frame in client.stream.frames():
-            if isinstance(frame.body, SyncSignal) and frame.body.kind == "release":
-                client.releases.setdefault(frame.body.step, time.time())
-                client.release_event.set()
-            elif isinstance(frame.body, Close):
-                client.closed = True
+        for _ in range(100_000_000):
+            for frame in frames:
+                if isinstance(frame.body, SyncSignal) and frame.body.kind == "release":
+                    client.releases.setdefault(frame.body.step, now)
+                    client.release_event.set()
+                elif isinstance(frame.body, Close):
+                    client.closed = True
+            data = await stream.reader.read(65_536)
+            if not data:
+                break
+            now = time.time()  # when the bytes reached this agent, before it decodes them
+            frames = list(stream.decoder.feed(data))
     client.closed = True
 
 
@@ -697,6 +744,7 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
     harness = Harness("daemon", agents)
     per_step: list[float] = []
     per_agent: list[float] = []
+    in_daemon: list[float] = []  # last arrival -> the burst written to every member's socket
     failed = ""
     try:
         assert harness.connect() == agents
@@ -714,7 +762,7 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
         time.sleep(0.5 + agents / 2000)  # the type-4 batches reach everyone
         for step in range(steps):
             received = [t for row in harness.workers_call("finish", mission_id, step, 30.0) for t in row]
-            last_arrival = harness.server_call("arrival", step)
+            last_arrival, written = harness.server_call("arrival", step)
             if last_arrival is None or any(t is None for t in received):
                 # Overloaded (the cooperation service then treats late reports as stale and
                 # takes the drones over): count it and stop, the numbers so far stand.
@@ -722,6 +770,8 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
                 failed += f"; daemon events {harness.server_call('events')}"
                 break
             per_step.append(max(received) - last_arrival)
+            if written is not None:
+                in_daemon.append(written - last_arrival)
             per_agent += [t - last_arrival for t in received]
             time.sleep(0.05)
     finally:
@@ -733,6 +783,8 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
         "last_release_p99_ms": percentile(per_step, 0.99) * 1000,
         "per_agent_release_p50_ms": percentile(per_agent, 0.5) * 1000,
         "per_agent_release_p99_ms": percentile(per_agent, 0.99) * 1000,
+        "daemon_release_p50_ms": percentile(in_daemon, 0.5) * 1000,
+        "daemon_release_p99_ms": percentile(in_daemon, 0.99) * 1000,
         "released_steps": len(per_step),
         "failed": failed,
     }
@@ -743,7 +795,7 @@ def throughput_trial(kind: str, clients: int, seconds: float) -> dict[str, Any]:
     harness = Harness(kind, clients, authenticate=kind == "daemon")
     try:
         assert harness.connect() == clients
-        harness.server_call("reset")
+        harness.server_call("reset", False)
         started = time.monotonic()
         rows = harness.workers_call("flood", seconds)
         elapsed = time.monotonic() - started
@@ -862,6 +914,7 @@ def main() -> int:
         help='JSON DaemonConfig overrides, e.g. {"telemetry":{"enabled":false}}',
     )
     parser.add_argument("--only-fleet", type=int, help="just one fleet trial of this size (diagnosis)")
+    parser.add_argument("--only-barrier", type=int, help="just the barrier trial with this many agents")
     parser.add_argument("--json", action="store_true", help="clients send JSON status bodies (v1 agents)")
     parser.add_argument("--profile", help="with --only-fleet: write the daemon's cProfile stats here")
     args = parser.parse_args()
@@ -874,6 +927,10 @@ def main() -> int:
         print(f"  event-loop us per report: {row['services_us_per_report']}")
         print(f"  events: {row['events']}")
         print(f"  gc pauses: {row['gc_pauses']}")
+        return 0
+    if args.only_barrier:
+        row = barrier_trial(args.only_barrier, 20)
+        print(json.dumps(row, indent=1))
         return 0
     began = time.monotonic()
     seconds = 2.0 if args.quick else args.seconds
@@ -894,8 +951,9 @@ def main() -> int:
         print(
             f"  {n:>6} agents  last arrival -> last release p50 {row['last_release_p50_ms']:7.2f} ms  "
             f"p99 {row['last_release_p99_ms']:7.2f} ms  "
-            f"(per agent p50 {row['per_agent_release_p50_ms']:.2f} ms; {row['released_steps']} barriers)"
-            + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
+            f"(per agent p50 {row['per_agent_release_p50_ms']:.2f} ms; in the daemon, arrival -> burst "
+            f"written p50 {row['daemon_release_p50_ms']:.2f} ms p99 {row['daemon_release_p99_ms']:.2f} ms; "
+            f"{row['released_steps']} barriers)" + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
             flush=True,
         )
 

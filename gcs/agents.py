@@ -1,20 +1,24 @@
 """Agent manager: TCP sessions, the authenticated handshake, CIDs, liveness, frame routing.
 
-One read task per connection and one writer task per session (gcs/outbox.py: a bounded
-outbound queue with an urgent lane). Frames are read through the shared
-:class:`protocol.stream.FramedStream` and the handshake is :class:`protocol.session.ServerHandshake`
-(versions negotiated, refusals with codes). A connection must complete it within
-``handshake_timeout_s`` with frames under 1 KiB, and at most ``max_handshakes`` run at once;
-until then no other packet is accepted. Any protocol error closes only that connection (type 6
-``protocol_error`` first), never the daemon or other agents.
+One connection task (the handshake, then waiting for the session's end) and one writer task
+per session (gcs/outbox.py: a bounded outbound queue with an urgent lane). The handshake reads
+frames through the shared :class:`protocol.stream.FramedStream` and is
+:class:`protocol.session.ServerHandshake` (versions negotiated, refusals with codes). A
+connection must complete it within ``handshake_timeout_s`` with frames under 1 KiB, and at
+most ``max_handshakes`` run at once; until then no other packet is accepted. Any protocol
+error closes only that connection (type 6 ``protocol_error`` first), never the daemon or
+other agents.
 
-Nothing is awaited on the read path: the frame loop decodes, records (``session.status``...)
-and publishes to the hook consumers (gcs/dispatch.py), which run ``on_join`` / ``on_status`` /
-``on_sync`` / ``on_lost`` hooks in one task per hook owner, outside the handshake budget.
-Status reports are handed over in one batch per event-loop iteration (everything every frame
-loop received in it); any other event first flushes the batch, so each consumer still sees one
-agent's events in the order they arrived. A v2 agent may send them in the compact binary body
-(``compact_status``, negotiated by the session layer).
+Nothing is awaited on the read path. After the handshake the connection's frames are handled
+in its transport's ``data_received`` (:class:`_FrameProtocol`, no read task): a compact status
+body (``compact_status``, negotiated by the session layer) is only CRC- and rate-checked and
+copied as it is into the agent's row of the fleet status table (gcs/agents_table.py). The status
+tick (at most every ``STATUS_TICK_S``) decodes the dirty rows with NumPy column checks and hands
+the newest report of each agent to the hook consumers (gcs/dispatch.py) in one batch; they run
+``on_join`` / ``on_status`` / ``on_sync`` / ``on_lost`` hooks in one task per hook owner. JSON
+status, failsafe or failure reports, replayed status, ``finished`` and close are decoded and
+handled at once, behind the agent's report still waiting for the tick, so each consumer sees
+one agent's events in the order they arrived.
 """
 
 from __future__ import annotations
@@ -759,9 +763,13 @@ class AgentManager:
         while True:
             await asyncio.sleep(period)
             now = time.monotonic()
-            for session in self.connected():  # only posts: a stuck peer never delays this loop
-                if session.outbox.idle and now - session.last_tx >= self.config.keepalive_s:
-                    session.post(keepalive, urgent=False)
+            due = [
+                s.identity
+                for s in self.connected()
+                if s.outbox.idle and now - s.last_tx >= self.config.keepalive_s
+            ]
+            if due:  # encoded once, written in one pass: a stuck peer never delays this loop
+                self.burst(due, keepalive)
             for identity, session in list(self.sessions.items()):
                 if identity in self.lost or now - session.last_rx <= self.config.lost_after_s:
                     continue

@@ -34,7 +34,7 @@ class BatteryEstimator:
     sample before), and the least-squares sums and the track length are kept as running sums.
     """
 
-    RESOLUTION = 100  # samples per window at most
+    RESOLUTION = 50  # samples per window at most
     __slots__ = (
         "_base",
         "_count",
