@@ -769,7 +769,10 @@ class AgentManager:
                 if s.outbox.idle and now - s.last_tx >= self.config.keepalive_s
             ]
             if due:  # encoded once, written in one pass: a stuck peer never delays this loop
-                self.burst(due, keepalive)
+                # At most about twice a pass's fair share, so a fleet that joined at once does
+                # not get all its keepalives in the same pass every second (one long stall).
+                share = 2 * len(self.sessions) * period / self.config.keepalive_s
+                self.burst(due[: max(64, int(share))], keepalive)
             for identity, session in list(self.sessions.items()):
                 if identity in self.lost or now - session.last_rx <= self.config.lost_after_s:
                     continue

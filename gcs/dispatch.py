@@ -229,9 +229,13 @@ class Consumer:
                 continue  # the service removed its hook (stopped) after the event was queued
             if item.batch is None:
                 await self._call(item.kind, item.hook, item.args)
-            else:
-                for pair in item.batch:
+            else:  # a whole fleet's batch can take longer than a step: yield inside it too
+                for index, pair in enumerate(item.batch):
                     await self._call("status", item.hook, pair)
+                    if index & 15 == 15 and time.monotonic() - step_started > STEP_BUDGET_S:
+                        self.busy_s += time.monotonic() - started
+                        await asyncio.sleep(0)
+                        step_started = started = time.monotonic()
             now = time.monotonic()
             self.busy_s += now - started
             if now - started > SLOW_HOOK_S and started - self._last_slow_log > 60.0:
