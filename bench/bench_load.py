@@ -12,13 +12,16 @@ Measured:
 
 * **fleet search**: status at 10 Hz from N agents for a few seconds; a size passes with zero loss
   (every frame sent was ingested, no agent dropped) and p99 ingest latency (agent timestamp to the
-  daemon's status hook) under 50 ms. Doubling, then bisection.
+  report written into the daemon's status table) under 50 ms; the latency to a status hook
+  (behind the status tick and the hook queues) is printed beside it. Doubling, then bisection.
 * **sync barrier**: N agents (streaming status at 10 Hz) all send ``finished`` for a step; latency
-  from the daemon receiving the last arrival to the last agent receiving its release.
+  from the daemon receiving the last arrival to the last agent receiving its release (and the part
+  inside the daemon: to the release burst written to every socket).
 * **memory per agent**: daemon RSS delta over the fleet trial divided by N.
 * **throughput vs bare asyncio**: the same pre-encoded status frames flooded by the same clients
   into (a) a bare asyncio sink that only splits frames by header, (b) asyncio plus the full
-  ``FrameDecoder`` (CRC, JSON, pydantic), (c) the daemon. Ratio = daemon / bare.
+  ``FrameDecoder`` (CRC, a decoded report per frame), (c) the daemon (frames written into its
+  status table, its ingest counter). Ratio = daemon / bare.
 * **agent footprint**: one ``agent run`` process at 10 Hz status with one vehicle (memory backend;
   MAVLink backend against ``sitl run`` too): RSS and CPU share.
 """
