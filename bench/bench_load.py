@@ -12,13 +12,16 @@ Measured:
 
 * **fleet search**: status at 10 Hz from N agents for a few seconds; a size passes with zero loss
   (every frame sent was ingested, no agent dropped) and p99 ingest latency (agent timestamp to the
-  daemon's status hook) under 50 ms. Doubling, then bisection.
+  report written into the daemon's status table) under 50 ms; the latency to a status hook
+  (behind the status tick and the hook queues) is printed beside it. Doubling, then bisection.
 * **sync barrier**: N agents (streaming status at 10 Hz) all send ``finished`` for a step; latency
-  from the daemon receiving the last arrival to the last agent receiving its release.
+  from the daemon receiving the last arrival to the last agent receiving its release (and the part
+  inside the daemon: to the release burst written to every socket).
 * **memory per agent**: daemon RSS delta over the fleet trial divided by N.
 * **throughput vs bare asyncio**: the same pre-encoded status frames flooded by the same clients
   into (a) a bare asyncio sink that only splits frames by header, (b) asyncio plus the full
-  ``FrameDecoder`` (CRC, JSON, pydantic), (c) the daemon. Ratio = daemon / bare.
+  ``FrameDecoder`` (CRC, a decoded report per frame), (c) the daemon (frames written into its
+  status table, its ingest counter). Ratio = daemon / bare.
 * **agent footprint**: one ``agent run`` process at 10 Hz status with one vehicle (memory backend;
   MAVLink backend against ``sitl run`` too): RSS and CPU share.
 """
@@ -112,6 +115,10 @@ async def _server(
             gc_pauses[info["generation"]].append(time.perf_counter() - gc_started[0])
 
     gc.callbacks.append(gc_watch)
+    if os.environ.get("BENCH_TRACEMALLOC"):  # diagnosis: where the daemon's memory goes (slow)
+        import tracemalloc
+
+        tracemalloc.start(int(os.environ["BENCH_TRACEMALLOC"]))
     if os.environ.get("BENCH_GC"):  # diagnosis: e.g. "freeze" or "off"
         import gc
 
@@ -124,10 +131,22 @@ async def _server(
         asyncio.get_running_loop().slow_callback_duration = float(os.environ["BENCH_SLOW_CALLBACK_MS"]) / 1000
     from gcs.config import DaemonConfig
     from gcs.daemon import Daemon
+
+    if os.environ.get("BENCH_STEP_BUDGET_S"):  # diagnosis: the hook consumers' time slice
+        import gcs.dispatch
+
+        gcs.dispatch.STEP_BUDGET_S = float(os.environ["BENCH_STEP_BUDGET_S"])
+    if os.environ.get("BENCH_STATUS_TICK_S"):  # diagnosis: the status tick
+        import gcs.agents
+
+        gcs.agents.STATUS_TICK_S = float(os.environ["BENCH_STATUS_TICK_S"])
     from protocol.taskfile import TaskFile
     from protocol.wire import HEADER, HEADER_SIZE, FrameDecoder
 
-    latencies: list[float] = []
+    probe: Any = None
+    released: dict[int, float] = {}  # step -> when the daemon's release burst was written
+    latencies: list[float] = []  # agent timestamp -> written into the daemon's status table
+    hook_latencies: list[float] = []  # agent timestamp -> a status hook (behind the status tick)
     arrivals: dict[int, float] = {}
     counter = {"frames": 0}
     daemon: Daemon | None = None
@@ -153,18 +172,36 @@ async def _server(
         daemon = Daemon(config)
 
         async def on_status(_: object, status: Any) -> None:
-            latencies.append(time.time() - status.time)
+            hook_latencies.append(time.time() - status.time)
 
-        from protocol.packets import SyncSignal
+        from protocol.packets import StatusReport, SyncSignal
 
         handle = daemon.agents._handle
+        unpack_time = struct.Struct("<d").unpack_from
+
+        def stamp_ingest(payload: bytes) -> None:  # every compact report the ingest writes into the table
+            latencies.append(time.time() - unpack_time(payload, 4)[0])
+
+        probe = stamp_ingest
 
         def handle_and_stamp(session: Any, frame: Any) -> None:
             if isinstance(frame.body, SyncSignal):  # stamped as the frame loop gets it, before any hook
                 arrivals[frame.body.step] = time.time()  # the last one wins: the barrier's last arrival
+            elif isinstance(frame.body, StatusReport):  # the decoded path (JSON clients)
+                latencies.append(time.time() - frame.body.time)
             handle(session, frame)
 
+        burst = daemon.agents.burst
+
+        def burst_and_stamp(identities: list[str], body: Any) -> int:
+            sent = burst(identities, body)
+            if isinstance(body, SyncSignal) and body.kind == "release":
+                released[body.step] = time.time()  # every member's socket written
+            return sent
+
         daemon.agents._handle = handle_and_stamp  # type: ignore[method-assign]
+        daemon.agents.burst = burst_and_stamp  # type: ignore[method-assign]
+        daemon.agents.ingest_probe = probe
         daemon.agents.on_status.append(on_status)
         await daemon.start()
         port = daemon.listen_port
@@ -195,16 +232,26 @@ async def _server(
         port = server.sockets[0].getsockname()[1]
 
     loop = asyncio.get_running_loop()
+    baseline: Any = None
+    if os.environ.get("BENCH_TRACEMALLOC"):
+        import tracemalloc
+
+        baseline = tracemalloc.take_snapshot()
     conn.send(("ready", port, rss_kb()))
     cpu_mark = time.process_time()
     profiler = cProfile.Profile() if profile else None
     marks: dict[str, float] = {}
     for _ in range(1_000_000):
         command, *args = await loop.run_in_executor(None, conn.recv)
-        if command == "reset":
+        if command == "reset":  # (latency=True): False = count ingested frames only (flood trial)
+            counter["latency"] = int(args[0]) if args else 1
+            if daemon is not None:
+                daemon.agents.ingest_probe = probe if counter["latency"] else None
+                counter["ingest0"] = daemon.agents.ingest_frames
             for pauses in gc_pauses.values():
                 pauses.clear()
             latencies.clear()
+            hook_latencies.clear()
             counter["frames"] = 0
             cpu_mark = time.process_time()
             marks = _service_marks(daemon)
@@ -212,10 +259,21 @@ async def _server(
                 profiler.enable()
             conn.send("ok")
         elif command == "stats":
+            if os.environ.get("BENCH_TRACEMALLOC"):
+                import tracemalloc
+
+                group = os.environ.get("BENCH_TRACEMALLOC_BY", "lineno")
+                top = tracemalloc.take_snapshot().compare_to(baseline, group)[:30]
+                print("\n".join(str(stat) for stat in top), file=sys.stderr, flush=True)
             if profiler is not None and profile:
                 profiler.disable()
                 profiler.dump_stats(profile)
-            received = len(latencies) if kind == "daemon" else counter["frames"]
+            if daemon is None:
+                received = counter["frames"]
+            elif counter["latency"]:
+                received = len(latencies)
+            else:  # the bench's own per-frame stamp is off: the daemon's ingest counter
+                received = daemon.agents.ingest_frames - counter["ingest0"]
             connected = len(daemon.agents.connected()) if daemon else 0
             conn.send(
                 {
@@ -226,9 +284,12 @@ async def _server(
                         for g, p in gc_pauses.items()
                     },
                     "received": received,
+                    "hook_seen": len(hook_latencies),
                     "p50_ms": percentile(latencies, 0.50) * 1000,
                     "p99_ms": percentile(latencies, 0.99) * 1000,
                     "max_ms": max(latencies, default=float("nan")) * 1000,
+                    "hook_p50_ms": percentile(hook_latencies, 0.50) * 1000,
+                    "hook_p99_ms": percentile(hook_latencies, 0.99) * 1000,
                     "connected": connected,
                     "rss_kb": rss_kb(),
                     "cpu_s": time.process_time() - cpu_mark,
@@ -241,7 +302,7 @@ async def _server(
         elif command == "events":
             conn.send(_event_kinds(daemon))
         elif command == "arrival":
-            conn.send(arrivals.get(args[0]))
+            conn.send((arrivals.get(args[0]), released.get(args[0])))
         elif command == "stop":
             break
     stop_note = "clean"
@@ -260,7 +321,11 @@ def _service_marks(daemon: Any) -> dict[str, float]:
     """Busy seconds and event counts so far: ingest (decode + record) and each hook consumer."""
     if daemon is None:
         return {}
-    marks = {"ingest": daemon.agents.ingest_busy_s, "ingest#": float(daemon.agents.ingest_frames)}
+    marks = {
+        "ingest": daemon.agents.ingest_busy_s,
+        "ingest#": float(daemon.agents.ingest_frames),
+        "status tick": daemon.agents.tick_busy_s,
+    }
     for s in daemon.agents.hook_stats():
         marks[s.name], marks[s.name + "#"] = s.busy_s, float(s.delivered)
     return marks
@@ -379,18 +444,28 @@ async def _handshake(client: Client, key: bytes) -> None:
 
 
 async def _client_reader(client: Client) -> None:
-    """Drain what the daemon sends (the shared frame loop); note releases and closes."""
+    """Drain what the daemon sends; note releases (stamped when their bytes arrive) and closes."""
     from protocol.packets import Close, SyncSignal
     from protocol.wire import ProtocolError
 
-    assert client.stream is not None
+    stream = client.stream
+    assert stream is not None
+    frames = list(stream.backlog)
+    stream.backlog.clear()
+    now = time.time()
     with contextlib.suppress(ConnectionError, ProtocolError):
-        async for frame in client.stream.frames():
-            if isinstance(frame.body, SyncSignal) and frame.body.kind == "release":
-                client.releases.setdefault(frame.body.step, time.time())
-                client.release_event.set()
-            elif isinstance(frame.body, Close):
-                client.closed = True
+        for _ in range(100_000_000):
+            for frame in frames:
+                if isinstance(frame.body, SyncSignal) and frame.body.kind == "release":
+                    client.releases.setdefault(frame.body.step, now)
+                    client.release_event.set()
+                elif isinstance(frame.body, Close):
+                    client.closed = True
+            data = await stream.reader.read(65_536)
+            if not data:
+                break
+            now = time.time()  # when the bytes reached this agent, before it decodes them
+            frames = list(stream.decoder.feed(data))
     client.closed = True
 
 
@@ -410,17 +485,27 @@ async def _worker(
     gate = asyncio.Semaphore(32)
 
     async def connect(client: Client) -> bool:
+        from protocol.session import Refused
+
         async with gate:
-            try:
-                client.reader, client.writer = await asyncio.open_connection("127.0.0.1", port)
-                client.stream = FramedStream(client.reader, client.writer)
-                if authenticate:
-                    await asyncio.wait_for(_handshake(client, key), 60)
-            except Exception:  # refused, timed out, reset: this one client is lost, the bench goes on
-                client.closed = True
-                return False
-            readers.append(asyncio.create_task(_client_reader(client)))
-            return True
+            for attempt in range(20):  # a `busy` refusal (too many handshakes at once) is retried
+                try:
+                    client.reader, client.writer = await asyncio.open_connection("127.0.0.1", port)
+                    client.stream = FramedStream(client.reader, client.writer)
+                    if authenticate:
+                        await asyncio.wait_for(_handshake(client, key), 60)
+                except Refused as exc:
+                    if exc.action != "retry" or attempt == 19:
+                        client.closed = True
+                        return False
+                    await asyncio.sleep(0.2 + random.random() * 0.5)
+                    continue
+                except Exception:  # timed out, reset: this one client is lost, the bench goes on
+                    client.closed = True
+                    return False
+                readers.append(asyncio.create_task(_client_reader(client)))
+                return True
+            return False
 
     async def status_loop(client: Client, period: float, stop_at: float) -> None:
         next_at = time.monotonic() + random.random() * period
@@ -594,6 +679,9 @@ def fleet_trial(agents: int, seconds: float) -> dict[str, Any]:
         "latency_p50_ms": stats["p50_ms"],
         "latency_p99_ms": stats["p99_ms"],
         "latency_max_ms": stats["max_ms"],
+        "hook_seen": stats["hook_seen"],
+        "hook_latency_p50_ms": stats["hook_p50_ms"],
+        "hook_latency_p99_ms": stats["hook_p99_ms"],
         "daemon_cpu_share": stats["cpu_s"] / (seconds + 1.0),
         "client_workers_cpu_share": sum(r["cpu_s"] for r in sent_rows) / seconds,
         "daemon_rss_mb": stats["rss_kb"] / 1024,
@@ -643,7 +731,8 @@ def _print_fleet(row: dict[str, Any]) -> None:
     print(
         f"  {row['agents']:>6} agents  {row['ingest_msgs_per_s']:8.0f} msg/s  loss {row['loss']:6.2%}  "
         f"dropped {row['dropped_agents']:>3}  p50 {row['latency_p50_ms']:7.2f} ms  "
-        f"p99 {row['latency_p99_ms']:8.2f} ms  cpu {row['daemon_cpu_share']:4.0%} "
+        f"p99 {row['latency_p99_ms']:8.2f} ms  (hooks p99 {row['hook_latency_p99_ms']:6.1f} ms, "
+        f"{row['hook_seen'] / max(1, row['received']):4.0%} seen)  cpu {row['daemon_cpu_share']:4.0%} "
         f"(clients {row['client_workers_cpu_share']:4.0%})  rss/agent {row['rss_per_agent_kb']:6.1f} KiB  "
         f"{'PASS' if row['passed'] else 'fail'}  (full gc: {row['gc_pauses']['gen2']})",
         flush=True,
@@ -658,6 +747,7 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
     harness = Harness("daemon", agents)
     per_step: list[float] = []
     per_agent: list[float] = []
+    in_daemon: list[float] = []  # last arrival -> the burst written to every member's socket
     failed = ""
     try:
         assert harness.connect() == agents
@@ -675,7 +765,7 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
         time.sleep(0.5 + agents / 2000)  # the type-4 batches reach everyone
         for step in range(steps):
             received = [t for row in harness.workers_call("finish", mission_id, step, 30.0) for t in row]
-            last_arrival = harness.server_call("arrival", step)
+            last_arrival, written = harness.server_call("arrival", step)
             if last_arrival is None or any(t is None for t in received):
                 # Overloaded (the cooperation service then treats late reports as stale and
                 # takes the drones over): count it and stop, the numbers so far stand.
@@ -683,6 +773,8 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
                 failed += f"; daemon events {harness.server_call('events')}"
                 break
             per_step.append(max(received) - last_arrival)
+            if written is not None:
+                in_daemon.append(written - last_arrival)
             per_agent += [t - last_arrival for t in received]
             time.sleep(0.05)
     finally:
@@ -694,6 +786,8 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
         "last_release_p99_ms": percentile(per_step, 0.99) * 1000,
         "per_agent_release_p50_ms": percentile(per_agent, 0.5) * 1000,
         "per_agent_release_p99_ms": percentile(per_agent, 0.99) * 1000,
+        "daemon_release_p50_ms": percentile(in_daemon, 0.5) * 1000,
+        "daemon_release_p99_ms": percentile(in_daemon, 0.99) * 1000,
         "released_steps": len(per_step),
         "failed": failed,
     }
@@ -704,7 +798,7 @@ def throughput_trial(kind: str, clients: int, seconds: float) -> dict[str, Any]:
     harness = Harness(kind, clients, authenticate=kind == "daemon")
     try:
         assert harness.connect() == clients
-        harness.server_call("reset")
+        harness.server_call("reset", False)
         started = time.monotonic()
         rows = harness.workers_call("flood", seconds)
         elapsed = time.monotonic() - started
@@ -823,6 +917,7 @@ def main() -> int:
         help='JSON DaemonConfig overrides, e.g. {"telemetry":{"enabled":false}}',
     )
     parser.add_argument("--only-fleet", type=int, help="just one fleet trial of this size (diagnosis)")
+    parser.add_argument("--only-barrier", type=int, help="just the barrier trial with this many agents")
     parser.add_argument("--json", action="store_true", help="clients send JSON status bodies (v1 agents)")
     parser.add_argument("--profile", help="with --only-fleet: write the daemon's cProfile stats here")
     args = parser.parse_args()
@@ -835,6 +930,10 @@ def main() -> int:
         print(f"  event-loop us per report: {row['services_us_per_report']}")
         print(f"  events: {row['events']}")
         print(f"  gc pauses: {row['gc_pauses']}")
+        return 0
+    if args.only_barrier:
+        row = barrier_trial(args.only_barrier, 20)
+        print(json.dumps(row, indent=1))
         return 0
     began = time.monotonic()
     seconds = 2.0 if args.quick else args.seconds
@@ -855,8 +954,9 @@ def main() -> int:
         print(
             f"  {n:>6} agents  last arrival -> last release p50 {row['last_release_p50_ms']:7.2f} ms  "
             f"p99 {row['last_release_p99_ms']:7.2f} ms  "
-            f"(per agent p50 {row['per_agent_release_p50_ms']:.2f} ms; {row['released_steps']} barriers)"
-            + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
+            f"(per agent p50 {row['per_agent_release_p50_ms']:.2f} ms; in the daemon, arrival -> burst "
+            f"written p50 {row['daemon_release_p50_ms']:.2f} ms p99 {row['daemon_release_p99_ms']:.2f} ms; "
+            f"{row['released_steps']} barriers)" + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
             flush=True,
         )
 

@@ -1,31 +1,37 @@
 """Agent manager: TCP sessions, the authenticated handshake, CIDs, liveness, frame routing.
 
-One read task per connection and one writer task per session (gcs/outbox.py: a bounded
-outbound queue with an urgent lane). Frames are read through the shared
-:class:`protocol.stream.FramedStream` and the handshake is :class:`protocol.session.ServerHandshake`
-(versions negotiated, refusals with codes). A connection must complete it within
-``handshake_timeout_s`` with frames under 1 KiB, and at most ``max_handshakes`` run at once;
-until then no other packet is accepted. Any protocol error closes only that connection (type 6
-``protocol_error`` first), never the daemon or other agents.
+One connection task (the handshake, then waiting for the session's end) and one writer task
+per session (gcs/outbox.py: a bounded outbound queue with an urgent lane). The handshake reads
+frames through the shared :class:`protocol.stream.FramedStream` and is
+:class:`protocol.session.ServerHandshake` (versions negotiated, refusals with codes). A
+connection must complete it within ``handshake_timeout_s`` with frames under 1 KiB, and at
+most ``max_handshakes`` run at once; until then no other packet is accepted. Any protocol
+error closes only that connection (type 6 ``protocol_error`` first), never the daemon or
+other agents.
 
-Nothing is awaited on the read path: the frame loop decodes, records (``session.status``...)
-and publishes to the hook consumers (gcs/dispatch.py), which run ``on_join`` / ``on_status`` /
-``on_sync`` / ``on_lost`` hooks in one task per hook owner, outside the handshake budget.
-Status reports are handed over in one batch per event-loop iteration (everything every frame
-loop received in it); any other event first flushes the batch, so each consumer still sees one
-agent's events in the order they arrived. A v2 agent may send them in the compact binary body
-(``compact_status``, negotiated by the session layer).
+Nothing is awaited on the read path. After the handshake the connection's frames are handled
+in its transport's ``data_received`` (:class:`_FrameProtocol`, no read task): a compact status
+body (``compact_status``, negotiated by the session layer) is only CRC- and rate-checked and
+copied as it is into the agent's row of the fleet status table (gcs/agents_table.py). The status
+tick (at most every ``STATUS_TICK_S``) decodes the dirty rows with NumPy column checks and hands
+the newest report of each agent to the hook consumers (gcs/dispatch.py) in one batch; they run
+``on_join`` / ``on_status`` / ``on_sync`` / ``on_lost`` hooks in one task per hook owner. JSON
+status, failsafe or failure reports, replayed status, ``finished`` and close are decoded and
+handled at once, behind the agent's report still waiting for the tick, so each consumer sees
+one agent's events in the order they arrived.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
+from gcs.agents_table import MAX_BODY, ROW_BYTES, StatusTable
 from gcs.config import DaemonConfig
 from gcs.dispatch import ConsumerStats, HookDispatcher, HookKind, HookList
 from gcs.events import EventBus
@@ -49,10 +55,28 @@ from protocol.packets import (
     packet_type_of,
 )
 from protocol.session import Code, Refused, ServerHandshake, close_for
+from protocol.status_binary import BUFFERED, HAS_TAIL, StatusBodyError
 from protocol.stream import FramedStream
-from protocol.wire import PRE_AUTH_MAX_BODY, Frame, ProtocolError, encode
+from protocol.wire import (
+    COMPACT,
+    PRE_AUTH_MAX_BODY,
+    STATUS_COMPACT,
+    Frame,
+    FrameDecoder,
+    ProtocolError,
+    decode_body,
+    encode,
+)
 
 log = logging.getLogger("gcs.agents")
+
+
+STATUS_TICK_S = 0.01
+"""Status reports reach the hooks in one batch per tick: the newest per agent since the last tick,
+at most every 10 ms (sooner after a quiet spell: once the event loop has run what it had ready).
+Failsafe, failure, replayed status, sync signals and closes are handed over at once."""
+FREEZE_MIN_AGENTS = 200  # smaller fleets: full collections are short anyway (and tests run many daemons)
+_SLOW_FLAGS = HAS_TAIL | BUFFERED  # a compact body with these is decoded at once (rare packets)
 
 
 class ProbeAnswered(ConnectionError):
@@ -65,6 +89,8 @@ class RateLimited(Exception):
 
 class TokenBucket:
     """``rate`` tokens per second, at most ``burst`` saved up; one token per frame."""
+
+    __slots__ = ("burst", "rate", "stamp", "tokens")
 
     def __init__(self, rate: float, burst: int) -> None:
         self.rate, self.burst = rate, float(burst)
@@ -80,7 +106,7 @@ class TokenBucket:
         return True
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, slots=True)
 class AgentSession:
     """One authenticated connection of one agent identity.
 
@@ -97,7 +123,7 @@ class AgentSession:
     outbox: Outbox
     connected_at: float = field(default_factory=time.time)
     last_rx: float = field(default_factory=time.monotonic)
-    status: StatusReport | None = None
+    _status: StatusReport | None = field(default=None, repr=False)  # as of the last status tick
     status_count: int = 0
     replayed_count: int = 0  # buffered status reports received (counted apart from live ones)
     open: bool = True
@@ -106,6 +132,21 @@ class AgentSession:
     exception_budget: TokenBucket | None = None
     exceptions_suppressed: int = 0
     compact_status: bool = False  # negotiated: status may come as the compact binary body
+    row: int = -1  # its row in the manager's status table while the session is served
+    table: StatusTable | None = field(default=None, repr=False)
+
+    @property
+    def status(self) -> StatusReport | None:
+        """The newest live status report: decoded now if it came after the last status tick."""
+        table = self.table
+        if table is not None and table.dirty[self.row]:
+            with contextlib.suppress(StatusBodyError):  # the tick cuts the session off for it
+                return table.report(self.row)
+        return self._status
+
+    @status.setter
+    def status(self, report: StatusReport | None) -> None:
+        self._status = report
 
     @property
     def last_tx(self) -> float:
@@ -182,12 +223,18 @@ class AgentManager:
             {"join": self.on_join, "status": self.on_status, "sync": self.on_sync, "lost": self.on_lost}
         )
         self._tasks: set[asyncio.Task[None]] = set()
-        self._status_batch: list[tuple[AgentSession, StatusReport]] = []
-        self._flush_scheduled = False
+        self.table = StatusTable()  # every served session's newest status (gcs/agents_table.py)
+        self.status_tick_s = STATUS_TICK_S
+        self._tick_due = False
+        self._last_tick = 0.0
+        self._frozen_at = 0  # fleet size at the last gc.freeze() (0: none by this manager)
+        self.ingest_probe: Callable[[bytes], None] | None = None  # benchmarks: sees each table write
         self._hooks_closed = False
         self._pending_handshakes = 0
         self.ingest_frames = 0  # frames recorded by the frame loops
         self.ingest_busy_s = 0.0  # event-loop time recording them took (checks, record, publish)
+        self.tick_count = 0
+        self.tick_busy_s = 0.0  # event-loop time of the status ticks (decode dirty rows, publish)
         self.busy_refusals = 0
         self.accepting = True  # False: handshakes are refused with code `starting`
         # Cluster mode (gcs/cluster): agents linked to other daemons, and the shared CID registry.
@@ -418,47 +465,129 @@ class AgentManager:
         )
 
     async def _frame_loop(self, session: AgentSession, stream: FramedStream) -> None:
-        """Frames of an authenticated session; frames that came right behind the proof come first.
+        """Serve the session's frames until it ends; raises what ended it (protocol error, rate limit).
+
+        Frames that came right behind the proof come first. Then the connection's protocol is
+        swapped for a :class:`_FrameProtocol`, so frames are handled in the transport's
+        ``data_received`` callback (:meth:`_ingest`): no task wake-up and no ``StreamReader``
+        copy per read. The stream protocol stays behind it for write flow control.
+        """
+        transport = session.writer.transport
+        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        conn = _FrameProtocol(self, session, stream.decoder, transport.get_protocol(), done)
+        session.row = self.table.attach(conn)
+        session.table = self.table
+        while stream.backlog:
+            frame = stream.backlog.popleft()
+            self._take(conn, frame, time.monotonic())
+            self._handle(session, frame)
+            if not session.open:
+                return
+        transport.set_protocol(conn)
+        buffered: bytearray = stream.reader._buffer  # type: ignore[attr-defined]  # read after the proof
+        if buffered:
+            leftover = bytes(buffered)
+            buffered.clear()
+            conn.data_received(leftover)
+        if stream.reader.at_eof() or transport.is_closing():
+            conn.finish()
+        await done
+
+    def _take(self, conn: _FrameProtocol, frame: Frame, now: float) -> None:
+        """The rate limit of a decoded frame (live frames and replayed status have separate budgets).
 
         Live frames and replayed (``buffered``) status reports are counted in separate buckets,
         so an agent catching up after an outage is not cut off for it (docs/protocol.md).
         """
-        live = TokenBucket(self.config.max_frames_per_s, self.config.frame_burst)
-        replay = TokenBucket(self.config.replay_frames_per_s, self.config.replay_burst)
-        async for frame in stream.frames():
-            session.last_rx = time.monotonic()  # complete packets count as life, stray bytes do not
-            replayed = isinstance(frame.body, StatusReport) and frame.body.buffered
-            if not (replay if replayed else live).take(session.last_rx):
-                kind = "replayed status reports" if replayed else "frames"
-                rate, burst = (
-                    (self.config.replay_frames_per_s, self.config.replay_burst)
-                    if replayed
-                    else (self.config.max_frames_per_s, self.config.frame_burst)
-                )
-                raise RateLimited(f"more than {rate:g} {kind}/s (burst {burst}); cut off")
-            started = time.perf_counter()
-            self._handle(session, frame)
-            self.ingest_frames += 1
+        conn.session.last_rx = now  # complete packets count as life, stray bytes do not
+        replayed = isinstance(frame.body, StatusReport) and frame.body.buffered
+        if not (conn.replay if replayed else conn.live).take(now):
+            kind = "replayed status reports" if replayed else "frames"
+            rate, burst = (
+                (self.config.replay_frames_per_s, self.config.replay_burst)
+                if replayed
+                else (self.config.max_frames_per_s, self.config.frame_burst)
+            )
+            raise RateLimited(f"more than {rate:g} {kind}/s (burst {burst}); cut off")
+
+    def _ingest(self, conn: _FrameProtocol, data: bytes) -> bool:
+        """Every frame ``data`` completes; False once the session is over.
+
+        The hot path: a compact status body without tail (not replayed) is copied into the
+        session's table row as it is, nothing decoded. Anything else is decoded and handled
+        (:meth:`_handle`) at once, behind the reports already received.
+        """
+        started = time.perf_counter()
+        session, table, frames = conn.session, self.table, 0
+        probe = self.ingest_probe
+        try:
+            for ptype, seq, payload in conn.decoder.split(data):
+                frames += 1
+                now = time.monotonic()
+                size = len(payload)
+                if (
+                    ptype == STATUS_COMPACT
+                    and size <= MAX_BODY
+                    and size > 1
+                    and not payload[1] & _SLOW_FLAGS
+                    and session.compact_status
+                ):
+                    session.last_rx = now
+                    if not conn.live.take(now):
+                        raise RateLimited(
+                            f"more than {self.config.max_frames_per_s:g} frames/s "
+                            f"(burst {self.config.frame_burst}); cut off"
+                        )
+                    row = session.row
+                    start = row * ROW_BYTES
+                    buf = table.buf
+                    buf[start : start + size] = payload
+                    buf[start + MAX_BODY] = size
+                    table.objects[row] = None
+                    table.dirty[row] = 1
+                    table.rx[row] = time.time()
+                    session.status_count += 1
+                    if not self._tick_due:
+                        self._schedule_tick(now)
+                    if probe is not None:
+                        probe(payload)
+                    continue
+                try:
+                    body = decode_body(ptype, payload)
+                except ProtocolError as exc:
+                    raise conn.decoder.fail(exc) from None
+                frame = Frame(PacketType(ptype & ~COMPACT), seq, body, ptype == STATUS_COMPACT)
+                self._take(conn, frame, now)
+                self._handle(session, frame)
+                if not session.open:
+                    return False
+            return True
+        finally:
+            self.ingest_frames += frames
             self.ingest_busy_s += time.perf_counter() - started
-            if not session.open:
-                return
 
     def _handle(self, session: AgentSession, frame: Frame) -> None:
-        """Record what the frame says and hand it to the hook consumers; nothing is awaited here."""
+        """Record what a decoded frame says and hand it to the hook consumers; nothing is awaited here."""
         body = frame.body
         if isinstance(body, StatusReport):
             if frame.compact and not session.compact_status:
                 raise ProtocolError("compact status body (type 0x82) sent without negotiating it")
             self._exception_events(session, body)
             session.status_count += 1
-            if body.buffered:  # history: it never overwrites the newer live state
+            if body.buffered:  # history: it never overwrites the newer live state; in order, at once
                 session.replayed_count += 1
-            else:
-                session.status = body
-            self._status_batch.append((session, body))
-            if not self._flush_scheduled:
-                self._flush_scheduled = True
-                asyncio.get_running_loop().call_soon(self._flush_statuses)
+                self._flush_row(session)
+                if not self._hooks_closed:
+                    self._hooks.publish_batch([(session, body)])
+                return
+            urgent = body.failsafe is not None or body.failure is not None
+            if urgent:  # safety news goes to the hooks now, behind the report still waiting for the tick
+                self._flush_row(session)
+            self.table.put_report(session.row, body, time.time())
+            if urgent:
+                self._flush_row(session)
+            elif not self._tick_due:
+                self._schedule_tick(time.monotonic())
         elif isinstance(body, SyncSignal):
             if body.kind != "finished":
                 raise ProtocolError("agents may only send 'finished' sync signals")
@@ -476,17 +605,93 @@ class AgentManager:
                 "is not valid from an agent after the handshake"
             )
 
-    def _flush_statuses(self) -> None:
-        """Hand the reports received since the last flush to the status consumers, as one batch."""
-        self._flush_scheduled = False
-        batch, self._status_batch = self._status_batch, []
-        if not self._hooks_closed:
+    # --- the status tick ------------------------------------------------------------------------
+
+    def _schedule_tick(self, now: float) -> None:
+        """The first report since the last tick: the next tick runs ``status_tick_s`` after the last
+        one, or when the event loop has run the callbacks it has ready if that was longer ago."""
+        self._tick_due = True
+        loop = asyncio.get_running_loop()
+        delay = self._last_tick + self.status_tick_s - now
+        if delay > 0:
+            loop.call_later(delay, self._run_tick)
+        else:
+            loop.call_soon(self._run_tick)
+
+    def _run_tick(self) -> None:
+        self._tick_due = False
+        self._last_tick = time.monotonic()
+        try:
+            self.tick()
+        except Exception:  # a bug must cost one tick, never the status flow
+            log.exception("status tick failed")
+
+    def tick(self) -> int:
+        """Hand the newest report of every agent that sent one since the last tick to the status
+        hooks, as one batch; how many. A body that breaks the protocol's ranges ends its session.
+        """
+        started = time.perf_counter()
+        table = self.table
+        rows = table.take_dirty()
+        if not len(rows):
+            return 0
+        batch: list[tuple[AgentSession, StatusReport]] = []
+        owners = table.owners
+        for row, report in zip(rows.tolist(), table.reports(rows), strict=True):
+            conn = owners[row]
+            if conn is None:
+                continue
+            session = conn.session
+            if isinstance(report, StatusBodyError):
+                conn.finish(ProtocolError(str(report), packet_type=PacketType.STATUS))
+                continue
+            session._status = report
+            batch.append((session, report))
+        if batch and not self._hooks_closed:
             self._hooks.publish_batch(batch)
+        self._freeze_fleet_heap(len(table))
+        self.tick_count += 1
+        self.tick_busy_s += time.perf_counter() - started
+        return len(batch)
+
+    def _freeze_fleet_heap(self, agents: int) -> None:
+        """Keep the per-agent state of a large fleet out of the full garbage collections.
+
+        A full collection scans every tracked object; with thousands of agents that took 50-170
+        ms of event loop (docs/performance.md). When the fleet has grown by a quarter (from
+        ``FREEZE_MIN_AGENTS`` agents on), what is alive is frozen (``gc.freeze``): per-report
+        garbage is still freed by reference counting and by the young generations. When it has
+        shrunk by a quarter the heap is unfrozen, so the state of agents that left is collected.
+        """
+        if agents < FREEZE_MIN_AGENTS and not self._frozen_at:
+            return
+        if agents >= max(FREEZE_MIN_AGENTS, self._frozen_at * 1.25):
+            gc.freeze()
+            self._frozen_at = agents
+        elif agents < self._frozen_at * 0.75:
+            gc.unfreeze()
+            self._frozen_at = agents if agents >= FREEZE_MIN_AGENTS else 0
+
+    def _flush_row(self, session: AgentSession) -> None:
+        """Hand the session's report waiting for the tick to the hooks now (before a rarer event)."""
+        table = session.table
+        if table is None or not table.dirty[session.row]:
+            return
+        table.clean(session.row)
+        try:
+            report = table.report(session.row)
+        except StatusBodyError as exc:
+            raise ProtocolError(str(exc), packet_type=PacketType.STATUS) from None
+        session._status = report
+        if not self._hooks_closed:
+            self._hooks.publish_batch([(session, report)])
 
     def _publish(self, kind: HookKind, agent: str, *args: object) -> None:
-        """Publish a non-status event behind every status already received (per-agent order)."""
-        if self._status_batch:
-            self._flush_statuses()
+        """Publish a non-status event behind the agent's report still waiting for the tick."""
+        session = self.sessions.get(agent)
+        if session is not None:
+            with contextlib.suppress(ProtocolError):
+                self._flush_row(session)
         if not self._hooks_closed:
             self._hooks.publish(kind, agent, *args)
 
@@ -539,6 +744,11 @@ class AgentManager:
 
     async def _disconnected(self, session: AgentSession) -> None:
         session.close_transport()
+        if session.table is not None:  # its last report still goes to the hooks, then the row is free
+            with contextlib.suppress(ProtocolError):
+                self._flush_row(session)
+            session.table.release(session.row)
+            session.table = None
         if self.sessions.get(session.identity) is session:
             self._events.publish(
                 "agent_disconnected", f"connection from {session.peer} ended", agent=session.identity
@@ -553,9 +763,16 @@ class AgentManager:
         while True:
             await asyncio.sleep(period)
             now = time.monotonic()
-            for session in self.connected():  # only posts: a stuck peer never delays this loop
-                if session.outbox.idle and now - session.last_tx >= self.config.keepalive_s:
-                    session.post(keepalive, urgent=False)
+            due = [
+                s.identity
+                for s in self.connected()
+                if s.outbox.idle and now - s.last_tx >= self.config.keepalive_s
+            ]
+            if due:  # encoded once, written in one pass: a stuck peer never delays this loop
+                # At most about twice a pass's fair share, so a fleet that joined at once does
+                # not get all its keepalives in the same pass every second (one long stall).
+                share = 2 * len(self.sessions) * period / self.config.keepalive_s
+                self.burst(due[: max(64, int(share))], keepalive)
             for identity, session in list(self.sessions.items()):
                 if identity in self.lost or now - session.last_rx <= self.config.lost_after_s:
                     continue
@@ -575,7 +792,7 @@ class AgentManager:
         await asyncio.gather(*(s.close(reason, message) for s in sessions))
         if self._tasks:  # closed transports end every frame loop; give them a moment to clean up
             await asyncio.wait(list(self._tasks), timeout=2.0)
-        self._hooks_closed = True  # a flush still scheduled must not start new consumers
+        self._hooks_closed = True  # a tick still scheduled must not start new consumers
         await self._hooks.close()
 
     # --- hook consumers -------------------------------------------------------------------------
@@ -585,13 +802,69 @@ class AgentManager:
 
         For tests and services that need "everything received so far has been seen by the hooks".
         """
-        if self._status_batch:
-            self._flush_statuses()
+        self.tick()
         return await self._hooks.drain(timeout)
 
     def hook_stats(self) -> list[ConsumerStats]:
         """Per consumer: queued, delivered, coalesced, dropped, overflow, failed (for metrics)."""
         return self._hooks.stats()
+
+
+class _FrameProtocol(asyncio.Protocol):
+    """An agent connection after its handshake: frames handled as bytes arrive (``_frame_loop``).
+
+    The one object per connection that the ingest needs (the session, its decoder, its two rate
+    buckets). Write flow control (``pause_writing`` / ``resume_writing``) and ``connection_lost``
+    are passed on to the stream protocol the connection started with, so ``StreamWriter.drain()``
+    in the session's outbox keeps working.
+    """
+
+    __slots__ = ("_done", "_manager", "_stream", "decoder", "live", "replay", "session")
+
+    def __init__(
+        self,
+        manager: AgentManager,
+        session: AgentSession,
+        decoder: FrameDecoder,
+        stream_protocol: asyncio.BaseProtocol,
+        done: asyncio.Future[None],
+    ) -> None:
+        config = manager.config
+        self._manager, self.session, self.decoder = manager, session, decoder
+        self.live = TokenBucket(config.max_frames_per_s, config.frame_burst)
+        self.replay = TokenBucket(config.replay_frames_per_s, config.replay_burst)
+        self._stream = stream_protocol
+        self._done = done
+
+    def finish(self, exc: BaseException | None = None) -> None:
+        if not self._done.done():
+            if exc is None:
+                self._done.set_result(None)
+            else:
+                self._done.set_exception(exc)
+
+    def data_received(self, data: bytes) -> None:
+        if self._done.done():
+            return
+        try:
+            if not self._manager._ingest(self, data):
+                self.finish()
+        except Exception as exc:  # ends this session only: handle_connection deals with it
+            self.finish(exc)
+
+    def eof_received(self) -> bool:
+        self.finish()
+        return False
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.finish()
+        self._stream.connection_lost(exc)
+
+    def pause_writing(self) -> None:
+        self._stream.pause_writing()
+
+    def resume_writing(self) -> None:
+        self._stream.resume_writing()
 
 
 _REASON_CODES = {

@@ -39,10 +39,11 @@ Hook = Callable[..., Awaitable[None]]
 StatusBatch = list[tuple[Any, Any]]  # (session, report) pairs, in arrival order
 
 DEFAULT_CAPACITY = 10_000
-STEP_BUDGET_S = 0.02
-"""A consumer with a backlog runs hooks for this long before letting the loop go round: long
-enough to keep pace with frame loops that decode a whole 64 KiB read per step, short enough that
-a backlog of quick hooks never stalls the loop."""
+STEP_BUDGET_S = 0.005
+"""A consumer with a backlog runs hooks for this long before letting the loop go round. The
+frames are read in ``data_received`` callbacks (no read task per connection to compete with),
+so a short slice keeps every socket read close to its arrival while several consumers work
+through a status batch of the whole fleet."""
 SLOW_HOOK_S = 0.5  # a hook call longer than this is logged (once per consumer per minute)
 
 
@@ -228,9 +229,13 @@ class Consumer:
                 continue  # the service removed its hook (stopped) after the event was queued
             if item.batch is None:
                 await self._call(item.kind, item.hook, item.args)
-            else:
-                for pair in item.batch:
+            else:  # a whole fleet's batch can take longer than a step: yield inside it too
+                for index, pair in enumerate(item.batch):
                     await self._call("status", item.hook, pair)
+                    if index & 15 == 15 and time.monotonic() - step_started > STEP_BUDGET_S:
+                        self.busy_s += time.monotonic() - started
+                        await asyncio.sleep(0)
+                        step_started = started = time.monotonic()
             now = time.monotonic()
             self.busy_s += now - started
             if now - started > SLOW_HOOK_S and started - self._last_slow_log > 60.0:

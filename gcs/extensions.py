@@ -4,7 +4,8 @@ In the spirit of CoUAS user modules (seed 004, Fig. 6: applications on top of th
 and Skybrush extensions, an extension is a :class:`gcs.daemon.Service` that subclasses
 :class:`Extension` and overrides the hooks it needs:
 
-* ``on_status(agent, status)``: every status report, in order per agent (it runs in this
+* ``on_status(agent, status)``: every status report, in order per agent (the newest of each
+  agent per status tick, gcs/agents.py ``STATUS_TICK_S``; it runs in this
   extension's own hook consumer, gcs/dispatch.py: a slow hook delays only this extension;
   schedule slow work with :meth:`Extension.spawn`);
 * ``on_event(event)``: every fleet event (agent_joined, mission_completed, ...);

@@ -125,8 +125,9 @@ class Outbox:
         """Write a pre-encoded normal-lane frame (any seq; it gets ours) to the socket right now.
 
         For a burst to many agents (a barrier release): one ``transport.write`` per agent in one
-        pass, no task switch per agent. When frames are already queued it queues behind them
-        (order is kept); the writer task still drains, so a stuck peer is cut off as usual.
+        pass, no task switch per agent (the writer task is woken only to drain what the kernel
+        did not take, so a stuck peer is cut off as usual). When frames are already queued it
+        queues behind them (order is kept).
         """
         if not self.open:
             return False
@@ -145,8 +146,9 @@ class Outbox:
             return False
         self.last_tx = time.monotonic()
         self.written += 1
-        self._drain_due = True
-        self._wakeup.set()
+        if self.writer.transport.get_write_buffer_size():  # the kernel did not take it all
+            self._drain_due = True  # the writer task drains it (and cuts a stuck peer off)
+            self._wakeup.set()
         return True
 
     def _enqueue(self, body: Body, urgent: bool | None, done: asyncio.Future[bool] | None) -> bool:

@@ -48,6 +48,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from collections.abc import Callable
 from typing import Any
 
 from pydantic import ValidationError
@@ -55,7 +56,32 @@ from pydantic import ValidationError
 from protocol.packets import Battery, Gps, Position, StatusReport, VelocityNed
 
 LAYOUT_VERSION = 1
-FIXED = struct.Struct("<BBBB13diiIi")
+FIXED_FIELDS: tuple[tuple[str, str], ...] = (
+    ("layout", "B"),
+    ("flags", "B"),
+    ("fix", "B"),
+    ("satellites", "B"),
+    ("time", "d"),
+    ("vehicle_time", "d"),
+    ("lat", "d"),
+    ("lon", "d"),
+    ("alt_rel", "d"),
+    ("alt_amsl", "d"),
+    ("vn", "d"),
+    ("ve", "d"),
+    ("vd", "d"),
+    ("heading_deg", "d"),
+    ("battery_pct", "d"),
+    ("voltage_v", "d"),
+    ("current_a", "d"),
+    ("step", "i"),
+    ("completed_step", "i"),
+    ("queue_depth", "I"),
+    ("waiting_sync", "i"),
+)
+"""The fixed part, field by field (``struct`` codes, little-endian, no padding): the daemon's fleet
+table reads the same layout as a NumPy structured dtype built from this list."""
+FIXED = struct.Struct("<" + "".join(code for _, code in FIXED_FIELDS))
 FIXED_SIZE = FIXED.size  # 124
 assert FIXED_SIZE == 124
 
@@ -191,7 +217,7 @@ def decode(payload: bytes) -> StatusReport:
         version,
         flags,
         fix,
-        sats,
+        _sats,
         t,
         vt,
         lat,
@@ -207,9 +233,9 @@ def decode(payload: bytes) -> StatusReport:
         amps,
         step,
         completed,
-        queue_depth,
+        _queue_depth,
         waiting,
-    ) = FIXED.unpack_from(payload)
+    ) = fields = FIXED.unpack_from(payload)
     if version != LAYOUT_VERSION:
         raise StatusBodyError(f"compact status layout {version} not supported (this side reads 1)")
     if flags >> 7:
@@ -231,40 +257,10 @@ def decode(payload: bytes) -> StatusReport:
             f"compact status body: {size - mission_end} bytes after mission_id, tail flag {has_tail}"
         )
     isfinite = math.isfinite
-    has_position = bool(flags & HAS_POSITION)
-    position = {"lat": lat, "lon": lon, "alt_rel": alt_rel, "alt_amsl": alt_amsl} if has_position else None
-    values: dict[str, Any] = {
-        "time": t,
-        "vehicle_time": None if vt != vt else vt,
-        "position": position,
-        "velocity": {"vn": vn, "ve": ve, "vd": vd},
-        "heading_deg": heading,
-        "battery": {
-            "pct": None if pct != pct else pct,
-            "voltage_v": None if volts != volts else volts,
-            "current_a": None if amps != amps else amps,
-        },
-        "mode": mode,
-        "armed": bool(flags & ARMED),
-        "landed": bool(flags & LANDED),
-        "gps": {"fix": fix, "satellites": sats},
-        "mission_id": mission,
-        "step": step,
-        "completed_step": completed,
-        "queue_depth": queue_depth,
-        "waiting_sync": None if waiting == -1 else waiting,
-        "paused": bool(flags & PAUSED),
-        "exceptions": [],
-        "autopilot_link": bool(flags & AUTOPILOT_LINK),
-        "buffered": bool(flags & BUFFERED),
-        "failure": None,
-        "failsafe": None,
-    }
-    if has_tail:
-        return _with_tail(values, payload[mission_end:])
     # The fast path: the same constraints pydantic would check (protocol/packets.py), by hand.
-    if not (
-        isfinite(t)
+    checked = (
+        not has_tail
+        and isfinite(t)
         and isfinite(vn)
         and isfinite(ve)
         and isfinite(vd)
@@ -279,18 +275,69 @@ def decode(payload: bytes) -> StatusReport:
         and waiting >= -1
         and len(mode) <= 32
         and (mission is None or len(mission) <= 64)
-    ):
-        return _with_tail(values, b"")  # pydantic names the offending field
-    if position is not None and not (
-        -90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and isfinite(alt_rel) and isfinite(alt_amsl)
-    ):
-        return _with_tail(values, b"")
-    if position is not None:
-        values["position"] = _model(Position, position)
-    values["velocity"] = _model(VelocityNed, values["velocity"])
-    values["battery"] = _model(Battery, values["battery"])
-    values["gps"] = _gps(fix, sats)
-    report: StatusReport = _model(StatusReport, values)
+        and (
+            not flags & HAS_POSITION
+            or (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and isfinite(alt_rel) and isfinite(alt_amsl))
+        )
+    )
+    if checked:
+        return from_checked(fields, mode, mission)
+    # The tail merged, or pydantic names the offending field.
+    return _with_tail(_values(fields, mode, mission, _plain), payload[mission_end:])
+
+
+def _plain(_: type[Any], values: dict[str, Any]) -> dict[str, Any]:
+    return values
+
+
+def _values(
+    fields: tuple[Any, ...], mode: str, mission: str | None, nest: Callable[[type[Any], dict[str, Any]], Any]
+) -> dict[str, Any]:
+    """The report's fields from the fixed part (in :data:`FIXED_FIELDS` order), mode and mission;
+    ``nest`` makes the nested parts (models, or plain dicts for pydantic to validate)."""
+    (_, flags, fix, sats, t, vt, lat, lon, alt_rel, alt_amsl, vn, ve, vd, heading, pct, volts, amps) = fields[
+        :17
+    ]
+    step, completed, queue_depth, waiting = fields[17:]
+    return {
+        "time": t,
+        "vehicle_time": None if vt != vt else vt,
+        "position": nest(Position, {"lat": lat, "lon": lon, "alt_rel": alt_rel, "alt_amsl": alt_amsl})
+        if flags & HAS_POSITION
+        else None,
+        "velocity": nest(VelocityNed, {"vn": vn, "ve": ve, "vd": vd}),
+        "heading_deg": heading,
+        "battery": nest(
+            Battery,
+            {
+                "pct": None if pct != pct else pct,
+                "voltage_v": None if volts != volts else volts,
+                "current_a": None if amps != amps else amps,
+            },
+        ),
+        "mode": mode,
+        "armed": bool(flags & ARMED),
+        "landed": bool(flags & LANDED),
+        "gps": _gps(fix, sats) if nest is _model else {"fix": fix, "satellites": sats},
+        "mission_id": mission,
+        "step": step,
+        "completed_step": completed,
+        "queue_depth": queue_depth,
+        "waiting_sync": None if waiting == -1 else waiting,
+        "paused": bool(flags & PAUSED),
+        "exceptions": [],
+        "autopilot_link": bool(flags & AUTOPILOT_LINK),
+        "buffered": bool(flags & BUFFERED),
+        "failure": None,
+        "failsafe": None,
+    }
+
+
+def from_checked(fields: tuple[Any, ...], mode: str, mission: str | None) -> StatusReport:
+    """The report of a tail-less body whose fixed ``fields`` (in :data:`FIXED_FIELDS` order),
+    ``mode`` and ``mission`` were checked against the protocol's ranges already (the daemon's fleet
+    table checks whole columns at once, gcs/agents_table.py): what :func:`decode` gives for it."""
+    report: StatusReport = _model(StatusReport, _values(fields, mode, mission, _model))
     return report
 
 
@@ -314,4 +361,12 @@ def _with_tail(values: dict[str, Any], tail: bytes) -> StatusReport:
         raise StatusBodyError("compact status body: JSON tail nests too deeply") from None
 
 
-__all__ = ["FIXED_SIZE", "LAYOUT_VERSION", "StatusBodyError", "decode", "encode"]
+__all__ = [
+    "FIXED_FIELDS",
+    "FIXED_SIZE",
+    "LAYOUT_VERSION",
+    "StatusBodyError",
+    "decode",
+    "encode",
+    "from_checked",
+]

@@ -182,12 +182,46 @@ class FrameDecoder:
                 return
             yield frame
 
+    def split(self, data: bytes) -> Iterator[tuple[int, int, bytes]]:
+        """Add ``data`` and yield ``(type byte, seq, body)`` of every frame it completes, CRC checked.
+
+        The bodies are not decoded (:func:`decode_body` does that): the daemon's ingest copies a
+        compact status body into its fleet table as it is (gcs/agents_table.py).
+        """
+        if self._failed is not None:
+            raise self._failed
+        self._buffer += data
+        while True:
+            raw = self._next_raw()
+            if raw is None:
+                return
+            yield raw
+
     def _fail(self, message: str, packet_type: int | None = None) -> ProtocolError:
         self._failed = ProtocolError(message, packet_type=packet_type)
         self._buffer.clear()
         return self._failed
 
     def _next(self) -> Frame | None:
+        raw = self._next_raw()
+        if raw is None:
+            return None
+        ptype, seq, payload = raw
+        try:
+            body = decode_body(ptype, payload)
+        except ProtocolError as exc:
+            self._failed = exc
+            self._buffer.clear()
+            raise
+        return Frame(PacketType(ptype & ~COMPACT), seq, body, ptype == STATUS_COMPACT)
+
+    def fail(self, exc: ProtocolError) -> ProtocolError:
+        """Mark the stream out of step after a body ``exc`` found outside :meth:`feed`; returns it."""
+        self._failed = exc
+        self._buffer.clear()
+        return exc
+
+    def _next_raw(self) -> tuple[int, int, bytes] | None:
         buf = self._buffer
         # Check what we can of the header as soon as bytes arrive, so garbage fails fast.
         if len(buf) >= 1 and buf[:2] != MAGIC[: min(2, len(buf))]:
@@ -207,13 +241,7 @@ class FrameDecoder:
         del buf[: HEADER_SIZE + length]
         if zlib.crc32(payload) != crc:
             raise self._fail(f"type {ptype} frame seq {seq}: body CRC mismatch", ptype)
-        try:
-            body = decode_body(ptype, payload)
-        except ProtocolError as exc:
-            self._failed = exc
-            self._buffer.clear()
-            raise
-        return Frame(PacketType(ptype & ~COMPACT), seq, body, ptype == STATUS_COMPACT)
+        return ptype, seq, payload
 
 
 def decode_one(data: bytes, max_body: int = DEFAULT_MAX_BODY) -> Frame:

@@ -232,7 +232,7 @@ class CooperationService:
                     self.ctx.config.agent_parameters.acceptance_radius_m,
                     self.config.divergence.acceptance_radius_m,
                 ),
-                DivergenceJudge(self.config.divergence),
+                self._new_judge,
             )
             self._record(agent, status)
             intents: list[Intent] = []
@@ -245,6 +245,9 @@ class CooperationService:
             await self.apply(intents)
         except Exception:  # a bug here must not cost the agent its connection
             log.exception("cooperation: status handling failed for %s", ident)
+
+    def _new_judge(self) -> DivergenceJudge:
+        return DivergenceJudge(self.config.divergence)
 
     def _plan_of(self, ident: str, status: StatusReport) -> tuple[str, list[Action]] | None:
         mission = self.ctx.missions.active.get(status.mission_id) if status.mission_id else None

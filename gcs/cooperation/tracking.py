@@ -6,6 +6,7 @@ in), so every monitor reads the same picture.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,7 +20,7 @@ from protocol.actions import Action
 from protocol.packets import GeoPoint, Position, StatusReport
 
 
-@dataclass
+@dataclass(slots=True)
 class TrackedAgent:
     """What the services keep per agent between status reports."""
 
@@ -53,7 +54,7 @@ def track(
     status: StatusReport,
     plan_of: tuple[str, list[Action]] | None,
     acceptance_radius_m: float,
-    new_judge: DivergenceJudge,
+    new_judge: Callable[[], DivergenceJudge],
 ) -> None:
     """Follow the drone's position in its plan (``plan_of``: mission id and its actions, or None)."""
     if plan_of is None:
@@ -68,7 +69,7 @@ def track(
         origin: Point = (home.lat, home.lon, 0.0) if home else (here.lat, here.lon, 0.0)
         agent.plan = AgentPlanState(mission_id, actions, origin, acceptance_radius_m)
         agent.completed, agent.detour_step, agent.emergency = -1, None, None
-        agent.judge = new_judge
+        agent.judge = new_judge()
         agent.warned.clear()
     agent.completed = max(agent.completed, status.completed_step)
     if agent.detour_step is not None:

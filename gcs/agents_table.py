@@ -1,0 +1,226 @@
+"""The fleet status table: every connected agent's latest status in preallocated arrays.
+
+Why: at 10 Hz from thousands of agents, building a validated ``StatusReport`` (and a hook call
+per service) for every report costs the event loop ~50 us a report. Here the ingest of a compact
+status body (gcs/agents.py, in the transport's ``data_received``) only copies the body's bytes
+into the agent's row and marks the row dirty; no Python object is made per report. Once per
+status tick the agent manager takes the dirty rows, reads their fixed fields as NumPy columns
+(:data:`ROW_DTYPE`, the little-endian layout of ``protocol.status_binary``) and turns only the
+rows that are needed into reports (:meth:`report`).
+
+Layout: one row of :data:`ROW_BYTES` bytes per agent slot; bytes ``[0, n)`` are the newest body
+and the row's last byte is ``n`` (a body longer than :data:`MAX_BODY` takes the slow path). The
+buffers are allocated for ``capacity`` rows and doubled when the fleet outgrows them; a slot is
+reused after its agent leaves.
+"""
+
+from __future__ import annotations
+
+import array
+from typing import Any
+
+import numpy as np
+
+from protocol import status_binary
+from protocol.packets import StatusReport
+from protocol.status_binary import StatusBodyError
+
+ROW_BYTES = 256
+MAX_BODY = ROW_BYTES - 1  # the last byte of a row holds the body length
+_NUMPY_CODES = {"B": "u1", "i": "<i4", "I": "<u4", "d": "<f8"}
+_FIELDS: list[tuple[str, str]] = [(name, _NUMPY_CODES[code]) for name, code in status_binary.FIXED_FIELDS]
+FIXED_DTYPE: np.dtype[Any] = np.dtype(_FIELDS)
+ROW_DTYPE: np.dtype[Any] = np.dtype(
+    {  # type: ignore[call-overload]
+        "names": [name for name, _ in status_binary.FIXED_FIELDS],
+        "formats": [FIXED_DTYPE[name] for name, _ in status_binary.FIXED_FIELDS],
+        "offsets": [FIXED_DTYPE.fields[name][1] for name, _ in status_binary.FIXED_FIELDS],  # type: ignore[index]
+        "itemsize": ROW_BYTES,
+    }
+)
+"""One table row read as the compact body's fixed fields (the rest of the row is skipped)."""
+assert FIXED_DTYPE.itemsize == status_binary.FIXED_SIZE
+
+
+class StatusTable:
+    """Rows of raw compact status bodies, one per agent slot, with a dirty mark and arrival time.
+
+    The hot path writes ``buf``, ``dirty`` and ``rx`` directly (gcs/agents.py ``_ingest``);
+    everything else goes through the methods.
+    """
+
+    __slots__ = ("_free", "_used", "buf", "capacity", "dirty", "objects", "owners", "rx")
+
+    def __init__(self, capacity: int = 64) -> None:
+        self.capacity = max(1, capacity)
+        self.buf = bytearray(self.capacity * ROW_BYTES)
+        self.dirty = bytearray(self.capacity)  # 1: a report came since the last tick
+        self.rx = array.array("d", bytes(8 * self.capacity))  # wall time the newest report arrived
+        self.objects: list[StatusReport | None] = [None] * self.capacity  # decoded already (JSON, rare path)
+        self.owners: list[Any] = [None] * self.capacity  # the session of each used row
+        self._free: list[int] = []
+        self._used = 0  # rows handed out so far (slots below it are used or on the free list)
+
+    def __len__(self) -> int:
+        return self._used - len(self._free)
+
+    def attach(self, owner: object) -> int:
+        """A row for a new session (cleared)."""
+        if self._free:
+            row = self._free.pop()
+        else:
+            if self._used == self.capacity:
+                self._grow()
+            row = self._used
+            self._used += 1
+        self.owners[row] = owner
+        self.objects[row] = None
+        self.dirty[row] = 0
+        self.rx[row] = 0.0
+        self.buf[row * ROW_BYTES + MAX_BODY] = 0
+        return row
+
+    def release(self, row: int) -> None:
+        """The session of ``row`` ended: the slot is free for the next one."""
+        if self.owners[row] is None:
+            return
+        self.owners[row] = None
+        self.objects[row] = None
+        self.dirty[row] = 0
+        self._free.append(row)
+
+    def _grow(self) -> None:
+        """Double every buffer (new objects: views taken before stay valid on the old ones)."""
+        old = self.capacity
+        self.capacity = old * 2
+        self.buf = self.buf + bytes(old * ROW_BYTES)
+        self.dirty = self.dirty + bytes(old)
+        self.rx = self.rx + array.array("d", bytes(8 * old))
+        self.objects += [None] * old
+        self.owners += [None] * old
+
+    def put(self, row: int, body: bytes, now: float) -> None:
+        """Store a compact body (at most :data:`MAX_BODY` bytes) as the row's newest report."""
+        start = row * ROW_BYTES
+        self.buf[start : start + len(body)] = body
+        self.buf[start + MAX_BODY] = len(body)
+        self.objects[row] = None
+        self.dirty[row] = 1
+        self.rx[row] = now
+
+    def put_report(self, row: int, report: StatusReport, now: float) -> None:
+        """Store a report that was decoded already (a JSON body): its object is kept, its fields too."""
+        body = status_binary.encode(report)
+        if len(body) > MAX_BODY or body[1] & status_binary.HAS_TAIL:
+            cut = status_binary.FIXED_SIZE  # the columns only need the fixed part
+            body = bytes((body[0], body[1] & ~status_binary.HAS_TAIL)) + body[2:cut] + b"\x00\x00"
+        self.put(row, body, now)
+        self.objects[row] = report
+
+    def take_dirty(self) -> np.ndarray[Any, np.dtype[np.intp]]:
+        """The rows with a report since the last call (ascending), their marks cleared."""
+        marks = np.frombuffer(self.dirty, dtype=np.uint8)
+        rows = np.flatnonzero(marks)
+        marks[rows] = 0
+        return rows
+
+    def clean(self, row: int) -> None:
+        """The row's newest report was handed over already (a rare packet flushed it)."""
+        self.dirty[row] = 0
+
+    def columns(self, rows: np.ndarray[Any, np.dtype[np.intp]] | None = None) -> np.ndarray[Any, Any]:
+        """The fixed fields of ``rows`` (default: every row handed out) as a structured array (a copy)."""
+        table = np.frombuffer(self.buf, dtype=ROW_DTYPE, count=self._used)
+        return table.copy() if rows is None else table[rows]
+
+    def arrivals(self, rows: np.ndarray[Any, np.dtype[np.intp]]) -> np.ndarray[Any, np.dtype[np.float64]]:
+        """Wall time the newest report of each of ``rows`` arrived."""
+        return np.frombuffer(self.rx, dtype=np.float64)[rows]
+
+    def body(self, row: int) -> bytes:
+        """The newest body stored in ``row``."""
+        start = row * ROW_BYTES
+        return bytes(self.buf[start : start + self.buf[start + MAX_BODY]])
+
+    def reports(self, rows: np.ndarray[Any, np.dtype[np.intp]]) -> list[StatusReport | StatusBodyError]:
+        """The newest report of each of ``rows``, or why its body is refused.
+
+        The fixed fields of all rows are range-checked at once on NumPy columns; a row that
+        passes is assembled without a second check (``status_binary.from_checked``), a row that
+        does not goes through ``status_binary.decode``, which names the problem.
+        """
+        cols = np.frombuffer(self.buf, dtype=ROW_DTYPE, count=self._used)[rows]
+        flags = cols["flags"]
+        vt, pct, volts, amps = cols["vehicle_time"], cols["battery_pct"], cols["voltage_v"], cols["current_a"]
+        lat, lon, heading = cols["lat"], cols["lon"], cols["heading_deg"]
+        isfinite, isnan = np.isfinite, np.isnan
+        with np.errstate(invalid="ignore"):
+            ok = (
+                (cols["layout"] == status_binary.LAYOUT_VERSION)
+                & (flags < 0x80)
+                & ((flags & status_binary.HAS_TAIL) == 0)
+                & isfinite(cols["time"])
+                & isfinite(cols["vn"])
+                & isfinite(cols["ve"])
+                & isfinite(cols["vd"])
+                & (heading >= 0.0)
+                & (heading <= 360.0)
+                & (isnan(vt) | (isfinite(vt) & (vt >= 0.0)))
+                & (isnan(pct) | ((pct >= 0.0) & (pct <= 100.0)))
+                & (isnan(volts) | ((volts >= 0.0) & (volts <= 1000.0)))
+                & (isnan(amps) | ((amps >= -1000.0) & (amps <= 1000.0)))
+                & (cols["fix"] <= 8)
+                & (cols["step"] >= -1)
+                & (cols["completed_step"] >= -1)
+                & (cols["waiting_sync"] >= -1)
+                & (
+                    ((flags & status_binary.HAS_POSITION) == 0)
+                    | (
+                        (lat >= -90.0)
+                        & (lat <= 90.0)
+                        & (lon >= -180.0)
+                        & (lon <= 180.0)
+                        & isfinite(cols["alt_rel"])
+                        & isfinite(cols["alt_amsl"])
+                    )
+                )
+            )
+        fields = list(zip(*(cols[name].tolist() for name, _ in status_binary.FIXED_FIELDS), strict=True))
+        buf, objects, fixed = self.buf, self.objects, status_binary.FIXED_SIZE
+        out: list[StatusReport | StatusBodyError] = []
+        for i, (row, passed) in enumerate(zip(rows.tolist(), ok.tolist(), strict=True)):
+            report = objects[row]
+            if report is None and passed:
+                start = row * ROW_BYTES
+                size = buf[start + MAX_BODY]
+                mode_end = fixed + 1 + buf[start + fixed]
+                if fixed + 2 <= size and mode_end < size and mode_end + 1 + buf[start + mode_end] == size:
+                    try:
+                        mode = buf[start + fixed + 1 : start + mode_end].decode()
+                        mission = buf[start + mode_end + 1 : start + size].decode() or None
+                    except UnicodeDecodeError:
+                        mode, mission = "", ""
+                    if len(mode) <= 32 and (mission is None or 0 < len(mission) <= 64):
+                        report = objects[row] = status_binary.from_checked(fields[i], mode, mission)
+            if report is None:
+                try:
+                    report = self.report(row)
+                except StatusBodyError as exc:
+                    out.append(exc)
+                    continue
+            out.append(report)
+        return out
+
+    def report(self, row: int) -> StatusReport:
+        """The newest report of ``row`` as a ``StatusReport`` (decoded now unless it came decoded).
+
+        Raises ``protocol.status_binary.StatusBodyError`` for a body that breaks the protocol's
+        ranges (the ingest only copies bytes; the check happens here, within one tick).
+        """
+        report = self.objects[row]
+        if report is None:
+            report = self.objects[row] = status_binary.decode(self.body(row))
+        return report
+
+
+__all__ = ["FIXED_DTYPE", "MAX_BODY", "ROW_BYTES", "ROW_DTYPE", "StatusTable"]
