@@ -121,6 +121,7 @@ async def bench_ingest(agents: int, rate_hz: float, seconds: float) -> dict[str,
                 data_dir=Path(data_dir),
                 fleet_key_hex=key_hex,
                 max_agents=agents + 10,
+                max_handshakes=agents + 10,  # every bench agent connects at once
                 lost_after_periods=1000,
             )
         )
