@@ -97,7 +97,15 @@ def bench_codec(repeat: int = 20_000) -> dict[str, float]:
     return out
 
 
-async def _synthetic_agent(port: int, key: bytes, identity: str, rate_hz: float, stop_at: float) -> int:
+async def _synthetic_agent(
+    port: int,
+    key: bytes,
+    identity: str,
+    rate_hz: float,
+    stop_at: float,
+    done: list[int],
+    close: asyncio.Event,
+) -> None:
     stream, _ = await open_client("127.0.0.1", port, ClientHandshake(identity, key), timeout=30.0)
     sent = 0
     period = 1.0 / rate_hz
@@ -107,8 +115,9 @@ async def _synthetic_agent(port: int, key: bytes, identity: str, rate_hz: float,
         sent += 1
         next_send += period
         await asyncio.sleep(max(0.0, next_send - time.monotonic()))
+    done.append(sent)
+    await close.wait()  # stay connected until the daemon's counts are read
     await stream.close()
-    return sent
 
 
 async def bench_ingest(agents: int, rate_hz: float, seconds: float) -> dict[str, float]:
@@ -128,23 +137,34 @@ async def bench_ingest(agents: int, rate_hz: float, seconds: float) -> dict[str,
         latencies: list[float] = []
 
         async def measure(_: AgentSession, status: StatusReport) -> None:
+            # Hooks get the newest report per agent per status tick: a latency sample, not a count.
             latencies.append(time.time() - status.time)
 
         daemon.agents.on_status.append(measure)
         await daemon.start()
         stop_at = time.monotonic() + seconds
         cpu_start = time.process_time()
-        sent = await asyncio.gather(
-            *(
-                _synthetic_agent(daemon.listen_port, bytes.fromhex(key_hex), f"bench-{i}", rate_hz, stop_at)
-                for i in range(agents)
+        sent: list[int] = []
+        close = asyncio.Event()
+        clients = [
+            asyncio.create_task(
+                _synthetic_agent(
+                    daemon.listen_port, bytes.fromhex(key_hex), f"bench-{i}", rate_hz, stop_at, sent, close
+                )
             )
-        )
+            for i in range(agents)
+        ]
+        for _ in range(int((seconds + 60) / 0.05)):  # bounded: every client done sending
+            if len(sent) == agents or all(c.done() for c in clients):
+                break
+            await asyncio.sleep(0.05)
         await asyncio.sleep(0.3)
         cpu = time.process_time() - cpu_start
+        received = sum(s.status_count for s in daemon.agents.sessions.values())  # ingested reports
+        close.set()
+        await asyncio.gather(*clients)
         await daemon.stop()
     total = sum(sent)
-    received = len(latencies)
     latencies.sort()
 
     def pct(p: float) -> float:
