@@ -324,6 +324,20 @@ class ClusterState:
             finally:
                 self._writes.task_done()
 
+    # --- pruning (gcs/cluster/housekeeping.py) ------------------------------------------------------
+
+    async def purge_key(self, bucket: str, key: str) -> None:
+        """Remove ``key`` and its history; the purge marker tells every mirror (awaited, bounded)."""
+        self.mirror[bucket].pop(key, None)
+        await asyncio.wait_for(self.kv[bucket].purge(key), CAS_TIMEOUT_S)
+
+    async def purge_subject(self, bucket: str, keys: str) -> None:
+        """Remove every message of the keys matching ``keys`` (a key or ``prefix.>``), markers too."""
+        assert self.js is not None
+        await asyncio.wait_for(
+            self.js.purge_stream(f"KV_fleet_{bucket}", subject=f"$KV.fleet_{bucket}.{keys}"), CAS_TIMEOUT_S
+        )
+
     # --- compare-and-set -------------------------------------------------------------------------
 
     async def create(self, bucket: str, key: str, value: bytes) -> bool:

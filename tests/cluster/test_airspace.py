@@ -1,0 +1,97 @@
+"""Two drones linked to different daemons fly head-on on the simulator: one daemon decides the pair.
+
+drone-1 is linked to daemon a (which holds the airspace lease and leads the mission), drone-2 to
+daemon b. a's collision check sees drone-2 through the cluster and its orders for drone-2 pass b's
+vehicle authority; then the operator sends drone-2 home through a's API (routed to b) in the
+middle of the encounter, and nothing undoes that RTL.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from gcs.authority import Decision
+from gcs.cluster.natsrun import NatsServer
+from protocol.geo import ned_offset_m
+from tests.cluster.simrig import spread_rig
+from tests.cooperation.rig import HOME, SPACING_M, wait_for
+from tests.cooperation.test_collision_flight import head_on_task
+
+pytestmark = pytest.mark.slow
+
+
+def _decisions(decisions: list[Decision], since: float) -> list[Decision]:
+    return [d for d in decisions if d.time >= since]
+
+
+async def test_pair_across_daemons_is_kept_apart_and_operator_rtl_stands(
+    tmp_path: Path, nats_server: NatsServer
+) -> None:
+    async with spread_rig(tmp_path, nats_server.url, {"drone-1": "a", "drone-2": "b"}) as r:
+        a, b = r.a, r.b
+        assert a.cluster is not None and b.cluster is not None
+        await wait_for(
+            lambda: a.cluster.airspace() == "fleet" and b.cluster.airspace() == "none",  # type: ignore[union-attr]
+            10,
+            "a to decide the airspace",
+        )
+        mission_id = await a.missions.submit(head_on_task())
+
+        def via_a(source: str) -> list[Decision]:
+            return [
+                d
+                for d in b.authority.control("drone-2").decisions
+                if d.source == source and d.accepted and "(via gcs-a)" in d.reason
+            ]
+
+        # a decides for drone-2 (the higher CID yields) and b's authority carries it out.
+        await wait_for(lambda: via_a("collision"), 60, "a collision order for drone-2 applied by b")
+        assert a.events.history(kind="collision_escape", agent="drone-2") or a.events.history(
+            kind="collision_hold", agent="drone-2"
+        )
+
+        # The operator sends drone-2 home through a's API in the middle of the encounter.
+        rtl_at = time.time()
+        async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{a.http_port}") as api:
+            reply = await api.post(
+                "/api/v1/cluster/fleet/rtl",
+                json={"agents": ["drone-2"], "reason": "test"},
+                headers={"Authorization": "Bearer t"},
+            )
+        assert reply.status_code == 200 and reply.json()["delivered"] == ["drone-2"], reply.text
+
+        await wait_for(lambda: mission_id not in a.missions.active, 90, "mission end")
+        progress = a.missions.progress(mission_id)
+        assert progress is not None and progress.state == "completed", progress
+        assert {row.agent: row.excluded for row in progress.agents} == {"drone-1": False, "drone-2": True}
+        await wait_for(lambda: r.landed("drone-1") and r.landed("drone-2"), 60, "both landed")
+
+        # Nothing but the operator commanded drone-2 after its RTL (b's authority, where it is linked).
+        after = _decisions(b.authority.control("drone-2").decisions, rtl_at)
+        assert any(d.source == "operator" and d.command == "rtl" and d.accepted for d in after), after
+        undone = [
+            d
+            for d in after
+            if d.accepted and d.source != "operator" and d.command in ("hold", "release", "plan")
+        ]
+        assert not undone, undone
+        # One decider: b never ran a collision decision of its own.
+        assert not b.events.history(kind="collision_hold") and not b.events.history(kind="collision_escape")
+
+        # Ground truth: never inside a 2 m x 1 m bubble of each other in the air; drone-2 came home.
+        closest = math.inf
+        for row in r.truth:
+            (n1, e1, u1, air1), (n2, e2, u2, air2) = row
+            if air1 and air2:
+                h, v = math.hypot(n1 - n2, e1 - e2), abs(u1 - u2)
+                assert not (h < 2.0 and v < 1.0), f"drones within {h:.1f} m / {v:.1f} m"
+                closest = min(closest, math.hypot(h, v))
+        assert closest > 2.0
+        state = r.fleet.vehicles[1].state  # drone-2 starts (and returns) SPACING_M east of HOME
+        n, e = ned_offset_m(HOME[0], HOME[1], state.lat, state.lon)
+        assert math.hypot(n, e - SPACING_M) < 5.0, f"drone-2 landed at {n:.1f} m N, {e:.1f} m E"
