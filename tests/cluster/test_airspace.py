@@ -17,7 +17,13 @@ import pytest
 
 from gcs.authority import Decision
 from gcs.cluster.natsrun import NatsServer
+from gcs.cooperation.intents import HoldIntent
+from gcs.cooperation.service import CooperationService
+from gcs.daemon import Daemon
+from protocol.actions import Hold, Land, Takeoff
 from protocol.geo import ned_offset_m
+from protocol.taskfile import AgentPlan, TaskFile
+from tests.backbone.helpers import daemon_config, new_key, start_agent, stop_agents
 from tests.cluster.simrig import spread_rig
 from tests.cooperation.rig import HOME, SPACING_M, wait_for
 from tests.cooperation.test_collision_flight import head_on_task
@@ -95,3 +101,46 @@ async def test_pair_across_daemons_is_kept_apart_and_operator_rtl_stands(
         state = r.fleet.vehicles[1].state  # drone-2 starts (and returns) SPACING_M east of HOME
         n, e = ned_offset_m(HOME[0], HOME[1], state.lat, state.lon)
         assert math.hypot(n, e - SPACING_M) < 5.0, f"drone-2 landed at {n:.1f} m N, {e:.1f} m E"
+
+
+async def test_standby_decider_adopts_the_collision_holds_in_force(
+    tmp_path: Path, nats_server: NatsServer
+) -> None:
+    """a (the decider) holds b's hovering drone; a stops; b takes the airspace, adopts the hold and
+    releases it once nothing needs it: a decider's death never leaves a drone held for good."""
+    key = new_key()
+    a = Daemon(daemon_config(tmp_path / "a", key, cluster=nats_server.url, daemon_id="gcs-a"))
+    await a.start()
+    a_running = True
+    b = Daemon(daemon_config(tmp_path / "b", key, cluster=nats_server.url, daemon_id="gcs-b"))
+    await b.start()
+    agent = start_agent("y", b.listen_port, key, 0)
+    try:
+        assert a.cluster is not None and b.cluster is not None
+        await wait_for(lambda: a.agents.session("y") is not None, 10, "a to see y")
+        task = _hover_task("y")
+        await a.missions.submit(task)
+        await wait_for(
+            lambda: (s := b.agents.session("y")) and s.status and s.status.step == 1, 20, "y hovers"
+        )
+        coop_a = next(s for s in a.services if isinstance(s, CooperationService))
+        await coop_a.apply([HoldIntent("y", "collision", "test: yield")])
+        await wait_for(lambda: b.authority.is_held("y", "collision"), 10, "b's authority to hold y")
+        assert b.cluster.airspace() == "none"
+        await a.stop()
+        a_running = False
+        await wait_for(lambda: b.cluster.airspace() == "fleet", 10, "b to take the airspace")  # type: ignore[union-attr]
+        await wait_for(lambda: not b.authority.is_held("y", "collision"), 15, "b to release the adopted hold")
+        session = b.agents.session("y")
+        await wait_for(lambda: session is not None and not session.status.paused, 10, "y to resume")  # type: ignore[union-attr]
+        assert not a_running
+    finally:
+        await stop_agents([agent])
+        await b.stop()
+        if a_running:
+            await a.stop()
+
+
+def _hover_task(name: str) -> TaskFile:
+    actions = [Takeoff(step=0, alt=5.0, sync=True), Hold(step=1, seconds=600.0), Land(step=2)]
+    return TaskFile(name="hover", plans=[AgentPlan(agent=name, actions=actions)])  # type: ignore[arg-type]
