@@ -596,6 +596,8 @@ class MissionRunner:
             self._check_complete(mission)
 
     async def _on_lost(self, identity: str) -> None:
+        if self._agents.session(identity) is not None:
+            return  # back already (here, or linked to another daemon of the cluster)
         mission = self._mission_of(identity)
         if mission is None or identity in mission.excluded:
             return

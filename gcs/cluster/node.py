@@ -375,6 +375,9 @@ class ClusterNode:
         self._up(session, "sync", _frame(signal))
 
     async def _local_lost(self, identity: str) -> None:
+        remote = self.daemon.agents.remote.get(identity)
+        if remote is not None and remote.open:
+            return  # its link moved to another daemon: lost here only
         session = self.daemon.agents.sessions.get(identity)
         if session is not None:
             self._up(session, "lost", b"")

@@ -226,6 +226,13 @@ class CooperationService:
             self.ctx.agents.post(session.identity, SetParameters(parameters=parameters))
 
     async def _on_lost(self, identity: str) -> None:
+        if self.cluster is not None:
+            session = self.ctx.agents.session(identity)
+            if session is not None and session.open:  # lost here, but linked to another daemon now
+                self.remote.add(identity)
+                if self.cluster.airspace() != "fleet":  # its collision holds are the decider's
+                    self.ctx.authority.drop_holds(identity, ("collision",), "linked to another daemon")
+                return
         self.remote.discard(identity)
         agent = self.agents.pop(identity, None)
         if agent is not None and agent.recorder is not None:

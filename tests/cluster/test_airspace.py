@@ -11,20 +11,22 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
 
 from gcs.authority import Decision
 from gcs.cluster.natsrun import NatsServer
-from gcs.cooperation.intents import HoldIntent
+from gcs.cooperation.intents import HoldIntent, ReleaseIntent
 from gcs.cooperation.service import CooperationService
 from gcs.daemon import Daemon
 from protocol.actions import Hold, Land, Takeoff
 from protocol.geo import ned_offset_m
+from protocol.packets import CloseReason
 from protocol.taskfile import AgentPlan, TaskFile
 from tests.backbone.helpers import daemon_config, new_key, start_agent, stop_agents
-from tests.cluster.simrig import spread_rig
+from tests.cluster.simrig import spread_rig, two_daemons
 from tests.cooperation.rig import HOME, SPACING_M, wait_for
 from tests.cooperation.test_collision_flight import head_on_task
 
@@ -141,6 +143,49 @@ async def test_standby_decider_adopts_the_collision_holds_in_force(
             await a.stop()
 
 
-def _hover_task(name: str) -> TaskFile:
+def _hover_task(name: str, **options: Any) -> TaskFile:
     actions = [Takeoff(step=0, alt=5.0, sync=True), Hold(step=1, seconds=600.0), Land(step=2)]
-    return TaskFile(name="hover", plans=[AgentPlan(agent=name, actions=actions)])  # type: ignore[arg-type]
+    plans = [AgentPlan(agent=name, actions=actions)]  # type: ignore[arg-type]
+    return TaskFile(name="hover", plans=plans, **options)
+
+
+async def test_release_reaches_a_drone_whose_link_moved_while_held(
+    tmp_path: Path, nats_server: NatsServer
+) -> None:
+    """y is held by a (the decider, leading y's mission) while linked to a, then its link moves to
+    b: a re-asserts its hold through b when y joins there; when a declares its own link to y lost,
+    y (alive on b) keeps both its place in the mission and a's hold; a's release ends the pause
+    through b."""
+    key = new_key()
+    async with two_daemons(tmp_path, nats_server.url, key) as (a, b):
+        agent = start_agent("y", a.listen_port, key, 0, daemons=[f"127.0.0.1:{b.listen_port}"])
+        try:
+            await wait_for(lambda: b.agents.session("y") is not None, 10, "b to see y")
+            mission_id = await a.missions.submit(_hover_task("y", lost_agent_policy="continue"))
+            await wait_for(lambda: _status(a, "y") is not None and _status(a, "y").step == 1, 20, "y hovers")
+            coop_a = next(s for s in a.services if isinstance(s, CooperationService))
+            await coop_a.apply([HoldIntent("y", "collision", "test: yield")])
+            await wait_for(lambda: _status(a, "y").paused, 10, "y to pause")
+            session = a.agents.sessions["y"]
+            assert a._server is not None
+            a._server.close()  # a stops taking agents: y's link moves to b
+            await session.close(CloseReason.SHUTDOWN, "test: link moves")
+            await wait_for(lambda: (s := b.agents.sessions.get("y")) is not None and s.open, 15, "y on b")
+            await wait_for(lambda: _status(b, "y") is not None and _status(b, "y").paused, 10, "y still held")
+            await wait_for(lambda: b.authority.is_held("y", "collision"), 10, "a's hold re-asserted at b")
+            await wait_for(lambda: "y" in a.agents.lost, 10, "a to declare its own link to y lost")
+            assert await a.agents.drain_hooks(), "a's lost hooks to run"
+            assert a.authority.is_held("y", "collision"), (
+                "the decider keeps its hold of a drone alive elsewhere"
+            )
+            mission = a.missions.active.get(mission_id)
+            assert mission is not None and "y" not in mission.excluded, "lost on a only: still flying it"
+            await coop_a.apply([ReleaseIntent("y", "collision", "test: clear")])
+            await wait_for(lambda: not _status(b, "y").paused, 10, "y to resume through b")
+        finally:
+            await stop_agents([agent])
+
+
+def _status(daemon: Daemon, name: str) -> Any:
+    session = daemon.agents.session(name)
+    return session.status if session else None
