@@ -15,14 +15,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from agent.autopilot.mavlink_backend import MavlinkAutopilot
-from agent.config import AgentConfig, AgentSettings
 from agent.runtime import Agent
 from gcs.cooperation.config import CooperationConfig
 from gcs.daemon import Daemon
 from sitl.fleet import FleetConfig, SimFleet
 from tests.backbone.helpers import daemon_config, new_key
-from tests.cooperation.rig import HOME, SPACING_M, SPEEDUP, _sample_truth, wait_for
+from tests.cooperation.rig import HOME, SPACING_M, SPEEDUP, _sample_truth, mavlink_agent, wait_for
 
 
 @contextlib.asynccontextmanager
@@ -106,19 +104,7 @@ async def spread_rig(
             rig = SpreadRig(a, b, fleet, {}, links)
             for name, endpoint in zip(names, fleet.endpoints, strict=True):
                 port = (a if links[name] == "a" else b).listen_port
-                agent = Agent(
-                    AgentConfig(
-                        identity=name,
-                        gcs_port=port,
-                        key_hex=key,
-                        settings=AgentSettings(status_period_s=0.05),
-                        reconnect_min_s=0.05,
-                        reconnect_max_s=0.5,
-                        resend_target_s=0.4,
-                        monitor_period_s=0.05,
-                    ),
-                    MavlinkAutopilot(endpoint, telemetry_hz=20.0),
-                )
+                agent = mavlink_agent(name, port, key, endpoint)
                 rig.agents[name] = agent
                 tasks.append(asyncio.create_task(agent.run(), name=f"agent-{name}"))
                 # One at a time, so CIDs follow the names.

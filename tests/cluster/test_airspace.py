@@ -9,7 +9,6 @@ middle of the encounter, and nothing undoes that RTL.
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 from typing import Any
 
@@ -27,14 +26,10 @@ from protocol.packets import CloseReason
 from protocol.taskfile import AgentPlan, TaskFile
 from tests.backbone.helpers import daemon_config, new_key, start_agent, stop_agents
 from tests.cluster.simrig import spread_rig, two_daemons
-from tests.cooperation.rig import HOME, SPACING_M, wait_for
+from tests.cooperation.rig import HOME, SPACING_M, assert_pair_separated, wait_for
 from tests.cooperation.test_collision_flight import head_on_task
 
 pytestmark = pytest.mark.slow
-
-
-def _decisions(decisions: list[Decision], since: float) -> list[Decision]:
-    return [d for d in decisions if d.time >= since]
 
 
 async def test_pair_across_daemons_is_kept_apart_and_operator_rtl_stands(
@@ -64,7 +59,6 @@ async def test_pair_across_daemons_is_kept_apart_and_operator_rtl_stands(
         )
 
         # The operator sends drone-2 home through a's API in the middle of the encounter.
-        rtl_at = time.time()
         async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{a.http_port}") as api:
             reply = await api.post(
                 "/api/v1/cluster/fleet/rtl",
@@ -80,11 +74,12 @@ async def test_pair_across_daemons_is_kept_apart_and_operator_rtl_stands(
         await wait_for(lambda: r.landed("drone-1") and r.landed("drone-2"), 60, "both landed")
 
         # Nothing but the operator commanded drone-2 after its RTL (b's authority, where it is linked).
-        after = _decisions(b.authority.control("drone-2").decisions, rtl_at)
-        assert any(d.source == "operator" and d.command == "rtl" and d.accepted for d in after), after
+        decisions = b.authority.control("drone-2").decisions
+        rtl = [k for k, d in enumerate(decisions) if d.source == "operator" and d.command == "rtl"]
+        assert rtl and decisions[rtl[0]].accepted, decisions
         undone = [
             d
-            for d in after
+            for d in decisions[rtl[0] + 1 :]
             if d.accepted and d.source != "operator" and d.command in ("hold", "release", "plan")
         ]
         assert not undone, undone
@@ -92,14 +87,7 @@ async def test_pair_across_daemons_is_kept_apart_and_operator_rtl_stands(
         assert not b.events.history(kind="collision_hold") and not b.events.history(kind="collision_escape")
 
         # Ground truth: never inside a 2 m x 1 m bubble of each other in the air; drone-2 came home.
-        closest = math.inf
-        for row in r.truth:
-            (n1, e1, u1, air1), (n2, e2, u2, air2) = row
-            if air1 and air2:
-                h, v = math.hypot(n1 - n2, e1 - e2), abs(u1 - u2)
-                assert not (h < 2.0 and v < 1.0), f"drones within {h:.1f} m / {v:.1f} m"
-                closest = min(closest, math.hypot(h, v))
-        assert closest > 2.0
+        assert assert_pair_separated(r.truth) > 2.0
         state = r.fleet.vehicles[1].state  # drone-2 starts (and returns) SPACING_M east of HOME
         n, e = ned_offset_m(HOME[0], HOME[1], state.lat, state.lon)
         assert math.hypot(n, e - SPACING_M) < 5.0, f"drone-2 landed at {n:.1f} m N, {e:.1f} m E"
