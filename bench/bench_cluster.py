@@ -11,6 +11,7 @@
   (each also mirrors the other's reports): loss, ingest rate, latency, daemon CPU.
 
 Run: python bench/bench_cluster.py [--kills 10]   (about 3 minutes; writes bench/results/cluster.json)
+     python bench/bench_cluster.py --only throughput   (one part, printed only)
 """
 
 from __future__ import annotations
@@ -240,6 +241,9 @@ async def main() -> int:
     parser.add_argument("--barriers", type=int, default=20)
     parser.add_argument("--agents", type=int, default=400, help="synthetic agents at 10 Hz")
     parser.add_argument("--seconds", type=float, default=4.0)
+    parser.add_argument(
+        "--only", choices=["takeover", "barriers", "throughput"], help="run one part (results to stdout)"
+    )
     args = parser.parse_args()
     reason = missing_reason()
     if reason is not None:
@@ -254,27 +258,34 @@ async def main() -> int:
         nats = NatsServer(base / "nats")
         nats.start()
         try:
-            print("takeover (kill -9 of the leader):", flush=True)
-            results["takeover"] = await takeover_trials(base / "takeover", nats, args.kills, args.lease_ttl)
-            print(json.dumps(results["takeover"]), flush=True)
-            print("barrier release latency:", flush=True)
-            results["barriers"] = [
-                await barrier_trial(base, None, 1, args.barriers),
-                await barrier_trial(base, nats, 1, args.barriers),
-                await barrier_trial(base, nats, 2, args.barriers),
-            ]
-            for row in results["barriers"]:
-                print(json.dumps(row), flush=True)
-            print(f"status throughput ({args.agents} agents at 10 Hz):", flush=True)
-            results["throughput"] = [
-                throughput(None, 1, args.agents, args.seconds),
-                throughput(nats.url, 1, args.agents, args.seconds),
-                throughput(nats.url, 2, args.agents, args.seconds),
-            ]
-            for row in results["throughput"]:
-                print(json.dumps(row), flush=True)
+            if args.only in (None, "takeover"):
+                print("takeover (kill -9 of the leader):", flush=True)
+                results["takeover"] = await takeover_trials(
+                    base / "takeover", nats, args.kills, args.lease_ttl
+                )
+                print(json.dumps(results["takeover"]), flush=True)
+            if args.only in (None, "barriers"):
+                print("barrier release latency:", flush=True)
+                results["barriers"] = [
+                    await barrier_trial(base, None, 1, args.barriers),
+                    await barrier_trial(base, nats, 1, args.barriers),
+                    await barrier_trial(base, nats, 2, args.barriers),
+                ]
+                for row in results["barriers"]:
+                    print(json.dumps(row), flush=True)
+            if args.only in (None, "throughput"):
+                print(f"status throughput ({args.agents} agents at 10 Hz):", flush=True)
+                results["throughput"] = [
+                    throughput(None, 1, args.agents, args.seconds),
+                    throughput(nats.url, 1, args.agents, args.seconds),
+                    throughput(nats.url, 2, args.agents, args.seconds),
+                ]
+                for row in results["throughput"]:
+                    print(json.dumps(row), flush=True)
         finally:
             nats.stop()
+    if args.only is not None:
+        return 0
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "cluster.json").write_text(json.dumps(results, indent=2) + "\n")
     return 0

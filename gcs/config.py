@@ -127,6 +127,11 @@ class DaemonConfig(BaseModel):
     cluster_lease_ttl_s: float = Field(
         default=3.0, ge=0.5, le=60.0, description="a mission leader's lease; a standby takes over after it"
     )
+    cluster_prune_after_s: float = Field(
+        default=3600.0,
+        ge=1.0,
+        description="a finished mission's progress, barrier and lease keys go this long after it ends",
+    )
     daemon_id: str | None = Field(
         default=None,
         pattern=r"^[A-Za-z0-9_-]{1,64}$",

@@ -10,6 +10,7 @@ restarted daemon picks the mission up where it was.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import secrets
 import time
@@ -33,6 +34,7 @@ from protocol.taskfile import TaskFile
 log = logging.getLogger("gcs.missions")
 
 FIX_POLL_S = 0.25
+STORED_PLAN_RECHECK_S = 1.0
 
 PreflightCheck = Callable[[TaskFile, dict[str, list[Action]]], Awaitable[None]]
 """Runs before a mission is accepted; raises MissionRejected (with the numbers) to refuse it."""
@@ -109,6 +111,11 @@ class MissionRunner:
         # and missions another daemon leads are not ours to judge.
         self.claim_release: Callable[[str, int], Awaitable[bool]] | None = None
         self.led_elsewhere: Callable[[str], bool] = lambda _mission_id: False
+        # Cluster mode: an agent withdrawn here whose mission another daemon leads (that daemon
+        # must take it out of its barriers).
+        self.withdraw_elsewhere: Callable[[str, str], Awaitable[None]] | None = None
+        # mission id -> (checked at, plans) of running missions led by another daemon
+        self._stored_plans: dict[str, tuple[float, dict[str, list[Action]] | None]] = {}
         agents.on_join.append(self._on_join)
         agents.on_status.append(self._on_status)
         agents.on_sync.append(self._on_sync)
@@ -288,9 +295,12 @@ class MissionRunner:
         """Take one agent out of its mission (emergency): the others go on without it.
 
         Barriers it blocked are released; what it does next is for the caller to order through
-        the authority. False if it flies no active mission.
+        the authority. False if it flies no active mission here (in a cluster the daemon leading
+        its mission is told through ``withdraw_elsewhere``).
         """
         mission = self._mission_of(identity)
+        if mission is None and self.withdraw_elsewhere is not None:
+            await self.withdraw_elsewhere(identity, reason)
         if mission is None or identity in mission.excluded:
             return False
         await self._exclude(mission, identity, f"withdrawn: {reason}")
@@ -341,6 +351,77 @@ class MissionRunner:
             severity="info" if state == "completed" else "warning",
             mission_id=mission.id,
         )
+
+    # --- what a cluster node feeds in (gcs/cluster: agents linked to other daemons) ---------------
+
+    async def agent_joined(self, session: AgentSession, resume: Resume | None) -> None:
+        """An agent joined (here or, in a cluster, another daemon): resume or re-send its plan."""
+        await self._on_join(session, resume)
+
+    async def agent_status(self, session: AgentSession, status: StatusReport) -> None:
+        """A status report (progress, failsafes, failed actions) from an agent wherever it is linked."""
+        await self._on_status(session, status)
+
+    async def agent_finished(self, session: AgentSession, signal: SyncSignal) -> None:
+        """An agent finished a barrier step (its 'finished' sync signal, or one inferred from status)."""
+        await self._on_sync(session, signal)
+
+    async def agent_lost(self, identity: str) -> None:
+        """An agent is gone (its daemon died or dropped it): the mission's lost-agent policy applies."""
+        await self._on_lost(identity)
+
+    def count_arrivals(self, mission_id: str, arrivals: dict[int, set[str]]) -> None:
+        """Arrivals recorded elsewhere (shared state, a takeover): counted at their barriers."""
+        mission = self.active.get(mission_id)
+        if mission is None:
+            return
+        for step, agents in arrivals.items():
+            for agent in agents:
+                if step in mission.barriers.sync_steps and agent in mission.barriers.members:
+                    with contextlib.suppress(ValueError):
+                        mission.barriers.arrive(agent, step)
+
+    async def release_ready(self, mission_id: str) -> list[int]:
+        """Release every barrier of the mission that all its members reached; returns the steps."""
+        mission = self.active.get(mission_id)
+        if mission is None:
+            return []
+        ready = [
+            step
+            for step in mission.barriers.sync_steps
+            if step not in mission.barriers.released and not mission.barriers.missing(step)
+        ]
+        for step in ready:
+            await self._release(mission, step)
+        return ready
+
+    def mission_of(self, identity: str) -> ActiveMission | None:
+        """The mission run here that ``identity`` flies (excluded or not), or None."""
+        return self._mission_of(identity)
+
+    def plan_of(self, mission_id: str, identity: str) -> list[Action] | None:
+        """``identity``'s actions in a running mission: run here, or (cluster) led by another daemon,
+        from the stored task; None if it has no plan there. The stored state is looked at again
+        at most every ``STORED_PLAN_RECHECK_S``."""
+        mission = self.active.get(mission_id)
+        if mission is not None:
+            return mission.plans.get(identity)
+        now = time.monotonic()
+        cached = self._stored_plans.get(mission_id)
+        if cached is None or now - cached[0] > STORED_PLAN_RECHECK_S:
+            plans = None
+            stored = self._store.mission(mission_id) if self.led_elsewhere(mission_id) else None
+            if stored is not None and stored.state == "running":
+                plans = cached[1] if cached is not None and cached[1] is not None else {}
+                if not plans:
+                    try:
+                        plans = self._resolve(TaskFile.model_validate_json(stored.task_json))
+                    except ValueError:  # MissionRejected included: a CID no longer known
+                        plans = {}
+            if len(self._stored_plans) > 64:  # bounded: finished missions are not asked for again
+                self._stored_plans.clear()
+            cached = self._stored_plans[mission_id] = (now, plans)
+        return None if cached[1] is None else cached[1].get(identity)
 
     # --- agent hooks ----------------------------------------------------------------------------
 
@@ -518,6 +599,8 @@ class MissionRunner:
             self._check_complete(mission)
 
     async def _on_lost(self, identity: str) -> None:
+        if self._agents.session(identity) is not None:
+            return  # back already (here, or linked to another daemon of the cluster)
         mission = self._mission_of(identity)
         if mission is None or identity in mission.excluded:
             return

@@ -1,6 +1,6 @@
 """HTTP routes of a clustered daemon: the whole fleet, and operator commands for any drone.
 
-``GET /api/v1/cluster`` (this daemon, the missions and who leads them), ``GET
+``GET /api/v1/cluster`` (this daemon, the missions and who leads them, who decides the airspace), ``GET
 /api/v1/cluster/fleet`` (every agent of every daemon, with the daemon holding its link) and
 ``POST /api/v1/cluster/fleet/{hold,resume,rtl,land}``: each drone's command is routed to the daemon
 holding its link and applied there through that daemon's vehicle authority.
@@ -15,6 +15,7 @@ from fastapi import APIRouter
 from pydantic import BaseModel
 
 from gcs.api_models import FleetCommand, FleetCommandResult
+from gcs.cluster.node import AIRSPACE_LEASE
 
 if TYPE_CHECKING:
     from gcs.daemon import Daemon
@@ -34,6 +35,8 @@ class ClusterInfo(BaseModel):
     leading: list[str]
     missions: list[ClusterMission]
     takeovers: int
+    airspace: str | None  # the daemon deciding collisions for the whole fleet (docs/cluster.md)
+    pruned_keys: int
 
 
 def cluster_router(daemon: Daemon, token: Sequence[Any]) -> APIRouter:
@@ -51,6 +54,7 @@ def cluster_router(daemon: Daemon, token: Sequence[Any]) -> APIRouter:
                 leader, _ = await node.state.lease_holder(stored.id)
             missions.append(ClusterMission(id=stored.id, name=stored.name, state=stored.state, leader=leader))
         nc = node.state.nc
+        airspace, _ = await node.state.lease_holder(AIRSPACE_LEASE)
         return ClusterInfo(
             daemon_id=node.daemon_id,
             servers=node.state.servers,
@@ -58,6 +62,8 @@ def cluster_router(daemon: Daemon, token: Sequence[Any]) -> APIRouter:
             leading=sorted(daemon.missions.active),
             missions=missions,
             takeovers=len(node.takeovers),
+            airspace=airspace,
+            pruned_keys=node.pruned_keys,
         )
 
     @router.get("/api/v1/cluster/fleet")

@@ -12,6 +12,12 @@ One daemon leads each mission: it holds the mission's key in the ``fleet_leases`
 When the leader dies the lease expires, a standby takes it (compare-and-set: one winner), rebuilds
 the mission from the shared records and carries on. Agents waiting at a barrier say so in every
 status report, so the new leader also heals what died in flight (a 'finished' or a 'release').
+
+Commands for a drone linked to another daemon (a mission's plan, a collision hold or escape, a
+return) travel as the type-4 packet on ``fleet.down`` and pass the holding daemon's vehicle
+authority there with their original source, so its operator's and its vehicle's orders are never
+undone. The airspace (the collision check over the whole fleet) is decided by one daemon at a
+time, the holder of the ``airspace`` lease (docs/cluster.md); it also prunes finished missions.
 """
 
 from __future__ import annotations
@@ -27,10 +33,23 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, cast
 
 from gcs.agents import AgentSession
+from gcs.authority import PRIORITY
+from gcs.cluster.housekeeping import prune_round
 from gcs.cluster.state import ClusterState
 from gcs.cluster.store import ClusterStore
 from gcs.config import DaemonConfig
-from protocol.packets import Body, Capabilities, GeoPoint, Resume, StatusReport, SyncSignal
+from gcs.cooperation.return_coordinator import VehicleView
+from gcs.cooperation.returns import RETURN_PREFIX
+from gcs.cooperation.service import Airspace, CooperationService
+from protocol.packets import (
+    Body,
+    Capabilities,
+    GeoPoint,
+    PerformActions,
+    Resume,
+    StatusReport,
+    SyncSignal,
+)
 from protocol.wire import FrameDecoder, encode
 
 if TYPE_CHECKING:
@@ -42,6 +61,7 @@ log = logging.getLogger("gcs.cluster")
 
 NUDGE_EVERY_S = 1.0  # re-send a release / re-count an arrival seen in status at most this often
 COMMAND_TIMEOUT_S = 5.0
+AIRSPACE_LEASE = "airspace"  # its holder decides collisions for the whole fleet and prunes
 
 
 def default_daemon_id(config: DaemonConfig) -> str:
@@ -55,6 +75,8 @@ class RemoteSession(AgentSession):
 
     daemon: str = ""
     node: ClusterNode | None = None
+    level: int = 0  # authority level at the holding daemon (from its status headers)
+    collision_held: bool = False  # the holding daemon has it under a collision hold
 
     @property
     def last_tx(self) -> float:
@@ -85,6 +107,14 @@ class RemoteSession(AgentSession):
         self.open = False
 
 
+def _order_kind(owner: str, mission_id: str) -> str | None:
+    """The order a forwarded replace gives, as the sending authority recorded it: a return program
+    (its mission id says rtl or land) above the mission's level; nothing else is an order."""
+    if PRIORITY[owner] > PRIORITY["mission"] and mission_id.startswith(RETURN_PREFIX):
+        return mission_id[len(RETURN_PREFIX) :].split("-", 1)[0]
+    return None
+
+
 def _frame(body: Body) -> bytes:
     return encode(body, 0)
 
@@ -110,6 +140,8 @@ class ClusterNode:
         self._tasks: list[asyncio.Task[None]] = []
         self._nudged: dict[tuple[str, str, int], float] = {}
         self._held_leases: set[str] = set()
+        self._airspace = False  # we hold the airspace lease
+        self.pruned_keys = 0
 
     @property
     def daemon(self) -> Daemon:
@@ -126,6 +158,21 @@ class ClusterNode:
         agents.assign_cid = self.state.assign_cid
         missions.claim_release = self._claim_release
         missions.led_elsewhere = self._led_elsewhere
+        missions.withdraw_elsewhere = self._withdraw_elsewhere
+        for service in self._cooperation():
+            service.cluster = self
+        local_view = daemon.returns.fleet
+
+        def fleet_view() -> dict[str, VehicleView]:
+            """Returns deconflict against every airborne drone of the cluster, not only ours."""
+            view = local_view()
+            for identity, remote in list(daemon.agents.remote.items()):
+                status = remote.status
+                if remote.open and status is not None and status.position is not None:
+                    view.setdefault(identity, VehicleView(status, status.position, remote.home))
+            return view
+
+        daemon.returns.fleet = fleet_view
         agents.on_join.append(self._local_join)
         agents.on_status.append(self._local_status)
         agents.on_sync.append(self._local_sync)
@@ -140,6 +187,7 @@ class ClusterNode:
         ]
         await self._lease_tick()
         self._tasks.append(asyncio.create_task(self._lease_loop(), name="cluster-leases"))
+        self._tasks.append(asyncio.create_task(self._prune_loop(), name="cluster-prune"))
 
     async def stop(self) -> None:
         for task in self._tasks:
@@ -153,7 +201,12 @@ class ClusterNode:
         if self._daemon is not None:
             for mission_id in list(self._daemon.missions.active):
                 await self.state.drop_lease(mission_id)  # a clean stop hands over at once
+            if self._airspace:
+                await self.state.drop_lease(AIRSPACE_LEASE)
         await self.state.close()
+
+    def _cooperation(self) -> list[CooperationService]:
+        return [s for s in self.daemon.services if isinstance(s, CooperationService)]
 
     # --- leases ----------------------------------------------------------------------------------
 
@@ -168,6 +221,11 @@ class ClusterNode:
 
     async def _lease_tick(self) -> None:
         await self._sweep_remote()
+        holder, _ = await self.state.lease_holder(AIRSPACE_LEASE)
+        was = self._airspace
+        self._airspace = holder in (None, self.daemon_id) and await self.state.renew_lease(AIRSPACE_LEASE)
+        if self._airspace != was:
+            log.info("%s the airspace lease", "took" if self._airspace else "lost")
         missions = self.daemon.missions
         for mission_id in list(missions.active):
             if not await self.state.renew_lease(mission_id):
@@ -192,9 +250,27 @@ class ClusterNode:
         agents = self.daemon.agents
         for identity, remote in list(agents.remote.items()):
             if now - remote.last_rx > self.config.lost_after_s:
-                remote.open = False
-                agents.remote.pop(identity, None)
-                await self.daemon.missions._on_lost(identity)
+                await self._remote_gone(identity, remote)
+
+    async def _remote_gone(self, identity: str, remote: AgentSession) -> None:
+        remote.open = False
+        self.daemon.agents.remote.pop(identity, None)
+        for service in self._cooperation():
+            await service.remote_lost(identity)
+        await self.daemon.missions.agent_lost(identity)
+
+    async def _prune_loop(self) -> None:
+        """The airspace lease holder prunes finished missions' keys (gcs/cluster/housekeeping.py)."""
+        after = self.config.cluster_prune_after_s
+        period = min(30.0, max(1.0, after / 4))
+        while True:
+            await asyncio.sleep(period)
+            if not self._airspace:
+                continue
+            try:
+                self.pruned_keys += await prune_round(self.state, after)
+            except Exception:  # NATS away: the next round goes on where this one stopped
+                log.warning("prune round failed", exc_info=True)
 
     async def _take_over(self, mission_id: str) -> None:
         missions = self.daemon.missions
@@ -204,19 +280,13 @@ class ClusterNode:
             return
         self._held_leases.add(mission_id)
         self.takeovers.append((mission_id, time.time()))
-        for step, agents in self.store.arrivals(mission_id).items():
-            for agent in agents:
-                if step in mission.barriers.sync_steps and agent in mission.barriers.members:
-                    with contextlib.suppress(ValueError):
-                        mission.barriers.arrive(agent, step)
+        missions.count_arrivals(mission_id, self.store.arrivals(mission_id))
         self.daemon.events.publish(
             "mission_takeover",
             f"{self.daemon_id} leads {mission.task.name} now (previous leader's lease expired)",
             mission_id=mission_id,
         )
-        for step in list(mission.barriers.sync_steps):
-            if step not in mission.barriers.released and not mission.barriers.missing(step):
-                await missions._release(mission, step)
+        await missions.release_ready(mission_id)
         for identity in missions.members(mission):  # heal what died in flight
             session = self.daemon.agents.session(identity)
             if session is not None and session.status is not None:
@@ -228,6 +298,31 @@ class ClusterNode:
     def _led_elsewhere(self, mission_id: str) -> bool:
         stored = self.store.mission(mission_id)
         return stored is not None and mission_id not in self.daemon.missions.active
+
+    async def _withdraw_elsewhere(self, identity: str, reason: str) -> None:
+        """One of our agents leaves its mission (an operator RTL, an emergency) but another daemon
+        leads that mission: tell it, so its barriers stop waiting for the agent."""
+        session = self.daemon.agents.sessions.get(identity)
+        if session is not None and session.open:
+            self._up(session, "withdraw", reason.encode()[:500])
+
+    # --- the cooperation service's view of the cluster (gcs.cooperation.service.ClusterView) -----
+
+    def airspace(self) -> Airspace:
+        """Whose collisions we decide: the whole fleet (we hold the airspace lease), only our own
+        agents (cut off from NATS: nobody else can reach them), or none (another daemon does)."""
+        nc = self.state.nc
+        if nc is None or not nc.is_connected:
+            return "local"
+        return "fleet" if self._airspace else "none"
+
+    def remote_level(self, ident: str) -> int:
+        remote = self.daemon.agents.remote.get(ident)
+        return remote.level if isinstance(remote, RemoteSession) and remote.open else 0
+
+    def remote_collision_hold(self, ident: str) -> bool:
+        remote = self.daemon.agents.remote.get(ident)
+        return isinstance(remote, RemoteSession) and remote.open and remote.collision_held
 
     # --- our agents: share what they say ------------------------------------------------------------
 
@@ -261,10 +356,14 @@ class ClusterNode:
     async def _local_status(self, session: AgentSession, status: StatusReport) -> None:
         nc = self.state.nc
         if nc is not None and not nc.is_closed:
+            authority = self.daemon.authority
+            headers = {
+                **self._headers(session),
+                "level": str(authority.level(session.identity)),  # the airspace decider reads these
+                "collision": "1" if authority.is_held(session.identity, "collision") else "",
+            }
             with contextlib.suppress(Exception):
-                await nc.publish(
-                    f"fleet.status.{session.identity}", _frame(status), headers=self._headers(session)
-                )
+                await nc.publish(f"fleet.status.{session.identity}", _frame(status), headers=headers)
         await self._nudge(session, status)
 
     async def _local_sync(self, session: AgentSession, signal: SyncSignal) -> None:
@@ -276,6 +375,9 @@ class ClusterNode:
         self._up(session, "sync", _frame(signal))
 
     async def _local_lost(self, identity: str) -> None:
+        remote = self.daemon.agents.remote.get(identity)
+        if remote is not None and remote.open:
+            return  # its link moved to another daemon: lost here only
         session = self.daemon.agents.sessions.get(identity)
         if session is not None:
             self._up(session, "lost", b"")
@@ -318,15 +420,22 @@ class ClusterNode:
         status = _body(msg.data)
         if not isinstance(status, StatusReport):
             return
-        remote.status = status
+        headers = msg.headers or {}
+        with contextlib.suppress(ValueError):
+            remote.level = int(headers.get("level", "0"))
+        remote.collision_held = bool(headers.get("collision"))
+        if not status.buffered:
+            remote.status = status
+            self.daemon.authority.observe(remote.identity, status)  # orders we gave it end when it lands
         remote.status_count += 1
         from gcs.live import LiveHub
 
         for hub in self.daemon.services:  # the dashboard's stream and history show the whole fleet
             if isinstance(hub, LiveHub):
                 await hub._on_status(remote, status)
-        missions = self.daemon.missions
-        await missions._on_status(remote, status)
+        for service in self._cooperation():  # the airspace picture spans the cluster
+            await service.remote_status(remote, status)
+        await self.daemon.missions.agent_status(remote, status)
         await self._nudge(remote, status)
 
     async def _remote_up(self, msg: Msg) -> None:
@@ -340,15 +449,15 @@ class ClusterNode:
             remote.home = GeoPoint.model_validate(join["home"]) if join["home"] else None
             remote.capabilities = Capabilities.model_validate(join["capabilities"])
             resume = Resume.model_validate(join["resume"]) if join["resume"] else None
-            await missions._on_join(remote, resume)
+            await missions.agent_joined(remote, resume)
         elif kind == "sync":
             signal = _body(msg.data)
             if isinstance(signal, SyncSignal):
-                await missions._on_sync(remote, signal)
+                await missions.agent_finished(remote, signal)
         elif kind == "lost":
-            remote.open = False
-            self.daemon.agents.remote.pop(remote.identity, None)
-            await missions._on_lost(remote.identity)
+            await self._remote_gone(remote.identity, remote)
+        elif kind == "withdraw":  # its daemon took it out of a mission (we may lead it)
+            await missions.withdraw(remote.identity, msg.data.decode(errors="replace"))
 
     async def _nudge(self, session: AgentSession, status: StatusReport) -> None:
         """As leader: an agent reporting a wait at a released barrier gets the release again, one
@@ -371,7 +480,7 @@ class ClusterNode:
             session.post(SyncSignal(mission_id=mission_id, step=step, kind="release"))
         else:
             signal = SyncSignal(mission_id=mission_id, step=step, kind="finished")
-            await self.daemon.missions._on_sync(session, signal)
+            await self.daemon.missions.agent_finished(session, signal)
 
     # --- what other daemons send our agents ---------------------------------------------------------
 
@@ -388,8 +497,36 @@ class ClusterNode:
         if session is None or not session.open or (msg.headers or {}).get("daemon") == self.daemon_id:
             return
         body = _body(msg.data)
-        if body is not None:
+        if isinstance(body, PerformActions):
+            self._order(identity, body, (msg.headers or {}).get("daemon", "?"))
+        elif body is not None:
             session.post(body, urgent=bool((msg.headers or {}).get("urgent")) or None)
+
+    def _order(self, identity: str, body: PerformActions, sender: str) -> None:
+        """A command another daemon gave our agent: through our vehicle authority, at its source's
+        priority, so nothing undoes what our operator or the vehicle ordered (refusals recorded)."""
+        authority = self.daemon.authority
+        owner = body.source or "mission"
+        reason = f"{body.reason or body.mode} (via {sender})"
+        planned = PRIORITY[owner] <= PRIORITY["mission"]
+        if body.mode == "pause":
+            if not planned:  # a plan-level pause re-sends the sender's holds: ours re-sends our own
+                authority.hold(identity, owner, reason, body.mission_id)
+        elif body.mode == "resume":
+            authority.release(identity, owner, reason, body.mission_id)
+        elif body.mode == "replace":
+            authority.replace(
+                identity,
+                owner,
+                body.mission_id,
+                list(body.actions),
+                reason,
+                order=_order_kind(owner, body.mission_id),
+                await_release=body.await_release,
+                keep_holds=planned,  # a plan queues behind any hold, as the leader's did
+            )
+        else:
+            self.daemon.agents.post(identity, body)
 
     # --- operator commands for any drone --------------------------------------------------------------
 
@@ -435,6 +572,10 @@ class ClusterNode:
         if command == "resume":
             return await operator.resume(agents, reason)
         if command in ("rtl", "land"):
+            missions = self.daemon.missions
+            for identity in agents:  # out of a mission another daemon leads (that one is told)
+                if missions.mission_of(identity) is None:
+                    await missions.withdraw(identity, f"fleet {command} ({reason})")
             delivered, _ = await operator.bring_down(command, agents, reason)  # type: ignore[arg-type]
             return delivered
         raise ValueError(f"unknown command {command!r}")

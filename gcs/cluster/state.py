@@ -33,6 +33,7 @@ import logging
 import time
 from collections.abc import Awaitable, Callable
 from typing import Any
+from urllib.parse import urlsplit
 
 import nats
 import nats.errors
@@ -91,6 +92,7 @@ class ClusterState:
 
     async def connect(self) -> None:
         try:
+            await self._probe()  # nats-py retries refused servers forever: fail fast when all refuse
             self.nc = await asyncio.wait_for(self._connect(), CONNECT_TIMEOUT_S)
         except Exception as exc:
             raise ClusterUnavailable(
@@ -114,6 +116,23 @@ class ClusterState:
                 await self._follow(name)
         self._tasks.append(asyncio.create_task(self._writer(), name="cluster-writer"))
         self._tasks.append(asyncio.create_task(self._watch_followers(), name="cluster-mirror-check"))
+
+    async def _probe(self) -> None:
+        """Raise when no server accepts a TCP connection within CONNECT_TIMEOUT_S (all at once)."""
+
+        async def reachable(url: str) -> bool:
+            parsed = urlsplit(url)
+            try:
+                _, writer = await asyncio.wait_for(
+                    asyncio.open_connection(parsed.hostname, parsed.port or 4222), CONNECT_TIMEOUT_S
+                )
+            except (OSError, TimeoutError):
+                return False
+            writer.close()
+            return True
+
+        if not any(await asyncio.gather(*(reachable(url) for url in self.servers))):
+            raise ConnectionRefusedError("no server accepts connections")
 
     async def _connect(self) -> Client:
         """Connect; the first connection tries every server in turn, reconnects never give up."""
@@ -323,6 +342,20 @@ class ClusterState:
                     log.error("cluster write failed %d times; dropped", WRITE_ATTEMPTS)
             finally:
                 self._writes.task_done()
+
+    # --- pruning (gcs/cluster/housekeeping.py) ------------------------------------------------------
+
+    async def purge_key(self, bucket: str, key: str) -> None:
+        """Remove ``key`` and its history; the purge marker tells every mirror (awaited, bounded)."""
+        self.mirror[bucket].pop(key, None)
+        await asyncio.wait_for(self.kv[bucket].purge(key), CAS_TIMEOUT_S)
+
+    async def purge_subject(self, bucket: str, keys: str) -> None:
+        """Remove every message of the keys matching ``keys`` (a key or ``prefix.>``), markers too."""
+        assert self.js is not None
+        await asyncio.wait_for(
+            self.js.purge_stream(f"KV_fleet_{bucket}", subject=f"$KV.fleet_{bucket}.{keys}"), CAS_TIMEOUT_S
+        )
 
     # --- compare-and-set -------------------------------------------------------------------------
 

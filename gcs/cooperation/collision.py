@@ -237,6 +237,13 @@ class CollisionAvoider:
         """False while a hold that replaced an impossible escape lasts (see escape_impossible)."""
         return ident not in self._cannot_escape
 
+    def adopt(self, ident: str, now: float) -> None:
+        """A hold another decider placed (cluster: the airspace changed hands): ours now, released
+        like our own once no conflict needs it for ``release_after_s``."""
+        self.holds.setdefault(ident, set())
+        self._held_since.setdefault(ident, now)
+        self._last_conflict[ident] = now
+
     def update(self, drones: list[DroneState], now: float) -> Decision:
         decision = Decision()
         index = {d.ident: k for k, d in enumerate(drones)}

@@ -11,6 +11,13 @@ Per report only the agent's own picture is updated (tracking, emergency and dive
 the fleet-wide checks (collision, connectivity: O(fleet) each) run on their own fixed tick of
 ``collision.min_check_interval_s`` when a report has arrived since the last one, never inside
 the status consumer, so their cost does not grow with the report rate.
+
+In a cluster (docs/cluster.md) the node feeds in the drones linked to other daemons
+(:meth:`CooperationService.remote_status`) and says who decides the airspace
+(:class:`ClusterView`): one daemon at a time runs the collision check over the whole fleet; its
+orders for a drone linked elsewhere go out through that daemon's vehicle authority. The
+per-agent checks (emergency, divergence) and connectivity (to this base station) stay with the
+daemon holding the drone's link.
 """
 
 from __future__ import annotations
@@ -19,7 +26,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from typing import Any
+from typing import Any, Literal, Protocol
 
 from gcs.agents import AgentSession
 from gcs.authority import PRIORITY
@@ -56,6 +63,24 @@ EMERGENCY_MISSION = "cooperation-emergency"
 FLEET_CHECK_DUTY = 4.0  # the fleet-check tick is at least this many times one check's duration
 LOST_LINK_ACTION = {"event": "continue", "hold": "hold", "return": "rtl", "rtl": "rtl"}
 
+Airspace = Literal["fleet", "local", "none"]
+"""Which drones this daemon's collision check decides for: every drone of the cluster, only its
+own (cut off from the cluster), or none (another daemon decides)."""
+
+
+class ClusterView(Protocol):
+    """What the service needs of the cluster node (gcs/cluster/node.py)."""
+
+    def airspace(self) -> Airspace: ...
+
+    def remote_level(self, ident: str) -> int:
+        """Authority level of a drone at the daemon holding its link (0 if unknown)."""
+        ...
+
+    def remote_collision_hold(self, ident: str) -> bool:
+        """True while the daemon holding the drone's link has it under a collision hold."""
+        ...
+
 
 class CooperationService:
     """Collision avoidance, divergence, connectivity, emergency monitor and energy checks."""
@@ -79,6 +104,9 @@ class CooperationService:
         self._preflight: PreflightChecks | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._fleet_due = False  # a report arrived since the last fleet-wide check
+        self.cluster: ClusterView | None = None  # set by the cluster node (docs/cluster.md)
+        self.remote: set[str] = set()  # tracked drones linked to other daemons
+        self._airspace: Airspace = "fleet"
         self.fleet_check_s = 0.0  # how long the last fleet-wide check took (loop time)
 
     # --- lifecycle ------------------------------------------------------------------------------
@@ -198,42 +226,76 @@ class CooperationService:
             self.ctx.agents.post(session.identity, SetParameters(parameters=parameters))
 
     async def _on_lost(self, identity: str) -> None:
+        if self.cluster is not None:
+            session = self.ctx.agents.session(identity)
+            if session is not None and session.open:  # lost here, but linked to another daemon now
+                self.remote.add(identity)
+                if self.cluster.airspace() != "fleet":  # its collision holds are the decider's
+                    self.ctx.authority.drop_holds(identity, ("collision",), "linked to another daemon")
+                return
+        self.remote.discard(identity)
         agent = self.agents.pop(identity, None)
         if agent is not None and agent.recorder is not None:
             agent.recorder.close()
         self.collision.forget(identity)
         self.ctx.authority.drop_holds(identity, ("collision",), "agent lost")
 
-    async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
+    async def remote_status(self, session: AgentSession, status: StatusReport) -> None:
+        """Cluster: a drone linked to another daemon reported; it joins the airspace picture only
+        (its own daemon runs its per-agent checks)."""
         if status.buffered or status.position is None:
-            return  # link-outage history, or no 3-D fix yet: nothing to track or check from
-        now = time.monotonic()
+            return
+        self.remote.add(session.identity)
+        try:
+            self._track(session, status, time.monotonic(), local=False)
+            self._fleet_due = True
+        except Exception:
+            log.exception("cooperation: remote status failed for %s", session.identity)
+
+    async def remote_lost(self, identity: str) -> None:
+        """Cluster: a drone linked to another daemon left the picture (lost, or its daemon died)."""
+        if identity in self.remote:
+            await self._on_lost(identity)
+
+    def _track(
+        self, session: AgentSession, status: StatusReport, now: float, local: bool = True
+    ) -> TrackedAgent:
+        """Update the agent's picture (position, plan position) from a positioned report."""
         ident = session.identity
         position = status.position
+        assert position is not None
         agent = self.agents.get(ident)
         if agent is None:
             agent = TrackedAgent(ident, session.cid, session.home, status, position, now)
             self.agents[ident] = agent
             if self.frame is None:
                 self.frame = LocalFrame(position.lat, position.lon)
-            if self.base is None:
+            if self.base is None and local:  # this base station: where our own agents start
                 home = session.home
                 self.base = (home.lat, home.lon) if home else (position.lat, position.lon)
         agent.status, agent.position, agent.received = status, position, now
         agent.connected = session.open
         agent.home = session.home or agent.home
+        track(
+            agent,
+            status,
+            self._plan_of(ident, status),
+            agent_acceptance_radius(
+                self.ctx.config.agent_parameters.acceptance_radius_m,
+                self.config.divergence.acceptance_radius_m,
+            ),
+            self._new_judge,
+        )
+        return agent
+
+    async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
+        if status.buffered or status.position is None:
+            return  # link-outage history, or no 3-D fix yet: nothing to track or check from
+        now = time.monotonic()
+        ident = session.identity
+        self.remote.discard(ident)  # linked here (again)
         try:
-            mission = self._plan_of(ident, status)
-            track(
-                agent,
-                status,
-                mission,
-                agent_acceptance_radius(
-                    self.ctx.config.agent_parameters.acceptance_radius_m,
-                    self.config.divergence.acceptance_radius_m,
-                ),
-                self._new_judge,
-            )
+            agent = self._track(session, status, now)
             self._record(agent, status)
             intents: list[Intent] = []
             if self.config.emergency.enabled:
@@ -250,10 +312,11 @@ class CooperationService:
         return DivergenceJudge(self.config.divergence)
 
     def _plan_of(self, ident: str, status: StatusReport) -> tuple[str, list[Action]] | None:
-        mission = self.ctx.missions.active.get(status.mission_id) if status.mission_id else None
-        if mission is None or ident not in mission.plans:
+        """The running mission's plan for the drone (led here or, in a cluster, elsewhere)."""
+        if not status.mission_id:
             return None
-        return mission.id, mission.plans[ident]
+        actions = self.ctx.missions.plan_of(status.mission_id, ident)
+        return None if actions is None else (status.mission_id, actions)
 
     def _record(self, agent: TrackedAgent, status: StatusReport) -> None:
         if self.config.energy.record_dir is None:
@@ -266,7 +329,10 @@ class CooperationService:
     # --- fleet-wide checks ----------------------------------------------------------------------
 
     def _outranked(self, ident: str, owner: str) -> bool:
-        return self.ctx.authority.level(ident) > PRIORITY[owner]
+        level = self.ctx.authority.level(ident)
+        if self.cluster is not None and ident in self.remote:  # what its own daemon has ordered
+            level = max(level, self.cluster.remote_level(ident))
+        return level > PRIORITY[owner]
 
     def _stale_limit(self) -> float:
         cfg = self.config.emergency
@@ -281,16 +347,59 @@ class CooperationService:
         assert self.frame is not None
         return self.collision.check(fresh, self.frame, lambda i: self._outranked(i, "collision"), now)
 
+    def _collision_scope(self, now: float) -> list[TrackedAgent]:
+        """The fresh drones this daemon's collision check decides for (all of them, embedded)."""
+        fresh = self._fresh(now)
+        if self.cluster is None:
+            return fresh
+        airspace = self.cluster.airspace()
+        if airspace != self._airspace:
+            self._change_airspace(airspace, now)
+        if airspace == "none":
+            return []
+        return fresh if airspace == "fleet" else [a for a in fresh if a.ident not in self.remote]
+
+    def _change_airspace(self, airspace: Airspace, now: float) -> None:
+        """Another daemon decides now, or we do: hand over or adopt the collision holds in force.
+
+        Handing over forgets our collision picture (the holds stay with the drones' own daemons,
+        whose status reports say so); taking over adopts every collision hold in force in the new
+        scope, so the new decider releases them once clear. Escapes under way finish on the drones.
+        """
+        log.info("airspace: %s -> %s", self._airspace, airspace)
+        self._airspace = airspace
+        avoider = self.collision.avoider
+        for ident in list(avoider.holds) + list(avoider.escaping):
+            avoider.forget(ident)
+        for ident in self.remote:
+            self.ctx.authority.drop_holds(ident, ("collision",), f"airspace scope now {airspace}")
+        if airspace == "none" or self.cluster is None:
+            return
+        for ident in list(self.agents):
+            remote = ident in self.remote
+            if remote and airspace != "fleet":
+                continue
+            held = (
+                self.cluster.remote_collision_hold(ident)
+                if remote
+                else self.ctx.authority.is_held(ident, "collision")
+            )
+            if held:
+                avoider.adopt(ident, now)
+                if remote:  # our authority sends the release when it is clear
+                    self.ctx.authority.restore_hold(ident, "collision", "adopted from the previous decider")
+
     def _fleet_checks(self, now: float) -> list[Intent]:
         intents: list[Intent] = []
         if self.frame is None:
             return intents
         fresh = self._fresh(now)
         if self.config.collision.enabled:
-            intents += self._collision_pass(fresh, now)
+            intents += self._collision_pass(self._collision_scope(now), now)
         w = self._link_range()
         if self.config.connectivity.enabled and w is not None and self.base is not None:
-            intents += self.connectivity.check(fresh, self.frame, self.base, w, now)
+            own = [a for a in fresh if a.ident not in self.remote]  # links to this base station
+            intents += self.connectivity.check(own, self.frame, self.base, w, now)
         return intents
 
     def _link_range(self) -> float | None:
@@ -332,14 +441,14 @@ class CooperationService:
             try:
                 if now - last_reassert >= self.config.collision.reassert_period_s:
                     last_reassert = now
-                    for ident in list(self.agents):
+                    for ident in [i for i in self.agents if i not in self.remote]:
                         if self.ctx.authority.is_held(ident) and self.ctx.agents.session(ident) is not None:
                             self.ctx.authority.reassert(ident)
                 intents: list[Intent] = []
                 if self.config.emergency.enabled:
                     intents += self.emergency.stale(list(self.agents.values()), self._stale_limit(), now)
                 if self.config.collision.enabled and self.frame is not None and self.collision.avoider.holds:
-                    intents += self._collision_pass(self._fresh(now), now)
+                    intents += self._collision_pass(self._collision_scope(now), now)
                 await self.apply(intents)
             except Exception:
                 log.exception("cooperation ticker failed")

@@ -26,6 +26,7 @@ const S = {
   dirty: true,
   userMoved: false,
   tracksSince: 0,         // server time of the last "clear tracks": older history is not redrawn
+  cluster: null,          // GET /api/v1/cluster when the daemon is one of a cluster (docs/cluster.md)
 };
 window.fleetgcs = S;      // for tests and the curious
 
@@ -403,8 +404,12 @@ function renderTable() {
   $("fleet-count").textContent = `${S.agents.size} drones`;
 }
 
+// In a cluster the table lists every daemon's drones: commands go through /api/v1/cluster/fleet/*,
+// which applies each drone's command on the daemon holding its link (through its vehicle authority).
+function fleetPath(cmd) { return S.cluster ? `/api/v1/cluster/fleet/${cmd}` : `/api/v1/fleet/${cmd}`; }
+
 async function droneCommand(identity, cmd, label) {
-  await act(`${label} ${identity}`, () => api("POST", `/api/v1/fleet/${cmd}`, { agents: [identity], reason: "dashboard" }));
+  await act(`${label} ${identity}`, () => api("POST", fleetPath(cmd), { agents: [identity], reason: "dashboard" }));
 }
 
 // A modal question; resolves true only on Confirm (Escape and Cancel say no).
@@ -424,7 +429,7 @@ async function fleetCommand(cmd, label, question) {
     const n = [...S.agents.values()].filter((a) => a.received && now - a.received < 5).length;
     if (!(await confirmAction(question.replace("{n}", String(n))))) { toast(`${label}: cancelled`); return; }
   }
-  await act(label, () => api("POST", `/api/v1/fleet/${cmd}`, {}));
+  await act(label, () => api("POST", fleetPath(cmd), {}));
 }
 
 function clearTracks() {
@@ -690,6 +695,7 @@ window.addEventListener("resize", () => { S.dirty = true; });
 
 async function init() {
   try { S.tileUrl = (await api("GET", "/api/v1/ui-config")).tile_url; } catch (e) { /* ignore */ }
+  try { S.cluster = await api("GET", "/api/v1/cluster"); } catch (e) { S.cluster = null; /* embedded: 404 */ }
   try {
     const evs = await api("GET", "/api/v1/events?last=100");
     S.events = evs.reverse();

@@ -26,7 +26,8 @@ async def test_link_moves_to_the_next_daemon(tmp_path: Path) -> None:
                 await first.stop()  # the daemon it is linked to goes away
                 stopped = True
                 await wait_for(lambda: second.agents.session("r0") is not None, 10, "move to the 3rd")
-                assert agent.agent.link.sessions == sessions + 1
+                # the daemon registers the session before the agent has read its acceptance
+                await wait_for(lambda: agent.agent.link.sessions == sessions + 1, 10, "the agent's count")
             finally:
                 await stop_agents([agent])
     finally:

@@ -13,7 +13,7 @@ import pytest
 
 from gcs.cluster.natsrun import NatsCluster
 from tests.backbone.helpers import new_key, start_agent, stop_agents, survey_mission, wait_for
-from tests.cluster.test_spread import two_daemons
+from tests.cluster.simrig import two_daemons
 
 pytestmark = pytest.mark.slow
 

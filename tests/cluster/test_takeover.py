@@ -54,6 +54,7 @@ async def test_standby_takes_over_after_kill_9(tmp_path: Path, nats_server: Nats
             async def fleet_b() -> list[dict[str, object]]:
                 return (await api_b.get("/api/v1/cluster/fleet")).json()
 
+            assert (await api_b.get("/api/v1/cluster")).json()["airspace"] == "gcs-a"  # started first
             deadline = time.monotonic() + 15
             while time.monotonic() < deadline:
                 rows = await fleet_b()
@@ -90,6 +91,10 @@ async def test_standby_takes_over_after_kill_9(tmp_path: Path, nats_server: Nats
                     break
                 await asyncio.sleep(0.05)
             assert took_over is not None and took_over < TAKEOVER_LIMIT_S, f"takeover after {took_over}"
+            while time.monotonic() - killed < 15 and info["airspace"] != "gcs-b":
+                await asyncio.sleep(0.05)
+                info = (await api_b.get("/api/v1/cluster")).json()
+            assert info["airspace"] == "gcs-b", "the standby decides the airspace too"
 
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline and (await progress())["state"] == "running":

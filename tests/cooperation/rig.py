@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import secrets
 import threading
 import time
@@ -89,6 +90,38 @@ class Rig:
         return bool(s and s.landed and not s.armed)
 
 
+def assert_pair_separated(truth: list[list[tuple[float, ...]]]) -> float:
+    """Ground truth of two vehicles: never inside a 2 m x 1 m bubble of each other while both are
+    in the air; returns their closest 3-D distance then."""
+    closest = math.inf
+    for row in truth:
+        (n1, e1, u1, air1), (n2, e2, u2, air2) = row
+        if air1 and air2:
+            h, v = math.hypot(n1 - n2, e1 - e2), abs(u1 - u2)
+            assert not (h < 2.0 and v < 1.0), f"drones within {h:.1f} m / {v:.1f} m"
+            closest = min(closest, math.hypot(h, v))
+    return closest
+
+
+def mavlink_agent(
+    name: str, port: int, key: str, endpoint: str, settings: AgentSettings | None = None
+) -> Agent:
+    """An in-process agent on the MAVLink backend, its timers shortened for SPEEDUP."""
+    return Agent(
+        AgentConfig(
+            identity=name,
+            gcs_port=port,
+            key_hex=key,
+            settings=(settings or AgentSettings(status_period_s=0.05)).model_copy(),
+            reconnect_min_s=0.05,
+            reconnect_max_s=0.5,
+            resend_target_s=0.4,
+            monitor_period_s=0.05,
+        ),
+        MavlinkAutopilot(endpoint, telemetry_hz=20.0),
+    )
+
+
 def _sample_truth(fleet: SimFleet, out: list[list[tuple[float, ...]]], stop: threading.Event) -> None:
     """Ground truth positions (north, east, up) from the simulator, for separation checks."""
     while not stop.is_set():
@@ -146,19 +179,7 @@ async def rig(
     sampler = threading.Thread(target=_sample_truth, args=(fleet, truth, stop), daemon=True)
 
     def make_agent(name: str, port: int) -> Agent:
-        return Agent(
-            AgentConfig(
-                identity=name,
-                gcs_port=port,
-                key_hex=key,
-                settings=(settings or AgentSettings(status_period_s=0.05)).model_copy(),
-                reconnect_min_s=0.05,
-                reconnect_max_s=0.5,
-                resend_target_s=0.4,
-                monitor_period_s=0.05,
-            ),
-            MavlinkAutopilot(endpoints[name], telemetry_hz=20.0),
-        )
+        return mavlink_agent(name, port, key, endpoints[name], settings)
 
     the_rig = Rig(daemon, fleet, agents, names, truth, make_agent)
     tasks = the_rig.tasks

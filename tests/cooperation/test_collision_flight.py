@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 from gcs.cooperation.config import CooperationConfig, EnergyConfig
 from gcs.cooperation.flightlog import summarize
 from protocol.actions import Goto, Land, Takeoff
 from protocol.taskfile import AgentPlan, TaskFile
-from tests.cooperation.rig import SPACING_M, SPEEDUP, at, rig, wait_for
+from tests.cooperation.rig import SPACING_M, SPEEDUP, assert_pair_separated, at, rig, wait_for
 
 ALT = 10.0
 
@@ -63,14 +62,7 @@ async def test_head_on_pair_is_held_apart_and_the_mission_completes(tmp_path: Pa
         assert not any(r.daemon.authority.is_held(n) for n in r.names)  # nobody left paused
 
         # Ground truth from the simulator: never inside a 2 m x 1 m bubble of each other in the air.
-        closest = math.inf
-        for row in r.truth:
-            (n1, e1, u1, air1), (n2, e2, u2, air2) = row
-            if air1 and air2:
-                h, v = math.hypot(n1 - n2, e1 - e2), abs(u1 - u2)
-                assert not (h < 2.0 and v < 1.0), f"drones within {h:.1f} m / {v:.1f} m"
-                closest = min(closest, math.hypot(h, v))
-        assert closest > 2.0
+        assert assert_pair_separated(r.truth) > 2.0
 
         # The service recorded each drone-flight as a flight log the energy trainer reads.
         csvs = sorted(logs.glob("*.csv"))
