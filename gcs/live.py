@@ -139,6 +139,11 @@ class LiveHub:
                     )
                 client.offer(text)
 
+    async def remote_status(self, session: AgentSession, status: StatusReport) -> None:
+        """A status of a drone linked to another daemon of the cluster (gcs/cluster/node.py): the
+        dashboard's stream, history and metrics show the whole fleet."""
+        await self._on_status(session, status)
+
     async def _on_sync(self, session: AgentSession, signal: Any) -> None:
         self.metrics.on_sync(session, signal)
 

@@ -114,6 +114,9 @@ class MissionRunner:
         # Cluster mode: an agent withdrawn here whose mission another daemon leads (that daemon
         # must take it out of its barriers).
         self.withdraw_elsewhere: Callable[[str, str], Awaitable[None]] | None = None
+        # Cluster mode: what controls a drone linked to another daemon above the mission's level
+        # there ("operator rtl at gcs-b"), None if a mission may command it.
+        self.remote_blocker: Callable[[str], str | None] = lambda _identity: None
         # mission id -> (checked at, plans) of running missions led by another daemon
         self._stored_plans: dict[str, tuple[float, dict[str, list[Action]] | None]] = {}
         agents.on_join.append(self._on_join)
@@ -175,6 +178,12 @@ class MissionRunner:
                 raise MissionRejected(
                     f"agent {identity} is under {verdict.level} control "
                     f"({verdict.order or ', '.join(verdict.holds) or verdict.failsafe}); "
+                    "it takes a mission once that ends (landed) or the operator releases it"
+                )
+            blocked = self.remote_blocker(identity)
+            if blocked is not None:
+                raise MissionRejected(
+                    f"agent {identity} is under {blocked}; "
                     "it takes a mission once that ends (landed) or the operator releases it"
                 )
         await self._wait_for_fix(task, plans)

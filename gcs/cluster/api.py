@@ -3,7 +3,8 @@
 ``GET /api/v1/cluster`` (this daemon, the missions and who leads them, who decides the airspace), ``GET
 /api/v1/cluster/fleet`` (every agent of every daemon, with the daemon holding its link) and
 ``POST /api/v1/cluster/fleet/{hold,resume,rtl,land}``: each drone's command is routed to the daemon
-holding its link and applied there through that daemon's vehicle authority.
+holding its link and applied there through that daemon's vehicle authority; the answer lists the
+drones it reached and, per drone, why the others were not (that daemon's refusal).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Literal
 
 from fastapi import APIRouter
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from gcs.api_models import FleetCommand, FleetCommandResult
 from gcs.cluster.node import AIRSPACE_LEASE
@@ -26,6 +27,12 @@ class ClusterMission(BaseModel):
     name: str
     state: str
     leader: str | None
+
+
+class ClusterCommandResult(FleetCommandResult):
+    """The local fleet routes' answer, plus why each drone not reached was not (per drone)."""
+
+    refused: dict[str, str] = Field(default_factory=dict)
 
 
 class ClusterInfo(BaseModel):
@@ -73,25 +80,25 @@ def cluster_router(daemon: Daemon, token: Sequence[Any]) -> APIRouter:
 
     async def _command(
         kind: Literal["hold", "resume", "rtl", "land"], command: FleetCommand | None
-    ) -> FleetCommandResult:
+    ) -> ClusterCommandResult:
         agents, reason = (command.agents, command.reason) if command else (None, "operator")
-        delivered = await node.command(kind, agents, reason)
-        return FleetCommandResult(command=kind, delivered=delivered)
+        delivered, refused = await node.command(kind, agents, reason)
+        return ClusterCommandResult(command=kind, delivered=delivered, refused=refused)
 
     @router.post("/api/v1/cluster/fleet/hold", dependencies=list(token))
-    async def cluster_hold(command: FleetCommand | None = None) -> FleetCommandResult:
+    async def cluster_hold(command: FleetCommand | None = None) -> ClusterCommandResult:
         return await _command("hold", command)
 
     @router.post("/api/v1/cluster/fleet/resume", dependencies=list(token))
-    async def cluster_resume(command: FleetCommand | None = None) -> FleetCommandResult:
+    async def cluster_resume(command: FleetCommand | None = None) -> ClusterCommandResult:
         return await _command("resume", command)
 
     @router.post("/api/v1/cluster/fleet/rtl", dependencies=list(token))
-    async def cluster_rtl(command: FleetCommand | None = None) -> FleetCommandResult:
+    async def cluster_rtl(command: FleetCommand | None = None) -> ClusterCommandResult:
         return await _command("rtl", command)
 
     @router.post("/api/v1/cluster/fleet/land", dependencies=list(token))
-    async def cluster_land(command: FleetCommand | None = None) -> FleetCommandResult:
+    async def cluster_land(command: FleetCommand | None = None) -> ClusterCommandResult:
         return await _command("land", command)
 
     return router

@@ -16,7 +16,14 @@ status report, so the new leader also heals what died in flight (a 'finished' or
 Commands for a drone linked to another daemon (a mission's plan, a collision hold or escape, a
 return) travel as the type-4 packet on ``fleet.down`` and pass the holding daemon's vehicle
 authority there with their original source, so its operator's and its vehicle's orders are never
-undone. The airspace (the collision check over the whole fleet) is decided by one daemon at a
+undone; the holder answers each on ``fleet.result.<sender>`` (delivered or refused, and why), so
+the sender records a refusal and its airspace decider sees the drone outranked at once.
+
+Who holds an agent's link comes from one place: its ``fleet_agents`` record, claimed by
+compare-and-set on every join. The record's revision is the link's epoch; every message about the
+agent carries it, and a message of an older epoch (from a daemon the agent has left) is ignored.
+
+The airspace (the collision check over the whole fleet) is decided by one daemon at a
 time, the holder of the ``airspace`` lease (docs/cluster.md); it also prunes finished missions.
 """
 
@@ -29,11 +36,12 @@ import logging
 import os
 import socket
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, cast
 
 from gcs.agents import AgentSession
-from gcs.authority import PRIORITY
+from gcs.authority import PRIORITY, VehicleControl
 from gcs.cluster.housekeeping import prune_round
 from gcs.cluster.state import ClusterState
 from gcs.cluster.store import ClusterStore
@@ -61,6 +69,8 @@ log = logging.getLogger("gcs.cluster")
 
 NUDGE_EVERY_S = 1.0  # re-send a release / re-count an arrival seen in status at most this often
 COMMAND_TIMEOUT_S = 5.0
+PENDING_LIMIT = 2000  # forwarded commands awaiting the holder's answer (oldest dropped beyond)
+PENDING_TTL_S = 30.0  # an answer later than this is logged without its command
 AIRSPACE_LEASE = "airspace"  # its holder decides collisions for the whole fleet and prunes
 
 
@@ -76,7 +86,9 @@ class RemoteSession(AgentSession):
     daemon: str = ""
     node: ClusterNode | None = None
     level: int = 0  # authority level at the holding daemon (from its status headers)
+    control: str = ""  # what controls it there above the plan ("operator rtl (...)"), if anything
     collision_held: bool = False  # the holding daemon has it under a collision hold
+    epoch: int = 0  # revision of the registry record naming ``daemon`` as the link's holder
 
     @property
     def last_tx(self) -> float:
@@ -115,6 +127,13 @@ def _order_kind(owner: str, mission_id: str) -> str | None:
     return None
 
 
+def _control(control: VehicleControl) -> str:
+    """What controls a drone above its plan, in a few words ("operator rtl (why)")."""
+    what = control.order or ", ".join(f"{o} hold" for o in control.holds) or control.failsafe or ""
+    source = control.order_source or control.level
+    return f"{source} {what}".strip()[:200]
+
+
 def _frame(body: Body) -> bytes:
     return encode(body, 0)
 
@@ -142,6 +161,12 @@ class ClusterNode:
         self._held_leases: set[str] = set()
         self._airspace = False  # we hold the airspace lease
         self.pruned_keys = 0
+        self._epochs: dict[str, tuple[int, str]] = {}  # agent -> newest (epoch, holder) known
+        self._local_epoch: dict[str, int] = {}  # agent -> epoch of our link to it (0: unknown)
+        self._pending: dict[int, tuple[str, str, float]] = {}  # seq -> (agent, command, sent at)
+        self._seq = 0
+        self.refusals: deque[dict[str, Any]] = deque(maxlen=200)  # holders' refusals of our commands
+        self.stale_dropped = 0  # messages ignored: sent under an agent's older link epoch
 
     @property
     def daemon(self) -> Daemon:
@@ -159,6 +184,12 @@ class ClusterNode:
         missions.claim_release = self._claim_release
         missions.led_elsewhere = self._led_elsewhere
         missions.withdraw_elsewhere = self._withdraw_elsewhere
+        missions.remote_blocker = self.remote_blocker
+        self.state.on_change.append(self._registry_change)
+        for identity, revision in list(self.state.revisions.items()):
+            record = self.state.agent_record(identity)
+            if record is not None:
+                self._note_holder(identity, revision, str(record["daemon"]))
         for service in self._cooperation():
             service.cluster = self
         local_view = daemon.returns.fleet
@@ -184,6 +215,7 @@ class ClusterNode:
             await nc.subscribe("fleet.up.>", cb=self._remote_up),
             await nc.subscribe("fleet.down.>", cb=self._down),
             await nc.subscribe(f"fleet.cmd.{self.daemon_id}", cb=self._command),
+            await nc.subscribe(f"fleet.result.{self.daemon_id}", cb=self._result),
         ]
         await self._lease_tick()
         self._tasks.append(asyncio.create_task(self._lease_loop(), name="cluster-leases"))
@@ -324,10 +356,49 @@ class ClusterNode:
         remote = self.daemon.agents.remote.get(ident)
         return isinstance(remote, RemoteSession) and remote.open and remote.collision_held
 
+    def remote_blocker(self, ident: str) -> str | None:
+        """What outranks a mission on a drone linked to another daemon (the mission runner's
+        submit refuses the drone then, as it does for its own drones' authority)."""
+        remote = self.daemon.agents.remote.get(ident)
+        if not isinstance(remote, RemoteSession) or not remote.open or remote.level <= PRIORITY["mission"]:
+            return None
+        return f"{remote.control or f'level {remote.level}'} control at {remote.daemon}"
+
+    # --- who holds each link: the registry record's revision is its epoch ----------------------------
+
+    def _note_holder(self, identity: str, epoch: int, daemon: str) -> None:
+        """Remember the newest known holder; a newer epoch naming another daemon means our own
+        link to the agent (if we still think we have one) is stale: it moved, so we drop it."""
+        known = self._epochs.get(identity)
+        if known is not None and known[0] >= epoch:
+            return
+        self._epochs[identity] = (epoch, daemon)
+        if self._daemon is None or daemon == self.daemon_id:
+            return
+        remote = self.daemon.agents.remote.get(identity)
+        if isinstance(remote, RemoteSession) and remote.open:
+            remote.daemon, remote.peer, remote.epoch = daemon, f"via {daemon}", epoch
+        local = self.daemon.agents.sessions.get(identity)
+        ours = self._local_epoch.get(identity, 0)
+        if local is not None and local.open and 0 < ours < epoch:
+            log.warning("%s's link moved to %s (epoch %d > %d); dropping ours", identity, daemon, epoch, ours)
+            local.close_transport()
+
+    def link_epoch(self, identity: str) -> tuple[int, str] | None:
+        """(epoch, daemon) of the newest holder of ``identity``'s link known here."""
+        return self._epochs.get(identity)
+
+    def _registry_change(self, bucket: str, key: str, value: bytes | None) -> None:
+        if bucket != "agents" or value is None:
+            return
+        with contextlib.suppress(ValueError, KeyError, TypeError):
+            self._note_holder(key, self.state.revisions.get(key, 0), str(json.loads(value)["daemon"]))
+
     # --- our agents: share what they say ------------------------------------------------------------
 
     def _headers(self, session: AgentSession) -> dict[str, str]:
-        return {"daemon": self.daemon_id, "cid": str(session.cid)}
+        epoch = self._local_epoch.get(session.identity, 0)
+        return {"daemon": self.daemon_id, "cid": str(session.cid), "rev": str(epoch)}
 
     def _up(self, session: AgentSession, kind: str, payload: bytes) -> None:
         nc = self.state.nc
@@ -345,7 +416,9 @@ class ClusterNode:
                 authority.restore_hold(session.identity, owner, reason)
         if held:
             authority.reassert(session.identity)
-        self.state.put_json("agents", session.identity, {"cid": session.cid, "daemon": self.daemon_id})
+        epoch = await self.state.claim_agent(session.identity, session.cid)
+        self._local_epoch[session.identity] = epoch
+        self._note_holder(session.identity, epoch, self.daemon_id)
         join = {
             "resume": resume.model_dump(mode="json") if resume else None,
             "home": session.home.model_dump(mode="json") if session.home else None,
@@ -357,11 +430,14 @@ class ClusterNode:
         nc = self.state.nc
         if nc is not None and not nc.is_closed:
             authority = self.daemon.authority
+            level = authority.level(session.identity)
             headers = {
                 **self._headers(session),
-                "level": str(authority.level(session.identity)),  # the airspace decider reads these
+                "level": str(level),  # the airspace decider and mission submits read these
                 "collision": "1" if authority.is_held(session.identity, "collision") else "",
             }
+            if level:
+                headers["control"] = _control(authority.control(session.identity))
             with contextlib.suppress(Exception):
                 await nc.publish(f"fleet.status.{session.identity}", _frame(status), headers=headers)
         await self._nudge(session, status)
@@ -376,7 +452,8 @@ class ClusterNode:
 
     async def _local_lost(self, identity: str) -> None:
         remote = self.daemon.agents.remote.get(identity)
-        if remote is not None and remote.open:
+        known = self._epochs.get(identity)
+        if (remote is not None and remote.open) or (known is not None and known[1] != self.daemon_id):
             return  # its link moved to another daemon: lost here only
         session = self.daemon.agents.sessions.get(identity)
         if session is not None:
@@ -385,15 +462,26 @@ class ClusterNode:
     # --- other daemons' agents --------------------------------------------------------------------
 
     def _remote(self, msg: Msg) -> RemoteSession | None:
-        """The mirror of the agent a message is about; None if it is ours or from us."""
+        """The mirror of the agent a message is about; None if it is ours, from us, or stale (sent
+        under an older epoch than the newest holder we know of: the agent has left that daemon)."""
         headers = msg.headers or {}
         daemon = headers.get("daemon", "")
         identity = msg.subject.split(".", 2)[2]
         if daemon == self.daemon_id:
             return None
+        try:
+            epoch = int(headers.get("rev", "0"))
+        except ValueError:
+            epoch = 0
+        known = self._epochs.get(identity)
+        if known is not None and (epoch < known[0] if epoch else known[1] != daemon):
+            self.stale_dropped += 1
+            return None
+        if epoch:
+            self._note_holder(identity, epoch, daemon)
         local = self.daemon.agents.sessions.get(identity)
         if local is not None and local.open:
-            return None  # it is linked to us now; the other daemon's news is older
+            return None  # it is linked to us now (a newer epoch elsewhere has just dropped a stale link)
         agents = self.daemon.agents
         remote = agents.remote.get(identity)
         if not isinstance(remote, RemoteSession) or not remote.open:
@@ -410,6 +498,7 @@ class ClusterNode:
             )
             agents.remote[identity] = remote
         remote.daemon, remote.peer = daemon, f"via {daemon}"
+        remote.epoch = max(remote.epoch, epoch)
         remote.last_rx = time.monotonic()
         return remote
 
@@ -423,6 +512,7 @@ class ClusterNode:
         headers = msg.headers or {}
         with contextlib.suppress(ValueError):
             remote.level = int(headers.get("level", "0"))
+        remote.control = headers.get("control", "")
         remote.collision_held = bool(headers.get("collision"))
         if not status.buffered:
             remote.status = status
@@ -432,7 +522,7 @@ class ClusterNode:
 
         for hub in self.daemon.services:  # the dashboard's stream and history show the whole fleet
             if isinstance(hub, LiveHub):
-                await hub._on_status(remote, status)
+                await hub.remote_status(remote, status)
         for service in self._cooperation():  # the airspace picture spans the cluster
             await service.remote_status(remote, status)
         await self.daemon.missions.agent_status(remote, status)
@@ -485,11 +575,28 @@ class ClusterNode:
     # --- what other daemons send our agents ---------------------------------------------------------
 
     def forward(self, identity: str, body: Body, urgent: bool) -> None:
+        """Post ``body`` through the daemon holding the link; a command's answer (delivered or
+        refused by that daemon's vehicle authority) comes back on ``fleet.result.<us>``."""
         nc = self.state.nc
         if nc is None or nc.is_closed:
             return
         data, headers = _frame(body), {"daemon": self.daemon_id, "urgent": "1" if urgent else ""}
-        self.state.enqueue(lambda: nc.publish(f"fleet.down.{identity}", data, headers=headers))
+        reply = ""
+        if isinstance(body, PerformActions):
+            self._seq += 1
+            headers["seq"] = str(self._seq)
+            reply = f"fleet.result.{self.daemon_id}"
+            self._remember(self._seq, identity, f"{body.source or 'mission'} {body.mode}")
+        self.state.enqueue(lambda: nc.publish(f"fleet.down.{identity}", data, reply=reply, headers=headers))
+
+    def _remember(self, seq: int, identity: str, command: str) -> None:
+        now = time.monotonic()
+        self._pending[seq] = (identity, command, now)
+        if len(self._pending) > PENDING_LIMIT or next(iter(self._pending.values()))[2] < now - PENDING_TTL_S:
+            for old in [k for k, (_, _, at) in self._pending.items() if at < now - PENDING_TTL_S]:
+                del self._pending[old]
+            while len(self._pending) > PENDING_LIMIT:
+                del self._pending[next(iter(self._pending))]
 
     async def _down(self, msg: Msg) -> None:
         identity = msg.subject.split(".", 2)[2]
@@ -498,24 +605,37 @@ class ClusterNode:
             return
         body = _body(msg.data)
         if isinstance(body, PerformActions):
-            self._order(identity, body, (msg.headers or {}).get("daemon", "?"))
+            delivered, why = self._order(identity, body, (msg.headers or {}).get("daemon", "?"))
+            if msg.reply:
+                answer = {
+                    "agent": identity,
+                    "seq": (msg.headers or {}).get("seq", ""),
+                    "daemon": self.daemon_id,
+                    "delivered": delivered,
+                    "reason": why,
+                    "level": self.daemon.authority.level(identity),
+                }
+                with contextlib.suppress(Exception):
+                    await msg.respond(json.dumps(answer).encode())
         elif body is not None:
             session.post(body, urgent=bool((msg.headers or {}).get("urgent")) or None)
 
-    def _order(self, identity: str, body: PerformActions, sender: str) -> None:
+    def _order(self, identity: str, body: PerformActions, sender: str) -> tuple[bool, str]:
         """A command another daemon gave our agent: through our vehicle authority, at its source's
-        priority, so nothing undoes what our operator or the vehicle ordered (refusals recorded)."""
+        priority, so nothing undoes what our operator or the vehicle ordered (refusals recorded
+        here and answered to the sender)."""
         authority = self.daemon.authority
         owner = body.source or "mission"
         reason = f"{body.reason or body.mode} (via {sender})"
         planned = PRIORITY[owner] <= PRIORITY["mission"]
         if body.mode == "pause":
-            if not planned:  # a plan-level pause re-sends the sender's holds: ours re-sends our own
-                authority.hold(identity, owner, reason, body.mission_id)
-        elif body.mode == "resume":
-            authority.release(identity, owner, reason, body.mission_id)
-        elif body.mode == "replace":
-            authority.replace(
+            if planned:  # a plan-level pause re-sends the sender's holds: ours re-sends our own
+                return True, "plan pause: our own holds stand"
+            return authority.hold(identity, owner, reason, body.mission_id)
+        if body.mode == "resume":
+            return authority.release(identity, owner, reason, body.mission_id)
+        if body.mode == "replace":
+            return authority.replace(
                 identity,
                 owner,
                 body.mission_id,
@@ -525,66 +645,125 @@ class ClusterNode:
                 await_release=body.await_release,
                 keep_holds=planned,  # a plan queues behind any hold, as the leader's did
             )
-        else:
-            self.daemon.agents.post(identity, body)
+        return self.daemon.agents.post(identity, body), body.mode
+
+    async def _result(self, msg: Msg) -> None:
+        """The holder's answer to a command we forwarded: a refusal is recorded (event, the
+        drone's level raised so the airspace decider treats it as outranked right away)."""
+        try:
+            answer = json.loads(msg.data)
+            identity, delivered = str(answer["agent"]), bool(answer["delivered"])
+            seq, holder, why = int(answer.get("seq") or 0), str(answer["daemon"]), str(answer["reason"])
+            level = int(answer.get("level", 0))
+        except (ValueError, KeyError, TypeError):
+            log.warning("bad command answer on %s: %r", msg.subject, msg.data[:200])
+            return
+        _, command, _ = self._pending.pop(seq, (identity, "command", 0.0))
+        if delivered:
+            return
+        remote = self.daemon.agents.remote.get(identity)
+        if isinstance(remote, RemoteSession) and remote.daemon == holder:
+            remote.level = max(remote.level, level)
+        if command.endswith(" resume"):
+            return  # nothing of ours to release there: not a refusal worth an event
+        self.refusals.append({"agent": identity, "daemon": holder, "command": command, "reason": why})
+        self.daemon.events.publish(
+            "command_refused",
+            f"{holder} refused {command} for {identity}: {why}",
+            agent=identity,
+            data={"daemon": holder, "command": command, "reason": why},
+        )
 
     # --- operator commands for any drone --------------------------------------------------------------
 
     def holder(self, identity: str) -> str | None:
-        """The daemon holding ``identity``'s link (ours, a remote one's, or the registry's)."""
+        """The daemon holding ``identity``'s link: ours if linked here, else the registry's (the
+        newest epoch, from its record or a message that arrived before the record did)."""
         local = self.daemon.agents.sessions.get(identity)
         if local is not None and local.open:
             return self.daemon_id
-        remote = self.daemon.agents.remote.get(identity)
-        if isinstance(remote, RemoteSession) and remote.open:
-            return remote.daemon
+        known = self._epochs.get(identity)
+        if known is not None:
+            return known[1]
         record = self.state.agent_record(identity)
         return None if record is None else str(record["daemon"])
 
-    async def command(self, command: str, agents: list[str] | None, reason: str) -> list[str]:
-        """Run an operator command on each drone's own daemon (through its vehicle authority)."""
+    async def command(
+        self, command: str, agents: list[str] | None, reason: str
+    ) -> tuple[list[str], dict[str, str]]:
+        """Run an operator command on each drone's own daemon (through its vehicle authority);
+        returns (delivered, refused: drone -> why, as that daemon answered)."""
         targets = agents if agents is not None else sorted(self.fleet_identities())
         by_daemon: dict[str, list[str]] = {}
+        refused: dict[str, str] = {}
         for identity in targets:
             holder = self.holder(identity)
-            if holder is not None:
+            if holder is None:
+                refused[identity] = "no daemon of the cluster holds its link"
+            else:
                 by_daemon.setdefault(holder, []).append(identity)
         delivered: list[str] = []
         for daemon, group in sorted(by_daemon.items()):
             if daemon == self.daemon_id:
-                delivered += await self._apply(command, group, reason)
+                done, why = await self._apply(command, group, reason)
+                delivered += done
+                refused.update(why)
                 continue
             nc = self.state.nc
             assert nc is not None
             request = json.dumps({"command": command, "agents": group, "reason": reason}).encode()
             try:
                 reply = await nc.request(f"fleet.cmd.{daemon}", request, timeout=COMMAND_TIMEOUT_S)
+                answer = json.loads(reply.data)
             except Exception as exc:
                 log.warning("daemon %s did not answer %s for %s: %r", daemon, command, group, exc)
+                late = f"{daemon} did not answer within {COMMAND_TIMEOUT_S:.0f} s"
+                refused.update(dict.fromkeys(group, late))
                 continue
-            delivered += json.loads(reply.data).get("delivered", [])
-        return delivered
+            delivered += answer.get("delivered", [])
+            refused.update(answer.get("refused", {}))
+            if answer.get("error"):
+                refused.update({i: f"{daemon}: {answer['error']}" for i in group if i not in delivered})
+        return delivered, refused
 
-    async def _apply(self, command: str, agents: list[str], reason: str) -> list[str]:
+    async def _apply(self, command: str, agents: list[str], reason: str) -> tuple[list[str], dict[str, str]]:
         operator = self.daemon.operator
         if command == "hold":
-            return await operator.hold(agents, reason)
-        if command == "resume":
-            return await operator.resume(agents, reason)
-        if command in ("rtl", "land"):
+            delivered = await operator.hold(agents, reason)
+        elif command == "resume":
+            delivered = await operator.resume(agents, reason)
+        elif command in ("rtl", "land"):
             missions = self.daemon.missions
             for identity in agents:  # out of a mission another daemon leads (that one is told)
                 if missions.mission_of(identity) is None:
                     await missions.withdraw(identity, f"fleet {command} ({reason})")
             delivered, _ = await operator.bring_down(command, agents, reason)  # type: ignore[arg-type]
-            return delivered
-        raise ValueError(f"unknown command {command!r}")
+        else:
+            raise ValueError(f"unknown command {command!r}")
+        return delivered, {i: self._why_not(i, command) for i in agents if i not in delivered}
+
+    def _why_not(self, identity: str, command: str) -> str:
+        """Why ``command`` did not reach a drone linked here (for the cluster API's answer)."""
+        session = self.daemon.agents.sessions.get(identity)
+        if session is None or not session.open:
+            return f"not linked to {self.daemon_id} any more"
+        decisions = self.daemon.authority.control(identity).decisions
+        last = decisions[-1] if decisions else None
+        if last is not None and not last.accepted and last.source == "operator":
+            return f"refused by {self.daemon_id}'s vehicle authority: {last.detail}"
+        if command in ("rtl", "land"):
+            return "not airborne: nothing to bring down"
+        if command == "resume":
+            return "still held by the operator"
+        return f"not applied by {self.daemon_id}"
 
     async def _command(self, msg: Msg) -> None:
         try:
             request = json.loads(msg.data)
-            delivered = await self._apply(request["command"], list(request["agents"]), request["reason"])
-            answer: dict[str, Any] = {"delivered": delivered}
+            delivered, refused = await self._apply(
+                request["command"], list(request["agents"]), request["reason"]
+            )
+            answer: dict[str, Any] = {"delivered": delivered, "refused": refused}
         except Exception as exc:  # a bad request costs its reply, never the subscription
             answer = {"delivered": [], "error": str(exc)}
         await msg.respond(json.dumps(answer).encode())

@@ -5,7 +5,8 @@ What lives where (docs/cluster.md):
 ==================  ===================================  =====================================
 bucket / stream     key                                  value / rule
 ==================  ===================================  =====================================
-fleet_agents        identity                             {cid, daemon}: registry, who holds the link
+fleet_agents        identity                             {cid, daemon}: registry, who holds the link;
+                                                         its revision orders the link's holders
 fleet_cids          c<CID>                               identity; ``create``: a CID is assigned once
 fleet_missions      mission id                           accepted mission (task, state, paused)
 fleet_progress      <mission>.<agent>                    {completed, excluded}
@@ -86,6 +87,7 @@ class ClusterState:
         self.write_failures = 0
         self._serial = itertools.count()
         self._seen: dict[str, int] = {}  # bucket -> newest revision applied to its mirror
+        self.revisions: dict[str, int] = {}  # agent -> revision of its fleet_agents record in the mirror
         self._behind: dict[str, int] = {}  # bucket -> stream sequence it lagged at the last check
 
     # --- connection ------------------------------------------------------------------------------
@@ -280,6 +282,8 @@ class ClusterState:
             mirror.pop(entry.key, None)
         else:
             mirror[entry.key] = value
+        if name == "agents":
+            self.revisions[entry.key] = int(entry.revision or 0)
         for callback in self.on_change:
             try:
                 callback(name, entry.key, value)
@@ -372,7 +376,12 @@ class ClusterState:
                 await self.kv[bucket].create(key, value)
                 break
             except nats.js.errors.KeyWrongLastSequenceError:
-                entry = await self.kv[bucket].get(key)
+                try:
+                    entry = await self.kv[bucket].get(key)
+                except (nats.js.errors.KeyNotFoundError, nats.js.errors.KeyDeletedError):
+                    if time.monotonic() > deadline:
+                        raise
+                    continue  # deleted again between the two calls (a lost CID race): try again
                 if entry.value == value:
                     break
                 if entry.value is not None and bucket != "leases":
@@ -407,6 +416,35 @@ class ClusterState:
                 if theirs is not None:
                     return int(theirs["cid"])
         raise RuntimeError(f"could not assign a connection ID to {identity} after {CID_ATTEMPTS} tries")
+
+    async def claim_agent(self, identity: str, cid: int) -> int:
+        """Record that this daemon holds ``identity``'s link now; returns the record's revision.
+
+        The revision is the link's epoch: every daemon's messages about the agent carry it, and
+        a message from an older epoch (a daemon the agent has left) is ignored everywhere. The
+        read-modify-write is a compare-and-set on the revision read, retried (bounded) when
+        another write came first; 0 when NATS did not answer in time (the record is then queued).
+        """
+        record = {"cid": cid, "daemon": self.daemon_id, "since": time.time()}
+        data = json.dumps(record, separators=(",", ":")).encode()
+        deadline = time.monotonic() + CAS_TIMEOUT_S
+        while time.monotonic() < deadline:
+            try:
+                try:
+                    entry = await self.kv["agents"].get(identity)
+                    revision = int(await self.kv["agents"].update(identity, data, last=entry.revision))
+                except (nats.js.errors.KeyNotFoundError, nats.js.errors.KeyDeletedError):
+                    revision = int(await self.kv["agents"].create(identity, data))
+            except nats.js.errors.KeyWrongLastSequenceError:
+                continue  # written meanwhile: read again
+            except (nats.errors.Error, nats.js.errors.Error, TimeoutError):
+                await asyncio.sleep(0.2)
+                continue
+            self.mirror["agents"][identity] = data
+            self.revisions[identity] = max(self.revisions.get(identity, 0), revision)
+            return revision
+        self.put_json("agents", identity, record)
+        return 0
 
     def agent_record(self, identity: str) -> dict[str, Any] | None:
         raw = self.mirror["agents"].get(identity)

@@ -28,9 +28,18 @@ async def two_daemons(
     tmp_path: Path, servers: str, key: str, **overrides: object
 ) -> AsyncIterator[tuple[Daemon, Daemon]]:
     """Daemons gcs-a then gcs-b on one NATS (a starts first, so it holds the airspace lease)."""
+    async with cluster_daemons(tmp_path, servers, key, ("a", "b"), **overrides) as (a, b):
+        yield a, b
+
+
+@contextlib.asynccontextmanager
+async def cluster_daemons(
+    tmp_path: Path, servers: str, key: str, names: tuple[str, ...], **overrides: object
+) -> AsyncIterator[list[Daemon]]:
+    """Daemons gcs-<name> started in order on one NATS, HTTP on a free port (token "t")."""
     daemons = []
     try:
-        for name in ("a", "b"):
+        for name in names:
             config = daemon_config(
                 tmp_path / name,
                 key,
@@ -44,7 +53,7 @@ async def two_daemons(
             daemon = Daemon(config)
             await daemon.start()
             daemons.append(daemon)
-        yield daemons[0], daemons[1]
+        yield daemons
     finally:
         for daemon in reversed(daemons):
             await daemon.stop()
