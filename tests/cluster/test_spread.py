@@ -45,10 +45,10 @@ async def test_mission_spread_over_two_daemons(tmp_path: Path, nats_server: Nats
             listed = (await api.get("/api/v1/agents")).json()  # what the dashboard lists
             assert sorted(a["identity"] for a in listed) == names
             hub = next(s for s in b.services if isinstance(s, LiveHub))
-            await wait_for(lambda: "drone-1" in hub.history, 5, "drone-1 in b's live history (dashboard)")
+            await wait_for(lambda: "drone-1" in hub.history, 20, "drone-1 in b's live history (dashboard)")
         task = survey_mission(names, sync_legs=2)
         mission_id = await a.missions.submit(task)
-        await wait_for(lambda: b.missions.led_elsewhere(mission_id), 5, "b to see a's mission")
+        await wait_for(lambda: b.missions.led_elsewhere(mission_id), 20, "b to see a's mission")
         await wait_for(
             lambda: (m := a.store.mission(mission_id)) is not None and m.state != "running",
             90,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import time
 
 from gcs.cluster.natsrun import NatsServer
 from gcs.cluster.state import ClusterState
@@ -36,21 +37,25 @@ async def test_release_claimed_exactly_once(nats_server: NatsServer) -> None:
             *(s.create("barriers", "m1.3.released", s.unique()) for s in (a, b, a, b))
         )
         assert sum(wins) == 1
-        await wait_for(lambda: "m1.3.released" in b.mirror["barriers"], 5, "mirror update")
+        await wait_for(lambda: "m1.3.released" in b.mirror["barriers"], 20, "mirror update")
     finally:
         await a.close()
         await b.close()
 
 
 async def test_lease_expires_and_one_standby_takes_it(nats_server: NatsServer) -> None:
-    a, b, c = [await _state(nats_server, n, ttl=1.0) for n in "abc"]
+    a, b, c = [await _state(nats_server, n, ttl=2.0) for n in "abc"]
     try:
         assert await a.take_lease("m1")
         assert not await b.take_lease("m1")
         assert await a.renew_lease("m1")
+        renewed = time.monotonic()
         assert (await b.lease_holder("m1"))[0] == "a"
-        await asyncio.sleep(1.6)  # a stops renewing: its lease ages out
+        deadline = renewed + 15  # a stops renewing: its lease ages out (bounded wait, slow CI)
+        while time.monotonic() < deadline and (await b.lease_holder("m1"))[0] is not None:
+            await asyncio.sleep(0.1)
         assert (await b.lease_holder("m1"))[0] is None
+        assert time.monotonic() - renewed >= 1.0, "the lease outlived half its TTL"
         wins = await asyncio.gather(b.take_lease("m1"), c.take_lease("m1"))
         assert sum(wins) == 1
         assert not await a.renew_lease("m1"), "the old leader must learn it lost the lead"

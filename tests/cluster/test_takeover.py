@@ -49,7 +49,7 @@ async def test_standby_takes_over_after_kill_9(tmp_path: Path, nats_server: Nats
     stop = asyncio.Event()
     watcher = asyncio.create_task(_watch_steps(agents, seen, stop))
     try:
-        async with httpx.AsyncClient(base_url=b.api, timeout=5) as api_b:
+        async with httpx.AsyncClient(base_url=b.api, timeout=20) as api_b:
 
             async def fleet_b() -> list[dict[str, object]]:
                 return (await api_b.get("/api/v1/cluster/fleet")).json()
@@ -65,7 +65,7 @@ async def test_standby_takes_over_after_kill_9(tmp_path: Path, nats_server: Nats
                 raise AssertionError(f"fleet not visible through b: {rows}")
 
             task = survey_mission(NAMES, sync_legs=5, name="takeover")
-            async with httpx.AsyncClient(base_url=a.api, timeout=10) as api_a:
+            async with httpx.AsyncClient(base_url=a.api, timeout=20) as api_a:
                 created = await api_a.post(
                     "/api/v1/missions",
                     content=task.model_dump_json(),
