@@ -59,7 +59,7 @@ async def test_pair_across_daemons_is_kept_apart_and_operator_rtl_stands(
         )
 
         # The operator sends drone-2 home through a's API in the middle of the encounter.
-        async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{a.http_port}") as api:
+        async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{a.http_port}", timeout=20) as api:
             reply = await api.post(
                 "/api/v1/cluster/fleet/rtl",
                 json={"agents": ["drone-2"], "reason": "test"},

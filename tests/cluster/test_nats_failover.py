@@ -47,19 +47,22 @@ async def test_nats_node_killed_mid_mission(tmp_path: Path, nats_cluster: NatsCl
             steps = set(task.plans[0].sync_steps())
             await wait_for(lambda: b.store.released_steps(mission_id) == steps, 30, "b's mirror to follow")
             for daemon in (a, b):
-                async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{daemon.http_port}") as api:
+                async with httpx.AsyncClient(
+                    base_url=f"http://127.0.0.1:{daemon.http_port}", timeout=20
+                ) as api:
                     fleet = {r["identity"]: r for r in (await api.get("/api/v1/cluster/fleet")).json()}
                     assert sorted(fleet) == names
                     assert fleet["f0"]["daemon"] == "gcs-a" and fleet["f1"]["daemon"] == "gcs-b"
             # an operator hold for f0 (linked to a) given through b's API lands in a's authority
-            async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{b.http_port}") as api:
+            async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{b.http_port}", timeout=20) as api:
                 reply = await api.post(
                     "/api/v1/cluster/fleet/hold",
                     json={"agents": ["f0", "f1"], "reason": "test"},
                     headers={"Authorization": "Bearer t"},
                 )
                 assert reply.status_code == 200, reply.text
-                assert sorted(reply.json()["delivered"]) == ["f0", "f1"]
+                assert sorted(reply.json()["delivered"]) == ["f0", "f1"], reply.text
+                assert reply.json()["refused"] == {}, reply.text
             assert a.authority.is_held("f0", "operator") and not b.authority.is_held("f0", "operator")
             assert b.authority.is_held("f1", "operator")
         finally:
