@@ -129,10 +129,12 @@ def _order_kind(owner: str, mission_id: str) -> str | None:
 
 
 def _control(control: VehicleControl) -> str:
-    """What controls a drone above its plan, in a few words ("operator rtl (why)")."""
-    what = control.order or ", ".join(f"{o} hold" for o in control.holds) or control.failsafe or ""
-    source = control.order_source or control.level
-    return f"{source} {what}".strip()[:200]
+    """What controls a drone above its plan, in a few words: "operator rtl", "operator hold (why)"."""
+    if control.order is not None:
+        return f"{control.order_source} {control.order}"
+    if control.holds:
+        return ", ".join(f"{owner} hold ({why})" for owner, why in control.holds.items())[:200]
+    return f"vehicle failsafe {control.failsafe}" if control.failsafe else control.level
 
 
 def _frame(body: Body) -> bytes:

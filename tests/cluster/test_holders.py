@@ -88,7 +88,8 @@ async def test_the_holders_refusals_reach_the_sender(tmp_path: Path, nats_server
             await wait_for(lambda: a.cluster.remote_blocker("y") is not None, 10, "a to see b's hold")  # type: ignore[union-attr]
 
             # A mission submitted on a is refused like a local refusal, naming the drone and b's order.
-            with pytest.raises(MissionRejected, match=r"agent y is under operator .*hold.* at gcs-b"):
+            refused = r"agent y is under operator hold \(test: b's operator\) control at gcs-b"
+            with pytest.raises(MissionRejected, match=refused):
                 await a.missions.submit(_hover_task("y"))
             assert not a.missions.active
 
