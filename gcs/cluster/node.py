@@ -377,7 +377,12 @@ class ClusterNode:
         if known is not None and known[0] >= epoch:
             return
         self._epochs[identity] = (epoch, daemon)
-        if self._daemon is None or daemon == self.daemon_id:
+        if self._daemon is None:
+            return
+        if daemon == self.daemon_id:
+            local = self.daemon.agents.sessions.get(identity)
+            if local is not None and local.open and not self._local_epoch.get(identity):
+                self._local_epoch[identity] = epoch  # our claim was queued (NATS away): it landed
             return
         remote = self.daemon.agents.remote.get(identity)
         if isinstance(remote, RemoteSession) and remote.open:

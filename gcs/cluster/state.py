@@ -423,12 +423,13 @@ class ClusterState:
         The revision is the link's epoch: every daemon's messages about the agent carry it, and
         a message from an older epoch (a daemon the agent has left) is ignored everywhere. The
         read-modify-write is a compare-and-set on the revision read, retried (bounded) when
-        another write came first; 0 when NATS did not answer in time (the record is then queued).
+        another write came first; 0 when NATS is away or did not answer in time (the record is then
+        queued, and the join hooks are not held up by a NATS outage).
         """
         record = {"cid": cid, "daemon": self.daemon_id, "since": time.time()}
         data = json.dumps(record, separators=(",", ":")).encode()
         deadline = time.monotonic() + CAS_TIMEOUT_S
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and self.nc is not None and self.nc.is_connected:
             try:
                 try:
                     entry = await self.kv["agents"].get(identity)
