@@ -18,9 +18,9 @@ from typing import Any
 from agent.runtime import Agent
 from gcs.cooperation.config import CooperationConfig
 from gcs.daemon import Daemon
-from sitl.fleet import FleetConfig, SimFleet
+from sitl.fleet import SimFleet
 from tests.backbone.helpers import daemon_config, new_key
-from tests.cooperation.rig import HOME, SPACING_M, SPEEDUP, _sample_truth, mavlink_agent, wait_for
+from tests.cooperation.rig import SPEEDUP, _sample_truth, mavlink_agent, start_sim_fleet, wait_for
 
 
 @contextlib.asynccontextmanager
@@ -87,18 +87,7 @@ async def spread_rig(
     """``links``: agent name -> the daemon ("a" or "b") it connects to, in CID order."""
     key = new_key()
     names = list(links)
-    fleet = SimFleet(
-        FleetConfig(
-            vehicles=len(names),
-            home=HOME,
-            base_port=0,
-            speedup=SPEEDUP,
-            seed=3,
-            spacing_m=SPACING_M,
-            prearm_delay_s=1.0,
-        )
-    )
-    fleet.start()
+    fleet = start_sim_fleet(len(names))
     stop = threading.Event()
     tasks: list[asyncio.Task[None]] = []
     try:

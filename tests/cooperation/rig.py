@@ -122,6 +122,24 @@ def mavlink_agent(
     )
 
 
+def start_sim_fleet(vehicles: int, spacing_m: float = SPACING_M, **options: Any) -> SimFleet:
+    """Our simulator at SPEEDUP x around HOME (seeded), started; the caller stops it."""
+    fleet = SimFleet(
+        FleetConfig(
+            vehicles=vehicles,
+            home=HOME,
+            base_port=0,
+            speedup=SPEEDUP,
+            seed=3,
+            spacing_m=spacing_m,
+            prearm_delay_s=1.0,
+            **options,
+        )
+    )
+    fleet.start()
+    return fleet
+
+
 def _sample_truth(fleet: SimFleet, out: list[list[tuple[float, ...]]], stop: threading.Event) -> None:
     """Ground truth positions (north, east, up) from the simulator, for separation checks."""
     while not stop.is_set():
@@ -156,19 +174,7 @@ async def rig(
         cooperation=coop,
         **daemon_options,
     )
-    fleet = SimFleet(
-        FleetConfig(
-            vehicles=vehicles,
-            home=HOME,
-            base_port=0,
-            speedup=SPEEDUP,
-            seed=3,
-            spacing_m=spacing_m,
-            prearm_delay_s=1.0,
-            **(fleet_options or {}),
-        )
-    )
-    fleet.start()
+    fleet = start_sim_fleet(vehicles, spacing_m, **(fleet_options or {}))
     daemon = Daemon(config)
     await daemon.start()
     names = [f"drone-{i + 1}" for i in range(vehicles)]
