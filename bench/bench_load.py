@@ -171,8 +171,8 @@ async def _server(
         )
         daemon = Daemon(config)
 
-        async def on_status(_: object, status: Any) -> None:
-            hook_latencies.append(time.time() - status.time)
+        async def on_tick(tick: Any) -> None:  # the newest report of each agent, as columns
+            hook_latencies.extend((time.time() - tick.cols["time"]).tolist())
 
         from protocol.packets import StatusReport, SyncSignal
 
@@ -202,7 +202,7 @@ async def _server(
         daemon.agents._handle = handle_and_stamp  # type: ignore[method-assign]
         daemon.agents.burst = burst_and_stamp  # type: ignore[method-assign]
         daemon.agents.ingest_probe = probe
-        daemon.agents.on_status.append(on_status)
+        daemon.agents.on_status_tick.append(on_tick)
         await daemon.start()
         port = daemon.listen_port
     else:

@@ -31,7 +31,9 @@ import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
-from gcs.agents_table import MAX_BODY, ROW_BYTES, StatusTable
+import numpy as np
+
+from gcs.agents_table import MAX_BODY, ROW_BYTES, StatusTable, StatusTick
 from gcs.config import DaemonConfig
 from gcs.dispatch import ConsumerStats, HookDispatcher, HookKind, HookList
 from gcs.events import EventBus
@@ -137,11 +139,12 @@ class AgentSession:
 
     @property
     def status(self) -> StatusReport | None:
-        """The newest live status report: decoded now if it came after the last status tick."""
+        """The newest live status report: decoded on demand from the status table (the tick builds
+        reports only for the hooks that want objects), cached until the next report."""
         table = self.table
-        if table is not None and table.dirty[self.row]:
+        if table is not None and table.buf[self.row * ROW_BYTES + MAX_BODY]:
             with contextlib.suppress(StatusBodyError):  # the tick cuts the session off for it
-                return table.report(self.row)
+                self._status = table.report(self.row)
         return self._status
 
     @status.setter
@@ -200,6 +203,7 @@ class AgentSession:
 
 JoinHook = Callable[[AgentSession, Resume | None], Awaitable[None]]
 StatusHook = Callable[[AgentSession, StatusReport], Awaitable[None]]
+TickHook = Callable[[StatusTick], Awaitable[None]]
 SyncHook = Callable[[AgentSession, SyncSignal], Awaitable[None]]
 LostHook = Callable[[str], Awaitable[None]]
 
@@ -216,11 +220,20 @@ class AgentManager:
         self.lost: set[str] = set()
         # Plain lists to the services that append/remove hooks; HookList only counts changes.
         self.on_join: HookList[JoinHook] = HookList()
-        self.on_status: HookList[StatusHook] = HookList()
+        self.on_status: HookList[StatusHook] = HookList()  # every report (built for them: costs ~6 us each)
+        self.on_status_changes: HookList[StatusHook] = HookList()  # reports whose state changed (STATE_BYTES)
+        self.on_status_tick: HookList[TickHook] = HookList()  # each tick's reports as columns (StatusTick)
         self.on_sync: HookList[SyncHook] = HookList()
         self.on_lost: HookList[LostHook] = HookList()
         self._hooks = HookDispatcher(
-            {"join": self.on_join, "status": self.on_status, "sync": self.on_sync, "lost": self.on_lost}
+            {
+                "join": self.on_join,
+                "status": self.on_status,
+                "changes": self.on_status_changes,
+                "tick": self.on_status_tick,
+                "sync": self.on_sync,
+                "lost": self.on_lost,
+            }
         )
         self._tasks: set[asyncio.Task[None]] = set()
         self.table = StatusTable()  # every served session's newest status (gcs/agents_table.py)
@@ -577,8 +590,7 @@ class AgentManager:
             if body.buffered:  # history: it never overwrites the newer live state; in order, at once
                 session.replayed_count += 1
                 self._flush_row(session)
-                if not self._hooks_closed:
-                    self._hooks.publish_batch([(session, body)])
+                self._hand_over([(session, body)])
                 return
             urgent = body.failsafe is not None or body.failure is not None
             if urgent:  # safety news goes to the hooks now, behind the report still waiting for the tick
@@ -635,24 +647,43 @@ class AgentManager:
         rows = table.take_dirty()
         if not len(rows):
             return 0
-        batch: list[tuple[AgentSession, StatusReport]] = []
-        owners = table.owners
-        for row, report in zip(rows.tolist(), table.reports(rows), strict=True):
+        cols = table.columns(rows)
+        ok = table.check(cols)
+        changed = table.changed(rows)
+        owners, objects = table.owners, table.objects
+        keep: list[int] = []
+        sessions: list[AgentSession] = []
+        reports: list[StatusReport | None] = []
+        for i, (row, passed) in enumerate(zip(rows.tolist(), ok.tolist(), strict=True)):
             conn = owners[row]
             if conn is None:
                 continue
-            session = conn.session
-            if isinstance(report, StatusBodyError):
-                conn.finish(ProtocolError(str(report), packet_type=PacketType.STATUS))
-                continue
-            session._status = report
-            batch.append((session, report))
-        if batch and not self._hooks_closed:
-            self._hooks.publish_batch(batch)
+            report = objects[row]  # came decoded (JSON), or an API call decoded it already
+            if not passed and report is None:
+                try:  # the reference decoder names what is wrong
+                    report = table.report(row)
+                except StatusBodyError as exc:
+                    conn.finish(ProtocolError(str(exc), packet_type=PacketType.STATUS))
+                    continue
+            keep.append(i)
+            sessions.append(conn.session)
+            reports.append(report)
+        if len(keep) != len(rows):
+            cols, changed, rows = cols[keep], changed[keep], rows[keep]
+        tick = StatusTick(sessions, cols, table.arrivals(rows), reports)
+        if sessions and not self._hooks_closed:
+            hooks = self._hooks
+            if hooks.has("status"):  # every report as an object: built here (the API's and extensions' view)
+                hooks.publish_batch([(s, tick.report(i)) for i, s in enumerate(sessions)])
+            if hooks.has("changes"):  # a changed state (or a report that came decoded) only
+                new = changed | np.fromiter((r is not None for r in reports), dtype=bool, count=len(reports))
+                moved = np.flatnonzero(new).tolist()
+                hooks.publish_batch([(sessions[i], tick.report(i)) for i in moved], "changes")
+            hooks.publish_tick(tick, len(sessions))
         self._freeze_fleet_heap(len(table))
         self.tick_count += 1
         self.tick_busy_s += time.perf_counter() - started
-        return len(batch)
+        return len(sessions)
 
     def _freeze_fleet_heap(self, agents: int) -> None:
         """Keep the per-agent state of a large fleet out of the full garbage collections.
@@ -683,8 +714,15 @@ class AgentManager:
         except StatusBodyError as exc:
             raise ProtocolError(str(exc), packet_type=PacketType.STATUS) from None
         session._status = report
+        self._hand_over([(session, report)])
+
+    def _hand_over(self, pairs: list[tuple[AgentSession, StatusReport]]) -> None:
+        """Reports handed over outside the tick (rare packets): to every kind of status hook."""
         if not self._hooks_closed:
-            self._hooks.publish_batch([(session, report)])
+            self._hooks.publish_batch(pairs)
+            self._hooks.publish_batch(pairs, "changes")
+            if self._hooks.has("tick"):
+                self._hooks.publish_tick(StatusTick.of_reports(pairs, time.time()), len(pairs))
 
     def _publish(self, kind: HookKind, agent: str, *args: object) -> None:
         """Publish a non-status event behind the agent's report still waiting for the tick."""
@@ -747,6 +785,7 @@ class AgentManager:
         if session.table is not None:  # its last report still goes to the hooks, then the row is free
             with contextlib.suppress(ProtocolError):
                 self._flush_row(session)
+            _ = session.status  # kept as the session's last word once its row is free
             session.table.release(session.row)
             session.table = None
         if self.sessions.get(session.identity) is session:
