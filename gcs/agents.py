@@ -294,6 +294,7 @@ class AgentManager:
         frames: dict[int, bytes] = {}
         ptype = packet_type_of(body)
         sent = 0
+        now = time.monotonic()
         for identity in identities:
             session = self.session(identity)
             if session is None:
@@ -304,7 +305,7 @@ class AgentManager:
             frame = frames.get(session.version)
             if frame is None:
                 frame = frames[session.version] = encode(body, 0, session.version)
-            if session.outbox.write_now(frame, ptype):
+            if session.outbox.write_now(frame, ptype, now):
                 sent += 1
         return sent
 
