@@ -316,6 +316,10 @@ class StatusTick:
             report = self._reports[i] = row_report(self.cols[i : i + 1].tobytes())
         return report
 
+    def decoded(self, i: int) -> StatusReport | None:
+        """Row ``i``'s report if it exists already (it came decoded, or was built), else None."""
+        return self._reports[i]
+
     def mode_mission(self, i: int) -> tuple[str, str | None]:
         """Mode and mission id of row ``i`` (no report built for a compact row)."""
         report = self._reports[i]

@@ -63,8 +63,9 @@ def status_row(agent: str, status: StatusReport, received: float) -> tuple[Any, 
 
 
 def tick_rows(tick: StatusTick, received: float) -> list[tuple[Any, ...]]:
-    """The telemetry rows of a status tick, straight from its columns (no report objects):
-    the same rows as :func:`status_row` gives, for the rows with a position."""
+    """The telemetry rows of a status tick, straight from its columns (no report objects; rows
+    that came decoded use theirs): the same rows as :func:`status_row` gives, for the rows with
+    a position."""
     cols = tick.cols
     index = np.flatnonzero(cols["flags"] & HAS_POSITION)
     if not len(index):
@@ -81,7 +82,7 @@ def tick_rows(tick: StatusTick, received: float) -> list[tuple[Any, ...]]:
         out[np.isnan(values)] = None
         return out.tolist()
 
-    return list(
+    rows = list(
         zip(
             [owners[i].identity for i in at], c["time"].tolist(), [received] * len(at),
             c["lat"].tolist(), c["lon"].tolist(), c["alt_rel"].tolist(), c["alt_amsl"].tolist(),
@@ -93,6 +94,11 @@ def tick_rows(tick: StatusTick, received: float) -> list[tuple[Any, ...]]:
             strict=True,
         )
     )  # fmt: skip
+    for n, i in enumerate(at):  # a report that came decoded (JSON) may hold what a column cannot
+        report = tick.decoded(i)
+        if report is not None:
+            rows[n] = status_row(owners[i].identity, report, received)
+    return rows
 
 
 MAX_QUEUED_ROWS = 500_000
