@@ -963,7 +963,8 @@ def main() -> int:
             f"p99 {row['last_release_p99_ms']:7.2f} ms  "
             f"(per agent p50 {row['per_agent_release_p50_ms']:.2f} ms; in the daemon, arrival -> burst "
             f"written p50 {row['daemon_release_p50_ms']:.2f} ms p99 {row['daemon_release_p99_ms']:.2f} ms, "
-            f"of which the burst p50 {row['burst_write_p50_ms']:.2f} ms p99 {row['burst_write_p99_ms']:.2f} ms; "
+            f"of which the burst p50 {row['burst_write_p50_ms']:.2f} ms "
+            f"p99 {row['burst_write_p99_ms']:.2f} ms; "
             f"{row['released_steps']} barriers)" + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
             flush=True,
         )

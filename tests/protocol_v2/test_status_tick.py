@@ -4,6 +4,7 @@ and the state-change hook gets exactly the reports whose flags, steps, mode or m
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from hypothesis import given, settings
@@ -74,6 +75,11 @@ def test_changed_rows_are_found_by_their_state_bytes() -> None:
     assert not table.changed(np.array([row], dtype=np.intp)).any()  # nothing new since
 
 
+def _count(sessions: dict[str, Any]) -> int:
+    session = sessions.get("c-1")
+    return -1 if session is None else int(session.status_count)
+
+
 async def test_the_changes_hook_sees_state_changes_and_the_tick_hook_every_report(tmp_path: Path) -> None:
     key = new_key()
     async with running_daemon(tmp_path, key) as daemon:
@@ -94,10 +100,7 @@ async def test_the_changes_hook_sees_state_changes_and_the_tick_hook_every_repor
             for k, lat in enumerate(lats):
                 fields = {"mode": "AUTO"} if k == 3 else {}
                 await stream.send(_report(lat, **fields))
-                sessions = daemon.agents.sessions
-                await wait_for(
-                    lambda n=k + 1: "c-1" in sessions and sessions["c-1"].status_count == n, 10, "it"
-                )
+                await wait_for(lambda n=k + 1: _count(daemon.agents.sessions) == n, 10, "the report")
                 assert await daemon.agents.drain_hooks()
             assert ticked == lats  # every report as columns (one per tick here)
             assert [(c.position.lat, c.mode) for c in changes if c.position] == [  # type: ignore[union-attr]
