@@ -77,6 +77,10 @@ STATUS_TICK_S = 0.01
 """Status reports reach the hooks in one batch per tick: the newest per agent since the last tick,
 at most every 10 ms (sooner after a quiet spell: once the event loop has run what it had ready).
 Failsafe, failure, replayed status, sync signals and closes are handed over at once."""
+TICK_SLICE = 128
+"""A tick's rows reach the tick hooks in slices of this many: a consumer yields between two
+slices once its step budget is spent (gcs/dispatch.py), so a whole fleet's tick never holds the
+loop for one service, and its loop time is counted without what ran in between."""
 FREEZE_MIN_AGENTS = 200  # smaller fleets: full collections are short anyway (and tests run many daemons)
 _SLOW_FLAGS = HAS_TAIL | BUFFERED  # a compact body with these is decoded at once (rare packets)
 
@@ -680,7 +684,10 @@ class AgentManager:
                 new = changed | np.fromiter((r is not None for r in reports), dtype=bool, count=len(reports))
                 moved = np.flatnonzero(new).tolist()
                 hooks.publish_batch([(sessions[i], tick.report(i)) for i in moved], "changes")
-            hooks.publish_tick(tick, len(sessions))
+            for start in range(0, len(sessions), TICK_SLICE):  # the consumers yield between slices
+                hooks.publish_tick(
+                    tick.slice(start, start + TICK_SLICE), min(TICK_SLICE, len(sessions) - start)
+                )
         self._freeze_fleet_heap(len(table))
         self.tick_count += 1
         self.tick_busy_s += time.perf_counter() - started

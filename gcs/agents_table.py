@@ -309,6 +309,17 @@ class StatusTick:
         stamps = np.full(len(pairs), received, dtype=np.float64)
         return cls([owner for owner, _ in pairs], cols, stamps, [report for _, report in pairs])
 
+    def slice(self, start: int, stop: int) -> StatusTick:
+        """Rows ``start`` to ``stop`` (the whole tick when it has no more)."""
+        if start == 0 and stop >= len(self.owners):
+            return self
+        return StatusTick(
+            self.owners[start:stop],
+            self.cols[start:stop],
+            self.received[start:stop],
+            self._reports[start:stop],
+        )
+
     def report(self, i: int) -> StatusReport:
         """Row ``i`` as a ``StatusReport`` (built now unless it came decoded)."""
         report = self._reports[i]

@@ -56,7 +56,6 @@ from gcs.cooperation.legs import agent_acceptance_radius
 from gcs.cooperation.preflight import PreflightChecks, start_points
 from gcs.cooperation.recording import FlightRecorder
 from gcs.cooperation.tracking import TrackedAgent, track
-from gcs.dispatch import STEP_BUDGET_S
 from gcs.events import Severity
 from protocol.actions import Action
 from protocol.packets import AgentParameters, Resume, SetParameters, StatusReport
@@ -300,9 +299,8 @@ class CooperationService:
         rows = np.flatnonzero(((flags & HAS_POSITION) != 0) & ((flags & BUFFERED) == 0)).tolist()
         if not rows:
             return
-        owners = tick.owners
-        step_started = time.monotonic()
-        for n, i in enumerate(rows):
+        owners = tick.owners  # a slice of a tick (gcs/agents.py TICK_SLICE): no yield needed in here
+        for i in rows:
             session = owners[i]
             intents = self._checks(session, tick.report(i))
             if intents:
@@ -310,9 +308,6 @@ class CooperationService:
                     await self.apply(intents)
                 except Exception:  # a bug here must not cost the agent its connection
                     log.exception("cooperation: status handling failed for %s", session.identity)
-            if n & 15 == 15 and time.monotonic() - step_started > STEP_BUDGET_S:
-                await asyncio.sleep(0)  # a whole fleet's tick: let the sockets be read in between
-                step_started = time.monotonic()
 
     def _checks(self, session: AgentSession, status: StatusReport) -> list[Intent]:
         """Track one positioned live report and run the per-report checks; the intents to apply."""
