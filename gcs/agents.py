@@ -678,11 +678,11 @@ class AgentManager:
         tick = StatusTick(sessions, cols, table.arrivals(rows), reports)
         if sessions and not self._hooks_closed:
             hooks = self._hooks
+            decoded = np.fromiter((r is not None for r in reports), dtype=bool, count=len(reports))
             if hooks.has("status"):  # every report as an object: built here (the API's and extensions' view)
                 hooks.publish_batch([(s, tick.report(i)) for i, s in enumerate(sessions)])
             if hooks.has("changes"):  # a changed state (or a report that came decoded) only
-                new = changed | np.fromiter((r is not None for r in reports), dtype=bool, count=len(reports))
-                moved = np.flatnonzero(new).tolist()
+                moved = np.flatnonzero(changed | decoded).tolist()  # (decoded: before building any here)
                 hooks.publish_batch([(sessions[i], tick.report(i)) for i in moved], "changes")
             for start in range(0, len(sessions), TICK_SLICE):  # the consumers yield between slices
                 hooks.publish_tick(
@@ -717,6 +717,7 @@ class AgentManager:
         if table is None or not table.dirty[session.row]:
             return
         table.clean(session.row)
+        table.unsee(session.row)
         try:
             report = table.report(session.row)
         except StatusBodyError as exc:

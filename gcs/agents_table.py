@@ -169,6 +169,12 @@ class StatusTable:
         seen[rows] = now
         return diff
 
+    def unsee(self, row: int) -> None:
+        """The row's report went to the hooks outside a tick: its next report counts as a change
+        (a state that came back, say a failsafe that cleared, must not look unchanged)."""
+        width = len(STATE_BYTES)
+        self.seen[row * width : (row + 1) * width] = bytes(width)
+
     @staticmethod
     def check(cols: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.bool_]]:
         """Which rows of ``cols`` (``ROW_DTYPE``) keep the protocol's ranges, as one vectorised check."""
