@@ -57,7 +57,7 @@ from protocol.packets import (
     packet_type_of,
 )
 from protocol.session import Code, Refused, ServerHandshake, close_for
-from protocol.status_binary import BUFFERED, HAS_TAIL, StatusBodyError
+from protocol.status_binary import ARMED, BUFFERED, HAS_TAIL, LANDED, StatusBodyError
 from protocol.stream import FramedStream
 from protocol.wire import (
     COMPACT,
@@ -675,6 +675,9 @@ class AgentManager:
             reports.append(report)
         if len(keep) != len(rows):
             cols, changed, rows = cols[keep], changed[keep], rows[keep]
+        # On the ground and disarmed the authority drops automatic holds with every report, as
+        # before (a hold placed on a landed drone ends at its next report, not at a change).
+        changed |= (cols["flags"] & (LANDED | ARMED)) == LANDED
         tick = StatusTick(sessions, cols, table.arrivals(rows), reports)
         if sessions and not self._hooks_closed:
             hooks = self._hooks

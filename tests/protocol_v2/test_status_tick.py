@@ -100,8 +100,8 @@ async def test_the_changes_hook_sees_state_changes_and_the_tick_hook_every_repor
         try:
             lats = [47.0 + k / 1000 for k in range(6)]
             for k, lat in enumerate(lats):
-                fields = {"mode": "AUTO"} if k == 3 else {}
-                await stream.send(_report(lat, **fields))
+                fields: dict[str, Any] = {"mode": "AUTO"} if k == 3 else {}
+                await stream.send(_report(lat, armed=True, landed=False, **fields))
                 await wait_for(lambda n=k + 1: _count(daemon.agents.sessions) == n, 10, "the report")
                 assert await daemon.agents.drain_hooks()
             assert ticked == lats  # every report as columns (one per tick here)
@@ -111,5 +111,11 @@ async def test_the_changes_hook_sees_state_changes_and_the_tick_hook_every_repor
                 (lats[4], "GUIDED"),
             ]
             assert daemon.agents.sessions["c-1"].status.position.lat == lats[-1]  # type: ignore[union-attr]
+            changes.clear()
+            for k, lat in enumerate(lats[:2]):  # landed and disarmed: every report (authority drops holds)
+                await stream.send(_report(lat, armed=False, landed=True))
+                await wait_for(lambda n=k + 7: _count(daemon.agents.sessions) == n, 10, "the report")
+                assert await daemon.agents.drain_hooks()
+            assert [c.position.lat for c in changes if c.position] == lats[:2]
         finally:
             await stream.close()
