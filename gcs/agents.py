@@ -13,9 +13,11 @@ Nothing is awaited on the read path. After the handshake the connection's frames
 in its transport's ``data_received`` (:class:`_FrameProtocol`, no read task): a compact status
 body (``compact_status``, negotiated by the session layer) is only CRC- and rate-checked and
 copied as it is into the agent's row of the fleet status table (gcs/agents_table.py). The status
-tick (at most every ``STATUS_TICK_S``) decodes the dirty rows with NumPy column checks and hands
-the newest report of each agent to the hook consumers (gcs/dispatch.py) in one batch; they run
-``on_join`` / ``on_status`` / ``on_sync`` / ``on_lost`` hooks in one task per hook owner. JSON
+tick (at most every ``STATUS_TICK_S``) checks the dirty rows as NumPy columns and hands the
+newest report of each agent to the hook consumers (gcs/dispatch.py): as columns to
+``on_status_tick`` (a ``StatusTick``, reports built on demand), the reports whose state changed
+to ``on_status_changes``, and every report to ``on_status`` (built only if such hooks exist);
+consumers run these and ``on_join`` / ``on_sync`` / ``on_lost`` in one task per hook owner. JSON
 status, failsafe or failure reports, replayed status, ``finished`` and close are decoded and
 handled at once, behind the agent's report still waiting for the tick, so each consumer sees
 one agent's events in the order they arrived.
