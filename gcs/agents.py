@@ -13,9 +13,11 @@ Nothing is awaited on the read path. After the handshake the connection's frames
 in its transport's ``data_received`` (:class:`_FrameProtocol`, no read task): a compact status
 body (``compact_status``, negotiated by the session layer) is only CRC- and rate-checked and
 copied as it is into the agent's row of the fleet status table (gcs/agents_table.py). The status
-tick (at most every ``STATUS_TICK_S``) decodes the dirty rows with NumPy column checks and hands
-the newest report of each agent to the hook consumers (gcs/dispatch.py) in one batch; they run
-``on_join`` / ``on_status`` / ``on_sync`` / ``on_lost`` hooks in one task per hook owner. JSON
+tick (at most every ``STATUS_TICK_S``) checks the dirty rows as NumPy columns and hands the
+newest report of each agent to the hook consumers (gcs/dispatch.py): as columns to
+``on_status_tick`` (a ``StatusTick``, reports built on demand), the reports whose state changed
+to ``on_status_changes``, and every report to ``on_status`` (built only if such hooks exist);
+consumers run these and ``on_join`` / ``on_sync`` / ``on_lost`` in one task per hook owner. JSON
 status, failsafe or failure reports, replayed status, ``finished`` and close are decoded and
 handled at once, behind the agent's report still waiting for the tick, so each consumer sees
 one agent's events in the order they arrived.
@@ -31,7 +33,9 @@ import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
-from gcs.agents_table import MAX_BODY, ROW_BYTES, StatusTable
+import numpy as np
+
+from gcs.agents_table import MAX_BODY, ROW_BYTES, StatusTable, StatusTick
 from gcs.config import DaemonConfig
 from gcs.dispatch import ConsumerStats, HookDispatcher, HookKind, HookList
 from gcs.events import EventBus
@@ -55,7 +59,7 @@ from protocol.packets import (
     packet_type_of,
 )
 from protocol.session import Code, Refused, ServerHandshake, close_for
-from protocol.status_binary import BUFFERED, HAS_TAIL, StatusBodyError
+from protocol.status_binary import ARMED, BUFFERED, HAS_TAIL, LANDED, StatusBodyError
 from protocol.stream import FramedStream
 from protocol.wire import (
     COMPACT,
@@ -75,6 +79,10 @@ STATUS_TICK_S = 0.01
 """Status reports reach the hooks in one batch per tick: the newest per agent since the last tick,
 at most every 10 ms (sooner after a quiet spell: once the event loop has run what it had ready).
 Failsafe, failure, replayed status, sync signals and closes are handed over at once."""
+TICK_SLICE = 128
+"""A tick's rows reach the tick hooks in slices of this many: a consumer yields between two
+slices once its step budget is spent (gcs/dispatch.py), so a whole fleet's tick never holds the
+loop for one service, and its loop time is counted without what ran in between."""
 FREEZE_MIN_AGENTS = 200  # smaller fleets: full collections are short anyway (and tests run many daemons)
 _SLOW_FLAGS = HAS_TAIL | BUFFERED  # a compact body with these is decoded at once (rare packets)
 
@@ -137,11 +145,12 @@ class AgentSession:
 
     @property
     def status(self) -> StatusReport | None:
-        """The newest live status report: decoded now if it came after the last status tick."""
+        """The newest live status report: decoded on demand from the status table (the tick builds
+        reports only for the hooks that want objects), cached until the next report."""
         table = self.table
-        if table is not None and table.dirty[self.row]:
+        if table is not None and table.buf[self.row * ROW_BYTES + MAX_BODY]:
             with contextlib.suppress(StatusBodyError):  # the tick cuts the session off for it
-                return table.report(self.row)
+                self._status = table.report(self.row)
         return self._status
 
     @status.setter
@@ -200,6 +209,7 @@ class AgentSession:
 
 JoinHook = Callable[[AgentSession, Resume | None], Awaitable[None]]
 StatusHook = Callable[[AgentSession, StatusReport], Awaitable[None]]
+TickHook = Callable[[StatusTick], Awaitable[None]]
 SyncHook = Callable[[AgentSession, SyncSignal], Awaitable[None]]
 LostHook = Callable[[str], Awaitable[None]]
 
@@ -216,11 +226,20 @@ class AgentManager:
         self.lost: set[str] = set()
         # Plain lists to the services that append/remove hooks; HookList only counts changes.
         self.on_join: HookList[JoinHook] = HookList()
-        self.on_status: HookList[StatusHook] = HookList()
+        self.on_status: HookList[StatusHook] = HookList()  # every report (built for them: costs ~6 us each)
+        self.on_status_changes: HookList[StatusHook] = HookList()  # reports whose state changed (STATE_BYTES)
+        self.on_status_tick: HookList[TickHook] = HookList()  # each tick's reports as columns (StatusTick)
         self.on_sync: HookList[SyncHook] = HookList()
         self.on_lost: HookList[LostHook] = HookList()
         self._hooks = HookDispatcher(
-            {"join": self.on_join, "status": self.on_status, "sync": self.on_sync, "lost": self.on_lost}
+            {
+                "join": self.on_join,
+                "status": self.on_status,
+                "changes": self.on_status_changes,
+                "tick": self.on_status_tick,
+                "sync": self.on_sync,
+                "lost": self.on_lost,
+            }
         )
         self._tasks: set[asyncio.Task[None]] = set()
         self.table = StatusTable()  # every served session's newest status (gcs/agents_table.py)
@@ -281,6 +300,7 @@ class AgentManager:
         frames: dict[int, bytes] = {}
         ptype = packet_type_of(body)
         sent = 0
+        now = time.monotonic()
         for identity in identities:
             session = self.session(identity)
             if session is None:
@@ -291,7 +311,7 @@ class AgentManager:
             frame = frames.get(session.version)
             if frame is None:
                 frame = frames[session.version] = encode(body, 0, session.version)
-            if session.outbox.write_now(frame, ptype):
+            if session.outbox.write_now(frame, ptype, now):
                 sent += 1
         return sent
 
@@ -577,8 +597,7 @@ class AgentManager:
             if body.buffered:  # history: it never overwrites the newer live state; in order, at once
                 session.replayed_count += 1
                 self._flush_row(session)
-                if not self._hooks_closed:
-                    self._hooks.publish_batch([(session, body)])
+                self._hand_over([(session, body)])
                 return
             urgent = body.failsafe is not None or body.failure is not None
             if urgent:  # safety news goes to the hooks now, behind the report still waiting for the tick
@@ -635,24 +654,49 @@ class AgentManager:
         rows = table.take_dirty()
         if not len(rows):
             return 0
-        batch: list[tuple[AgentSession, StatusReport]] = []
-        owners = table.owners
-        for row, report in zip(rows.tolist(), table.reports(rows), strict=True):
+        cols = table.columns(rows)
+        ok = table.check(cols)
+        changed = table.changed(rows)
+        owners, objects = table.owners, table.objects
+        keep: list[int] = []
+        sessions: list[AgentSession] = []
+        reports: list[StatusReport | None] = []
+        for i, (row, passed) in enumerate(zip(rows.tolist(), ok.tolist(), strict=True)):
             conn = owners[row]
             if conn is None:
                 continue
-            session = conn.session
-            if isinstance(report, StatusBodyError):
-                conn.finish(ProtocolError(str(report), packet_type=PacketType.STATUS))
-                continue
-            session._status = report
-            batch.append((session, report))
-        if batch and not self._hooks_closed:
-            self._hooks.publish_batch(batch)
+            report = objects[row]  # came decoded (JSON), or an API call decoded it already
+            if not passed and report is None:
+                try:  # the reference decoder names what is wrong
+                    report = table.report(row)
+                except StatusBodyError as exc:
+                    conn.finish(ProtocolError(str(exc), packet_type=PacketType.STATUS))
+                    continue
+            keep.append(i)
+            sessions.append(conn.session)
+            reports.append(report)
+        if len(keep) != len(rows):
+            cols, changed, rows = cols[keep], changed[keep], rows[keep]
+        # On the ground and disarmed the authority drops automatic holds with every report, as
+        # before (a hold placed on a landed drone ends at its next report, not at a change).
+        changed |= (cols["flags"] & (LANDED | ARMED)) == LANDED
+        tick = StatusTick(sessions, cols, table.arrivals(rows), reports)
+        if sessions and not self._hooks_closed:
+            hooks = self._hooks
+            decoded = np.fromiter((r is not None for r in reports), dtype=bool, count=len(reports))
+            if hooks.has("status"):  # every report as an object: built here (the API's and extensions' view)
+                hooks.publish_batch([(s, tick.report(i)) for i, s in enumerate(sessions)])
+            if hooks.has("changes"):  # a changed state (or a report that came decoded) only
+                moved = np.flatnonzero(changed | decoded).tolist()  # (decoded: before building any here)
+                hooks.publish_batch([(sessions[i], tick.report(i)) for i in moved], "changes")
+            for start in range(0, len(sessions), TICK_SLICE):  # the consumers yield between slices
+                hooks.publish_tick(
+                    tick.slice(start, start + TICK_SLICE), min(TICK_SLICE, len(sessions) - start)
+                )
         self._freeze_fleet_heap(len(table))
         self.tick_count += 1
         self.tick_busy_s += time.perf_counter() - started
-        return len(batch)
+        return len(sessions)
 
     def _freeze_fleet_heap(self, agents: int) -> None:
         """Keep the per-agent state of a large fleet out of the full garbage collections.
@@ -678,13 +722,21 @@ class AgentManager:
         if table is None or not table.dirty[session.row]:
             return
         table.clean(session.row)
+        table.unsee(session.row)
         try:
             report = table.report(session.row)
         except StatusBodyError as exc:
             raise ProtocolError(str(exc), packet_type=PacketType.STATUS) from None
         session._status = report
+        self._hand_over([(session, report)])
+
+    def _hand_over(self, pairs: list[tuple[AgentSession, StatusReport]]) -> None:
+        """Reports handed over outside the tick (rare packets): to every kind of status hook."""
         if not self._hooks_closed:
-            self._hooks.publish_batch([(session, report)])
+            self._hooks.publish_batch(pairs)
+            self._hooks.publish_batch(pairs, "changes")
+            if self._hooks.has("tick"):
+                self._hooks.publish_tick(StatusTick.of_reports(pairs, time.time()), len(pairs))
 
     def _publish(self, kind: HookKind, agent: str, *args: object) -> None:
         """Publish a non-status event behind the agent's report still waiting for the tick."""
@@ -747,6 +799,7 @@ class AgentManager:
         if session.table is not None:  # its last report still goes to the hooks, then the row is free
             with contextlib.suppress(ProtocolError):
                 self._flush_row(session)
+            _ = session.status  # kept as the session's last word once its row is free
             session.table.release(session.row)
             session.table = None
         if self.sessions.get(session.identity) is session:

@@ -39,6 +39,15 @@ ROW_DTYPE: np.dtype[Any] = np.dtype(
     }
 )
 """One table row read as the compact body's fixed fields (the rest of the row is skipped)."""
+_OFFSET = {name: FIXED_DTYPE.fields[name][1] for name, _ in status_binary.FIXED_FIELDS}  # type: ignore[index]
+STATE_BYTES: tuple[int, ...] = (
+    _OFFSET["flags"],
+    *range(_OFFSET["step"], _OFFSET["queue_depth"]),
+    *range(_OFFSET["waiting_sync"], ROW_BYTES),
+)
+"""The row bytes whose change a state hook cares about: flags (armed, landed, paused, position,
+link), step, completed step, waiting sync, then mode, mission and the body length."""
+_STATE_INDEX = np.array(STATE_BYTES, dtype=np.intp)
 assert FIXED_DTYPE.itemsize == status_binary.FIXED_SIZE
 
 
@@ -49,7 +58,7 @@ class StatusTable:
     everything else goes through the methods.
     """
 
-    __slots__ = ("_free", "_used", "buf", "capacity", "dirty", "objects", "owners", "rx")
+    __slots__ = ("_free", "_used", "buf", "capacity", "dirty", "objects", "owners", "rx", "seen")
 
     def __init__(self, capacity: int = 64) -> None:
         self.capacity = max(1, capacity)
@@ -58,6 +67,7 @@ class StatusTable:
         self.rx = array.array("d", bytes(8 * self.capacity))  # wall time the newest report arrived
         self.objects: list[StatusReport | None] = [None] * self.capacity  # decoded already (JSON, rare path)
         self.owners: list[Any] = [None] * self.capacity  # the session of each used row
+        self.seen = bytearray(self.capacity * len(STATE_BYTES))  # state bytes of the last tick's report
         self._free: list[int] = []
         self._used = 0  # rows handed out so far (slots below it are used or on the free list)
 
@@ -78,6 +88,8 @@ class StatusTable:
         self.dirty[row] = 0
         self.rx[row] = 0.0
         self.buf[row * ROW_BYTES + MAX_BODY] = 0
+        width = len(STATE_BYTES)
+        self.seen[row * width : (row + 1) * width] = bytes(width)  # its first report counts as a change
         return row
 
     def release(self, row: int) -> None:
@@ -98,6 +110,7 @@ class StatusTable:
         self.rx = self.rx + array.array("d", bytes(8 * old))
         self.objects += [None] * old
         self.owners += [None] * old
+        self.seen = self.seen + bytes(old * len(STATE_BYTES))
 
     def put(self, row: int, body: bytes, now: float) -> None:
         """Store a compact body (at most :data:`MAX_BODY` bytes) as the row's newest report."""
@@ -129,9 +142,12 @@ class StatusTable:
         self.dirty[row] = 0
 
     def columns(self, rows: np.ndarray[Any, np.dtype[np.intp]] | None = None) -> np.ndarray[Any, Any]:
-        """The fixed fields of ``rows`` (default: every row handed out) as a structured array (a copy)."""
-        table = np.frombuffer(self.buf, dtype=ROW_DTYPE, count=self._used)
-        return table.copy() if rows is None else table[rows]
+        """The fixed fields of ``rows`` (default: every row handed out) as a structured array: a copy
+        of the whole rows (fancy indexing of a structured array would drop the bytes after the
+        fixed fields, which hold mode and mission)."""
+        raw = np.frombuffer(self.buf, dtype=np.uint8, count=self._used * ROW_BYTES).reshape(-1, ROW_BYTES)
+        picked = raw.copy() if rows is None else raw[rows]
+        return picked.view(ROW_DTYPE).reshape(-1)
 
     def arrivals(self, rows: np.ndarray[Any, np.dtype[np.intp]]) -> np.ndarray[Any, np.dtype[np.float64]]:
         """Wall time the newest report of each of ``rows`` arrived."""
@@ -142,20 +158,32 @@ class StatusTable:
         start = row * ROW_BYTES
         return bytes(self.buf[start : start + self.buf[start + MAX_BODY]])
 
-    def reports(self, rows: np.ndarray[Any, np.dtype[np.intp]]) -> list[StatusReport | StatusBodyError]:
-        """The newest report of each of ``rows``, or why its body is refused.
+    def changed(self, rows: np.ndarray[Any, np.dtype[np.intp]]) -> np.ndarray[Any, np.dtype[np.bool_]]:
+        """Which of ``rows`` changed state (:data:`STATE_BYTES`: flags, steps, mode, mission) since the
+        last call for them; one vectorised compare, the remembered state updated."""
+        width = len(STATE_BYTES)
+        table = np.frombuffer(self.buf, dtype=np.uint8, count=self._used * ROW_BYTES).reshape(-1, ROW_BYTES)
+        now = table[rows[:, None], _STATE_INDEX]
+        seen = np.frombuffer(self.seen, dtype=np.uint8, count=self._used * width).reshape(-1, width)
+        diff: np.ndarray[Any, np.dtype[np.bool_]] = (now != seen[rows]).any(axis=1)
+        seen[rows] = now
+        return diff
 
-        The fixed fields of all rows are range-checked at once on NumPy columns; a row that
-        passes is assembled without a second check (``status_binary.from_checked``), a row that
-        does not goes through ``status_binary.decode``, which names the problem.
-        """
-        cols = np.frombuffer(self.buf, dtype=ROW_DTYPE, count=self._used)[rows]
+    def unsee(self, row: int) -> None:
+        """The row's report went to the hooks outside a tick: its next report counts as a change
+        (a state that came back, say a failsafe that cleared, must not look unchanged)."""
+        width = len(STATE_BYTES)
+        self.seen[row * width : (row + 1) * width] = bytes(width)
+
+    @staticmethod
+    def check(cols: np.ndarray[Any, Any]) -> np.ndarray[Any, np.dtype[np.bool_]]:
+        """Which rows of ``cols`` (``ROW_DTYPE``) keep the protocol's ranges, as one vectorised check."""
         flags = cols["flags"]
         vt, pct, volts, amps = cols["vehicle_time"], cols["battery_pct"], cols["voltage_v"], cols["current_a"]
         lat, lon, heading = cols["lat"], cols["lon"], cols["heading_deg"]
         isfinite, isnan = np.isfinite, np.isnan
         with np.errstate(invalid="ignore"):
-            ok = (
+            ok: np.ndarray[Any, np.dtype[np.bool_]] = (
                 (cols["layout"] == status_binary.LAYOUT_VERSION)
                 & (flags < 0x80)
                 & ((flags & status_binary.HAS_TAIL) == 0)
@@ -185,6 +213,17 @@ class StatusTable:
                     )
                 )
             )
+        return ok
+
+    def reports(self, rows: np.ndarray[Any, np.dtype[np.intp]]) -> list[StatusReport | StatusBodyError]:
+        """The newest report of each of ``rows``, or why its body is refused.
+
+        The fixed fields of all rows are range-checked at once on NumPy columns; a row that
+        passes is assembled without a second check (``status_binary.from_checked``), a row that
+        does not goes through ``status_binary.decode``, which names the problem.
+        """
+        cols = np.frombuffer(self.buf, dtype=ROW_DTYPE, count=self._used)[rows]
+        ok = self.check(cols)
         fields = list(zip(*(cols[name].tolist() for name, _ in status_binary.FIXED_FIELDS), strict=True))
         buf, objects, fixed = self.buf, self.objects, status_binary.FIXED_SIZE
         out: list[StatusReport | StatusBodyError] = []
@@ -223,4 +262,108 @@ class StatusTable:
         return report
 
 
-__all__ = ["FIXED_DTYPE", "MAX_BODY", "ROW_BYTES", "ROW_DTYPE", "StatusTable"]
+def row_report(raw: bytes) -> StatusReport:
+    """The report of one raw table row (:data:`ROW_BYTES`) whose fixed fields passed
+    :meth:`StatusTable.check`: assembled without a second check when mode and mission are sound,
+    else decoded by ``status_binary.decode``, which names the problem (``StatusBodyError``)."""
+    fixed, size = status_binary.FIXED_SIZE, raw[MAX_BODY]
+    mode_end = fixed + 1 + raw[fixed]
+    if fixed + 2 <= size and mode_end < size and mode_end + 1 + raw[mode_end] == size:
+        try:
+            mode = raw[fixed + 1 : mode_end].decode()
+            mission = raw[mode_end + 1 : size].decode() or None
+        except UnicodeDecodeError:
+            mode, mission = "", ""
+        if len(mode) <= 32 and (mission is None or 0 < len(mission) <= 64):
+            return status_binary.from_checked(status_binary.FIXED.unpack_from(raw), mode, mission)
+    return status_binary.decode(raw[:size])
+
+
+class StatusTick:
+    """One status tick as columns: the rows handed over, their owners (sessions) and arrival times.
+
+    Why: services that work on the whole fleet (telemetry rows, the bench) read the columns and
+    never need a ``StatusReport`` per row; :meth:`report` builds one on demand (cached). ``cols``
+    is a copy (``ROW_DTYPE``, each item the whole raw row), so later reports do not change it.
+    """
+
+    __slots__ = ("_reports", "cols", "owners", "received")
+
+    def __init__(
+        self,
+        owners: list[Any],
+        cols: np.ndarray[Any, Any],
+        received: np.ndarray[Any, np.dtype[np.float64]],
+        reports: list[StatusReport | None],
+    ) -> None:
+        self.owners = owners
+        self.cols = cols
+        self.received = received  # wall time each row's report arrived
+        self._reports = reports
+
+    def __len__(self) -> int:
+        return len(self.owners)
+
+    @classmethod
+    def of_reports(cls, pairs: list[tuple[Any, StatusReport]], received: float) -> StatusTick:
+        """A tick of reports decoded already (rare packets handed over at once)."""
+        rows = bytearray(len(pairs) * ROW_BYTES)
+        for i, (_, report) in enumerate(pairs):
+            body = status_binary.encode(report)[: status_binary.FIXED_SIZE]
+            rows[i * ROW_BYTES : i * ROW_BYTES + len(body)] = body
+        cols = np.frombuffer(bytes(rows), dtype=ROW_DTYPE)
+        stamps = np.full(len(pairs), received, dtype=np.float64)
+        return cls([owner for owner, _ in pairs], cols, stamps, [report for _, report in pairs])
+
+    def slice(self, start: int, stop: int) -> StatusTick:
+        """Rows ``start`` to ``stop`` (the whole tick when it has no more)."""
+        if start == 0 and stop >= len(self.owners):
+            return self
+        return StatusTick(
+            self.owners[start:stop],
+            self.cols[start:stop],
+            self.received[start:stop],
+            self._reports[start:stop],
+        )
+
+    def report(self, i: int) -> StatusReport:
+        """Row ``i`` as a ``StatusReport`` (built now unless it came decoded)."""
+        report = self._reports[i]
+        if report is None:
+            report = self._reports[i] = row_report(self.cols[i : i + 1].tobytes())
+        return report
+
+    def decoded(self, i: int) -> StatusReport | None:
+        """Row ``i``'s report if it exists already (it came decoded, or was built), else None."""
+        return self._reports[i]
+
+    def mode_mission(self, i: int) -> tuple[str, str | None]:
+        """Mode and mission id of row ``i`` (no report built for a compact row)."""
+        report = self._reports[i]
+        if report is not None:
+            return report.mode, report.mission_id
+        raw = self.cols[i : i + 1].tobytes()
+        key = raw[status_binary.FIXED_SIZE : raw[MAX_BODY]]
+        found = _MODES.get(key)
+        if found is None:
+            built = self.report(i)
+            found = (built.mode, built.mission_id)
+            if len(_MODES) > 4096:
+                _MODES.clear()
+            _MODES[key] = found
+        return found
+
+
+_MODES: dict[bytes, tuple[str, str | None]] = {}  # the variable part of a body -> its mode, mission
+
+
+__all__ = [
+    "FIXED_DTYPE",
+    "MAX_BODY",
+    "ROW_BYTES",
+    "ROW_DTYPE",
+    "STATE_BYTES",
+    "StatusTable",
+    "StatusTick",
+    "row_report",
+]

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
 
 from gcs.agents import AgentManager, AgentSession
+from gcs.agents_table import StatusTick
 from gcs.authority import Owner, VehicleAuthority
 from gcs.config import DaemonConfig
 from gcs.context import ServiceContext
@@ -155,7 +156,8 @@ class Daemon:
         self.operator = OperatorCommands(
             self.agents, self.missions, self.authority, self.returns, self.events
         )
-        self.agents.on_status.insert(0, self._observe_status)
+        self.agents.on_status_changes.insert(0, self._observe_status)  # mode/armed/landed/step... changed
+        self.agents.on_status_tick.insert(0, self._on_status_tick)
         self._returns_tick_due = False
         self.api_token = load_api_token(config)
         self._server: asyncio.base_events.Server | None = None
@@ -229,6 +231,8 @@ class Daemon:
         if session.home is None and p is not None and status.landed and not status.armed:
             # An agent that joined before its autopilot had a home: where it stands is its home.
             session.home = GeoPoint(lat=p.lat, lon=p.lon, alt_amsl=p.alt_amsl)
+
+    async def _on_status_tick(self, tick: StatusTick) -> None:
         if self.returns.active and not self._returns_tick_due:  # O(fleet): once per batch, not per report
             self._returns_tick_due = True
             asyncio.get_running_loop().call_soon(self._returns_tick)

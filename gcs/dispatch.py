@@ -34,7 +34,8 @@ from typing import Any, Literal, Self, SupportsIndex, TypeVar
 
 log = logging.getLogger("gcs.dispatch")
 
-HookKind = Literal["join", "status", "sync", "lost"]
+HookKind = Literal["join", "status", "changes", "tick", "sync", "lost"]
+_BATCHED: frozenset[str] = frozenset(("status", "changes", "tick"))  # may be dropped when a queue is full
 Hook = Callable[..., Awaitable[None]]
 StatusBatch = list[tuple[Any, Any]]  # (session, report) pairs, in arrival order
 
@@ -109,6 +110,7 @@ class _Item:
     version: int  # of the hook list when published: unchanged means still registered
     live: bool = True
     batch: StatusBatch | None = None  # a status batch: hook(session, report) for each pair
+    size: int = 1  # reports it stands for (a batch: its pairs; a tick: its rows)
 
 
 @dataclass(frozen=True, slots=True)
@@ -155,8 +157,8 @@ class Consumer:
         return self._size
 
     def offer_batch(self, item: _Item) -> None:
-        """Queue one status batch (``item.batch``: shared, never changed, by every consumer it goes to)."""
-        size = len(item.batch or ())
+        """Queue one status batch or tick (shared, never changed, by every consumer it goes to)."""
+        size = item.size
         for _ in range(len(self._queue)):
             if self._size + size <= self.capacity:
                 break
@@ -193,11 +195,11 @@ class Consumer:
     def _drop_oldest_status(self) -> int:
         """Drop the oldest waiting status (or status batch); how many reports went."""
         for queued in self._queue:
-            if queued.live and queued.kind == "status":
+            if queued.live and queued.kind in _BATCHED:
                 queued.live = False
-                if queued.batch is not None:
-                    self._size -= len(queued.batch)
-                    return len(queued.batch)
+                if queued.batch is not None or queued.kind == "tick":
+                    self._size -= queued.size
+                    return queued.size
                 self._size -= 1
                 if self._latest.get(queued.agent) is queued:
                     del self._latest[queued.agent]
@@ -218,8 +220,8 @@ class Consumer:
             item = queue.popleft()
             if not item.live:
                 continue
-            if item.batch is not None:
-                self._size -= len(item.batch)
+            if item.batch is not None or item.kind == "tick":
+                self._size -= item.size
             else:
                 self._size -= 1
                 if latest.get(item.agent) is item:
@@ -231,7 +233,7 @@ class Consumer:
                 await self._call(item.kind, item.hook, item.args)
             else:  # a whole fleet's batch can take longer than a step: yield inside it too
                 for index, pair in enumerate(item.batch):
-                    await self._call("status", item.hook, pair)
+                    await self._call(item.kind, item.hook, pair)
                     if index & 15 == 15 and time.monotonic() - step_started > STEP_BUDGET_S:
                         self.busy_s += time.monotonic() - started
                         await asyncio.sleep(0)
@@ -292,12 +294,22 @@ class HookDispatcher:
         for hook, consumer in self._route(kind):
             consumer.offer(_Item(kind, hook, agent, args, self._hooks[kind].version))
 
-    def publish_batch(self, batch: StatusBatch) -> None:
-        """Queue ``hook(session, report)`` for every pair of ``batch`` and every status hook."""
+    def publish_batch(self, batch: StatusBatch, kind: HookKind = "status") -> None:
+        """Queue ``hook(session, report)`` for every pair of ``batch`` and every hook of ``kind``."""
         if batch:
-            version = self._hooks["status"].version
-            for hook, consumer in self._route("status"):
-                consumer.offer_batch(_Item("status", hook, "", (), version, batch=batch))
+            version = self._hooks[kind].version
+            for hook, consumer in self._route(kind):
+                consumer.offer_batch(_Item(kind, hook, "", (), version, batch=batch, size=len(batch)))
+
+    def publish_tick(self, tick: Any, size: int) -> None:
+        """Queue ``hook(tick)`` for every tick hook (one call per tick: the service reads its columns)."""
+        version = self._hooks["tick"].version
+        for hook, consumer in self._route("tick"):
+            consumer.offer_batch(_Item("tick", hook, "", (tick,), version, size=size))
+
+    def has(self, kind: HookKind) -> bool:
+        """Whether any hook of ``kind`` is registered (the status tick builds reports only for them)."""
+        return bool(self._hooks[kind])
 
     def _route(self, kind: HookKind) -> list[tuple[Hook, Consumer]]:
         """(hook, its consumer) for every hook of ``kind``, cached until the hook list changes."""

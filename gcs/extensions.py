@@ -88,7 +88,8 @@ class Extension:
 
     async def start(self, ctx: ServiceContext) -> None:
         self.context = ctx
-        ctx.agents.on_status.append(self._status_hook)
+        if type(self).on_status is not Extension.on_status:  # objects are built per report only for it
+            ctx.agents.on_status.append(self._status_hook)
         ctx.agents.on_join.append(self._join_hook)
         self._events = ctx.events.subscribe()
         self.spawn(self._pump())

@@ -120,7 +120,7 @@ class MissionRunner:
         # mission id -> (checked at, plans) of running missions led by another daemon
         self._stored_plans: dict[str, tuple[float, dict[str, list[Action]] | None]] = {}
         agents.on_join.append(self._on_join)
-        agents.on_status.append(self._on_status)
+        agents.on_status_changes.append(self._on_status)  # completed step, failsafe, failure: state changes
         agents.on_sync.append(self._on_sync)
         agents.on_lost.append(self._on_lost)
 

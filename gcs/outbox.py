@@ -61,7 +61,7 @@ class _Outgoing:
     done: asyncio.Future[bool] | None = None
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, slots=True)
 class Outbox:
     """The outbound side of one session. ``start()`` once; the writer ends when the session is cut off."""
 
@@ -83,6 +83,7 @@ class Outbox:
     _task: asyncio.Task[None] | None = None
     _in_flight: list[_Outgoing] = field(default_factory=list)
     _drain_due: bool = False  # write_now wrote past the queue: the writer drains it
+    _seq: int = 0
 
     def __post_init__(self) -> None:
         self._seq = self.first_seq
@@ -121,7 +122,7 @@ class Outbox:
             self.cut_off(f"a frame was not written within {timeout:g} s")
             return False
 
-    def write_now(self, frame: bytes, ptype: int) -> bool:
+    def write_now(self, frame: bytes, ptype: int, now: float | None = None) -> bool:
         """Write a pre-encoded normal-lane frame (any seq; it gets ours) to the socket right now.
 
         For a burst to many agents (a barrier release): one ``transport.write`` per agent in one
@@ -133,20 +134,24 @@ class Outbox:
             return False
         if self._queue:
             return self._enqueue_frame(_Outgoing(frame, ptype, False))
-        if len(frame) + _buffered(self.writer) > self.max_pending_bytes:
-            self.cut_off(f"more than {self.max_pending_bytes} bytes waiting for a peer that does not read")
-            return False
-        self._seq += 1
-        out = bytearray(frame)
-        _SEQ.pack_into(out, _SEQ_OFFSET, self._seq % (1 << 32))
+        transport = self.writer.transport  # straight to the transport: no per-agent layers in a burst
         try:
-            self.writer.write(out)
-        except (OSError, RuntimeError) as exc:
+            waiting = transport.get_write_buffer_size()
+            if len(frame) + waiting > self.max_pending_bytes:
+                self.cut_off(
+                    f"more than {self.max_pending_bytes} bytes waiting for a peer that does not read"
+                )
+                return False
+            self._seq += 1
+            out = bytearray(frame)
+            _SEQ.pack_into(out, _SEQ_OFFSET, self._seq % (1 << 32))
+            transport.write(out)
+        except (OSError, RuntimeError, AttributeError) as exc:
             self.cut_off(f"write failed: {exc}")
             return False
-        self.last_tx = time.monotonic()
+        self.last_tx = now if now is not None else time.monotonic()
         self.written += 1
-        if self.writer.transport.get_write_buffer_size():  # the kernel did not take it all
+        if transport.get_write_buffer_size():  # the kernel did not take it all
             self._drain_due = True  # the writer task drains it (and cuts a stuck peer off)
             self._wakeup.set()
         return True

@@ -28,10 +28,13 @@ import time
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
 
-from gcs.agents import AgentSession
+import numpy as np
+
+from gcs.agents_table import StatusTick
 from gcs.config import TelemetryConfig
 from gcs.store import Store, checkpoint, insert_telemetry, prune_telemetry, telemetry_page_json
 from protocol.packets import StatusReport
+from protocol.status_binary import ARMED, BUFFERED, HAS_POSITION, LANDED
 
 if TYPE_CHECKING:
     from gcs.context import ServiceContext
@@ -57,6 +60,45 @@ def status_row(agent: str, status: StatusReport, received: float) -> tuple[Any, 
         int(status.landed), status.gps.fix, status.gps.satellites, status.step, status.mission_id,
         int(status.buffered),
     )  # fmt: skip
+
+
+def tick_rows(tick: StatusTick, received: float) -> list[tuple[Any, ...]]:
+    """The telemetry rows of a status tick, straight from its columns (no report objects; rows
+    that came decoded use theirs): the same rows as :func:`status_row` gives, for the rows with
+    a position."""
+    cols = tick.cols
+    index = np.flatnonzero(cols["flags"] & HAS_POSITION)
+    if not len(index):
+        return []
+    c = cols[index]
+    flags = c["flags"]
+    at = index.tolist()
+    owners = tick.owners
+    modes = [tick.mode_mission(i) for i in at]
+
+    def optional(name: str) -> list[Any]:
+        values = c[name]
+        out = values.astype(object)
+        out[np.isnan(values)] = None
+        return out.tolist()
+
+    rows = list(
+        zip(
+            [owners[i].identity for i in at], c["time"].tolist(), [received] * len(at),
+            c["lat"].tolist(), c["lon"].tolist(), c["alt_rel"].tolist(), c["alt_amsl"].tolist(),
+            c["vn"].tolist(), c["ve"].tolist(), c["vd"].tolist(), c["heading_deg"].tolist(),
+            optional("battery_pct"), optional("voltage_v"), optional("current_a"), [m[0] for m in modes],
+            ((flags & ARMED) != 0).astype(int).tolist(), ((flags & LANDED) != 0).astype(int).tolist(),
+            c["fix"].tolist(), c["satellites"].tolist(), c["step"].tolist(), [m[1] for m in modes],
+            ((flags & BUFFERED) != 0).astype(int).tolist(),
+            strict=True,
+        )
+    )  # fmt: skip
+    for n, i in enumerate(at):  # a report that came decoded (JSON) may hold what a column cannot
+        report = tick.decoded(i)
+        if report is not None:
+            rows[n] = status_row(owners[i].identity, report, received)
+    return rows
 
 
 MAX_QUEUED_ROWS = 500_000
@@ -95,6 +137,15 @@ class TelemetryWriter:
                 self._rows.popleft()
                 self.dropped += 1
             self._rows.append(row)
+
+    def add_many(self, rows: list[tuple[Any, ...]]) -> None:
+        """Queue rows (one lock); the oldest go when the buffer is full."""
+        with self._lock:
+            self._rows.extend(rows)
+            over = len(self._rows) - self._max_rows
+            for _ in range(max(0, over)):
+                self._rows.popleft()
+            self.dropped += max(0, over)
 
     @property
     def pending(self) -> int:
@@ -187,7 +238,7 @@ class TelemetryRecorder:
         self._writer = TelemetryWriter(ctx.store, self.config)
         if ctx.store.path != ":memory:":
             self._writer.start()  # an in-memory store is written on flush, on its one connection
-        ctx.agents.on_status.append(self._on_status)
+        ctx.agents.on_status_tick.append(self._on_tick)
 
     async def stop(self) -> None:
         if self._writer is not None:
@@ -202,17 +253,21 @@ class TelemetryRecorder:
     def dropped(self) -> int:
         return self._writer.dropped if self._writer else 0
 
-    async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
+    async def _on_tick(self, tick: StatusTick) -> None:
+        """A status tick's rows, straight from its columns (one lock, no report objects)."""
         if self._writer is None:
             return
-        if status.position is None:
-            return  # no 3-D fix yet: a row needs a position
+        rows = tick_rows(tick, time.time())
         if self.config.period_s > 0:
-            last = self._last_kept.get(session.identity)
-            if last is not None and 0 <= status.time - last < self.config.period_s:
-                return
-            self._last_kept[session.identity] = status.time
-        self._writer.add(status_row(session.identity, status, time.time()))
+            kept, period, last_kept = [], self.config.period_s, self._last_kept
+            for row in rows:
+                last = last_kept.get(row[0])
+                if last is not None and 0 <= row[1] - last < period:
+                    continue
+                last_kept[row[0]] = row[1]
+                kept.append(row)
+            rows = kept
+        self._writer.add_many(rows)
 
     def flush(self) -> None:
         """Write every queued sample now (blocks until written: tests and tools, not the loop)."""

@@ -28,7 +28,10 @@ import logging
 import time
 from typing import Any, Literal, Protocol
 
+import numpy as np
+
 from gcs.agents import AgentSession
+from gcs.agents_table import StatusTick
 from gcs.authority import PRIORITY
 from gcs.context import ServiceContext
 from gcs.cooperation.collision_monitor import CollisionMonitor
@@ -56,6 +59,7 @@ from gcs.cooperation.tracking import TrackedAgent, track
 from gcs.events import Severity
 from protocol.actions import Action
 from protocol.packets import AgentParameters, Resume, SetParameters, StatusReport
+from protocol.status_binary import BUFFERED, HAS_POSITION
 
 log = logging.getLogger("gcs.cooperation")
 
@@ -122,7 +126,7 @@ class CooperationService:
             lambda: self.base,
             lambda: self.energy_model,
         )
-        ctx.agents.on_status.append(self._on_status)
+        ctx.agents.on_status_tick.append(self._on_tick)
         ctx.agents.on_join.append(self._on_join)
         ctx.agents.on_lost.append(self._on_lost)
         ctx.missions.preflight_checks.append(self._preflight)
@@ -142,7 +146,7 @@ class CooperationService:
         ctx = self._ctx
         if ctx is not None:
             for hooks, hook in (
-                (ctx.agents.on_status, self._on_status),
+                (ctx.agents.on_status_tick, self._on_tick),
                 (ctx.agents.on_join, self._on_join),
                 (ctx.agents.on_lost, self._on_lost),
                 (ctx.missions.preflight_checks, self._preflight),
@@ -288,25 +292,41 @@ class CooperationService:
         )
         return agent
 
-    async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
-        if status.buffered or status.position is None:
-            return  # link-outage history, or no 3-D fix yet: nothing to track or check from
+    async def _on_tick(self, tick: StatusTick) -> None:
+        """A status tick: the positioned live rows (picked on the columns) are tracked and checked,
+        each agent's intents applied before the next agent's checks, as per report before."""
+        flags = tick.cols["flags"]
+        rows = np.flatnonzero(((flags & HAS_POSITION) != 0) & ((flags & BUFFERED) == 0)).tolist()
+        if not rows:
+            return
+        owners = tick.owners  # a slice of a tick (gcs/agents.py TICK_SLICE): no yield needed in here
+        for i in rows:
+            session = owners[i]
+            intents = self._checks(session, tick.report(i))
+            if intents:
+                try:
+                    await self.apply(intents)
+                except Exception:  # a bug here must not cost the agent its connection
+                    log.exception("cooperation: status handling failed for %s", session.identity)
+
+    def _checks(self, session: AgentSession, status: StatusReport) -> list[Intent]:
+        """Track one positioned live report and run the per-report checks; the intents to apply."""
         now = time.monotonic()
         ident = session.identity
         self.remote.discard(ident)  # linked here (again)
+        intents: list[Intent] = []
         try:
             agent = self._track(session, status, now)
             self._record(agent, status)
-            intents: list[Intent] = []
             if self.config.emergency.enabled:
                 intents += self.emergency.on_status(agent, status, self.ctx.geofences.get(ident), now)
             if self.config.divergence.enabled:
                 busy = self.ctx.authority.is_held(ident) or self._outranked(ident, "divergence")
                 intents += self.divergence.on_status(agent, status, busy, now)
             self._fleet_due = True
-            await self.apply(intents)
         except Exception:  # a bug here must not cost the agent its connection
             log.exception("cooperation: status handling failed for %s", ident)
+        return intents
 
     def _new_judge(self) -> DivergenceJudge:
         return DivergenceJudge(self.config.divergence)

@@ -140,7 +140,11 @@ async def test_a_failsafe_in_a_compact_status_reaches_the_authority_without_wait
         async def hook(_: object, status: StatusReport) -> None:
             seen.append(status)
 
-        daemon.agents.on_status.append(hook)
+        async def also(_: object, status: StatusReport) -> None:
+            pass
+
+        daemon.agents.on_status_changes.append(hook)  # every change, and every report handed over at once
+        daemon.agents.on_status.append(also)  # (reports built for it must not all count as changes)
         stream = await _join(daemon.listen_port, key, "fs-1", v1=False)
         try:
             await stream.send(_report(47.3))
@@ -158,5 +162,12 @@ async def test_a_failsafe_in_a_compact_status_reaches_the_authority_without_wait
             )
             assert not daemon.authority.may_command("fs-1", "mission")  # the vehicle's own failsafe rules
             assert math.isclose(daemon.agents.sessions["fs-1"].status.position.lat, 47.32)  # type: ignore[union-attr]
+            session = daemon.agents.sessions["fs-1"]
+            await stream.send(_report(47.33))  # the failsafe is over; nothing else changed since 47.3
+            await wait_for(lambda: session.status_count == 4, 10, "the report after the failsafe")
+            daemon.agents.tick()  # (the tick still scheduled is an hour away)
+            await wait_for(
+                lambda: daemon.authority.failsafe("fs-1") is None, 5, "the authority to see it cleared"
+            )
         finally:
             await stream.close()
