@@ -522,13 +522,17 @@ class AgentManager:
         conn.session.last_rx = now  # complete packets count as life, stray bytes do not
         replayed = isinstance(frame.body, StatusReport) and frame.body.buffered
         if not (conn.replay if replayed else conn.live).take(now):
-            kind = "replayed status reports" if replayed else "frames"
-            rate, burst = (
-                (self.config.replay_frames_per_s, self.config.replay_burst)
-                if replayed
-                else (self.config.max_frames_per_s, self.config.frame_burst)
-            )
-            raise RateLimited(f"more than {rate:g} {kind}/s (burst {burst}); cut off")
+            raise self._over_budget(replayed)
+
+    def _over_budget(self, replayed: bool) -> RateLimited:
+        """The refusal of a frame over its budget (live frames, or replayed status reports)."""
+        kind = "replayed status reports" if replayed else "frames"
+        rate, burst = (
+            (self.config.replay_frames_per_s, self.config.replay_burst)
+            if replayed
+            else (self.config.max_frames_per_s, self.config.frame_burst)
+        )
+        return RateLimited(f"more than {rate:g} {kind}/s (burst {burst}); cut off")
 
     def _ingest(self, conn: _FrameProtocol, data: bytes) -> bool:
         """Every frame ``data`` completes; False once the session is over.
@@ -554,10 +558,7 @@ class AgentManager:
                 ):
                     session.last_rx = now
                     if not conn.live.take(now):
-                        raise RateLimited(
-                            f"more than {self.config.max_frames_per_s:g} frames/s "
-                            f"(burst {self.config.frame_burst}); cut off"
-                        )
+                        raise self._over_budget(replayed=False)
                     row = session.row
                     start = row * ROW_BYTES
                     buf = table.buf

@@ -222,7 +222,7 @@ class Store:
     def cid_for(self, identity: str, capabilities: dict[str, Any]) -> int:
         """The stable connection ID of ``identity``, allocating the next free one on first contact."""
         now = time.time()
-        with self._tx():
+        with self.atomic():
             row = self._db.execute("SELECT cid FROM agents WHERE identity=?", (identity,)).fetchone()
             if row is not None:
                 self._db.execute(
@@ -251,7 +251,7 @@ class Store:
     # --- missions -------------------------------------------------------------------------------
 
     def add_mission(self, mission_id: str, name: str, task_json: str, agents: list[str]) -> None:
-        with self._tx():
+        with self.atomic():
             self._db.execute(
                 "INSERT INTO missions(id, name, task, state, created) VALUES (?,?,?,?,?)",
                 (mission_id, name, task_json, "running", time.time()),
@@ -283,7 +283,7 @@ class Store:
         return [StoredMission(*r) for r in rows]
 
     def set_paused(self, mission_id: str, paused: bool) -> None:
-        with self._tx():
+        with self.atomic():
             self._db.execute("UPDATE missions SET paused = ? WHERE id = ?", (int(paused), mission_id))
 
     def paused_missions(self) -> set[str]:
@@ -292,14 +292,14 @@ class Store:
 
     def save_hold(self, agent: str, owner: str, reason: str) -> None:
         """An operator-level hold, kept across daemon restarts (the lower ones are recomputed)."""
-        with self._tx():
+        with self.atomic():
             self._db.execute(
                 "INSERT OR REPLACE INTO vehicle_holds (agent, owner, reason, since) VALUES (?, ?, ?, ?)",
                 (agent, owner, reason, time.time()),
             )
 
     def drop_hold(self, agent: str, owner: str) -> None:
-        with self._tx():
+        with self.atomic():
             self._db.execute("DELETE FROM vehicle_holds WHERE agent = ? AND owner = ?", (agent, owner))
 
     def holds(self) -> list[tuple[str, str, str]]:
@@ -439,12 +439,9 @@ class Store:
         with self.write_lock:
             return self._db.execute(sql, args)
 
-    def _tx(self) -> _Transaction:
-        return _Transaction(self._db, self.write_lock)
-
     def atomic(self) -> _Transaction:
         """Several of this store's writes as one transaction: a crash keeps all of them or none."""
-        return self._tx()
+        return _Transaction(self._db, self.write_lock)
 
 
 WriteLock = threading.RLock
