@@ -299,6 +299,22 @@ class VehicleAuthority:
             self._record(ident, owner, f"end {vehicle.order.kind}", reason, True)
             vehicle.order = None
 
+    def refused_where_linked(self, ident: str, owner: str, mode: str, holder: str, why: str) -> None:
+        """A command we forwarded (cluster) was refused by the vehicle authority of the daemon
+        holding the link: what we recorded as given is taken back, so our record says what the
+        drone was actually told (a refused hold is no hold of ours; a refused order no order)."""
+        vehicle = self._vehicles.get(ident)
+        if vehicle is not None:
+            if mode == "pause" and owner in vehicle.holds:
+                del vehicle.holds[owner]
+                self._hold_ended(ident, vehicle, owner)
+                if owner in PERSISTED_OWNERS and self._persist is not None:
+                    self._persist(ident, owner, None)
+            elif mode == "replace" and vehicle.order is not None and vehicle.order.owner == owner:
+                vehicle.order = None
+        command = {"pause": "hold", "resume": "release"}.get(mode, mode)
+        self._record(ident, owner, command, f"forwarded to {holder}", False, f"refused by {holder}: {why}")
+
     def restore_hold(self, ident: str, owner: str, reason: str) -> None:
         """A persisted hold found at daemon start: in force again, sent when the agent joins."""
         vehicle = self._vehicle(ident)

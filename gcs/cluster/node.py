@@ -71,7 +71,6 @@ NUDGE_EVERY_S = 1.0  # re-send a release / re-count an arrival seen in status at
 COMMAND_TIMEOUT_S = 5.0
 PENDING_LIMIT = 2000  # forwarded commands awaiting the holder's answer (oldest dropped beyond)
 PENDING_TTL_S = 30.0  # an answer later than this is logged without its command
-REFUSAL_EVENT_EVERY_S = 5.0  # at most one command_refused event per drone and command this often
 AIRSPACE_LEASE = "airspace"  # its holder decides collisions for the whole fleet and prunes
 
 
@@ -170,7 +169,6 @@ class ClusterNode:
         self._seq = 0
         self.refusals: deque[dict[str, Any]] = deque(maxlen=200)  # holders' refusals of our commands
         self.stale_dropped = 0  # messages ignored: sent under an agent's older link epoch
-        self._refusal_events: dict[tuple[str, str], float] = {}
 
     @property
     def daemon(self) -> Daemon:
@@ -673,22 +671,13 @@ class ClusterNode:
         remote = self.daemon.agents.remote.get(identity)
         if isinstance(remote, RemoteSession) and remote.daemon == holder:
             remote.level = max(remote.level, level)
-        if command.endswith(" resume"):
-            return  # nothing of ours to release there: not a refusal worth an event
-        self.refusals.append({"agent": identity, "daemon": holder, "command": command, "reason": why})
-        now = time.monotonic()
-        last = self._refusal_events.get((identity, command))
-        if last is not None and now - last < REFUSAL_EVENT_EVERY_S:
-            return  # a decider re-asserting every period: one event per drone and command per 5 s
-        self._refusal_events[(identity, command)] = now
         source, _, mode = command.partition(" ")
-        self.daemon.events.publish(
-            "command_refused",
-            f"{holder} refused {command} for {identity}: {why}",
-            severity="warning",
-            agent=identity,
-            data={"source": source, "command": mode, "accepted": False, "daemon": holder, "reason": why},
-        )
+        if mode == "resume" or source not in PRIORITY:
+            return  # nothing of ours to release there: not a refusal worth recording
+        self.refusals.append({"agent": identity, "daemon": holder, "command": command, "reason": why})
+        # Our authority takes back what it recorded as given; its decision event says who refused
+        # and why (throttled per drone, source and command like every decision event).
+        self.daemon.authority.refused_where_linked(identity, source, mode, holder, why)
 
     # --- operator commands for any drone --------------------------------------------------------------
 

@@ -101,6 +101,10 @@ async def test_the_holders_refusals_reach_the_sender(tmp_path: Path, nats_server
             assert "outranked by operator hold" in refusal["reason"], refusal
             assert a.cluster.remote_level("y") >= 60  # the airspace decider sees it outranked
             assert not b.authority.is_held("y", "collision")
+            # a's own record takes the refused hold back: it says what y was actually told.
+            assert not a.authority.is_held("y", "collision")
+            last = a.authority.control("y").decisions[-1]
+            assert not last.accepted and last.command == "hold" and "refused by gcs-b" in last.detail, last
 
             async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{a.http_port}", timeout=20) as api:
                 auth = {"Authorization": "Bearer t"}

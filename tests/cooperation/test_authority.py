@@ -56,6 +56,28 @@ def status(**fields: object) -> StatusReport:
     return StatusReport.model_validate(base)
 
 
+def test_a_command_refused_where_the_drone_is_linked_is_taken_back_here() -> None:
+    """Cluster: the holder's authority refused what ours forwarded; ours must not keep believing
+    the hold or order is in force (no resume is sent for a hold that never was)."""
+    auth, link, decisions, persisted = authority()
+    auth.hold("y", "operator", "ops")
+    auth.hold("y", "collision", "yield")
+    auth.replace("z", "daemon_emergency", "m", [ReturnToLaunch(step=0)], "battery", order="rtl")
+    sent = len(link.sent)
+
+    auth.refused_where_linked("y", "collision", "pause", "gcs-b", "outranked by vehicle failsafe rtl")
+    auth.refused_where_linked("y", "operator", "pause", "gcs-b", "outranked by vehicle failsafe rtl")
+    auth.refused_where_linked("z", "daemon_emergency", "replace", "gcs-b", "outranked by operator land")
+
+    assert not auth.is_held("y") and persisted == {}
+    assert auth.order_owner("z") is None and auth.may_command("z", "collision")
+    assert len(link.sent) == sent  # nothing posted: taking back is bookkeeping, not a command
+    last = auth.control("y").decisions[-1]
+    assert (last.source, last.command, last.accepted) == ("operator", "hold", False)
+    assert last.detail == "refused by gcs-b: outranked by vehicle failsafe rtl"
+    assert decisions[-1][:4] == ("z", "daemon_emergency", "replace", False)
+
+
 def test_holds_are_counted_per_owner_and_resume_only_after_the_last() -> None:
     auth, link, _, _ = authority()
     assert auth.hold("d1", "collision", "yield")[0]
