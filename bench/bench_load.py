@@ -107,12 +107,16 @@ async def _server(
 
     gc_pauses: dict[int, list[float]] = {0: [], 1: [], 2: []}
     gc_started = [0.0]
+    gc_runs: list[tuple[float, float]] = []  # (wall start, seconds) of the newest collections
 
     def gc_watch(phase: str, info: dict[str, int]) -> None:
         if phase == "start":
             gc_started[0] = time.perf_counter()
         else:
-            gc_pauses[info["generation"]].append(time.perf_counter() - gc_started[0])
+            took = time.perf_counter() - gc_started[0]
+            gc_pauses[info["generation"]].append(took)
+            gc_runs.append((time.time() - took, took))
+            del gc_runs[:-1000]
 
     gc.callbacks.append(gc_watch)
     if os.environ.get("BENCH_TRACEMALLOC"):  # diagnosis: where the daemon's memory goes (slow)
@@ -203,13 +207,13 @@ async def _server(
                 burst_started[body.step] = started
             return sent
 
-        release = daemon.missions._release
+        release = daemon.missions._release_now
 
-        async def release_and_stamp(mission: Any, step: int) -> None:
+        def release_and_stamp(mission: Any, step: int) -> None:
             completed.setdefault(step, time.time())
-            await release(mission, step)
+            release(mission, step)
 
-        daemon.missions._release = release_and_stamp  # type: ignore[method-assign]
+        daemon.missions._release_now = release_and_stamp  # type: ignore[method-assign]
         daemon.agents._handle = handle_and_stamp  # type: ignore[method-assign]
         daemon.agents.burst = burst_and_stamp  # type: ignore[method-assign]
         daemon.agents.ingest_probe = probe
@@ -314,7 +318,13 @@ async def _server(
             conn.send(_event_kinds(daemon))
         elif command == "arrival":
             step = args[0]
-            conn.send((arrivals.get(step), completed.get(step), burst_started.get(step), released.get(step)))
+            begin, end = arrivals.get(step), released.get(step)
+            in_release = (  # collections that ran between the last arrival and the burst's end
+                sum(took for at, took in gc_runs if at + took >= begin and at <= end)
+                if begin is not None and end is not None
+                else 0.0
+            )
+            conn.send((begin, completed.get(step), burst_started.get(step), end, in_release))
         elif command == "stop":
             break
     stop_note = "clean"
@@ -817,6 +827,7 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
     to_barrier: list[float] = []  # last arrival -> the mission runner found the barrier complete
     in_daemon: list[float] = []  # last arrival -> the burst written to every member's socket
     writing: list[float] = []  # the burst itself (every member's socket written)
+    gc_in_release: list[float] = []  # garbage collection between the last arrival and the burst's end
     failed = ""
     try:
         assert harness.connect() == agents
@@ -835,7 +846,8 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
         for step in range(steps):
             stamps = [t for row in harness.workers_call("finish", mission_id, step, 30.0) for t in row]
             received = [kernel for kernel, _ in stamps]
-            last_arrival, complete, started, written = harness.server_call("arrival", step)
+            last_arrival, complete, started, written, gc_s = harness.server_call("arrival", step)
+            gc_in_release.append(gc_s)
             if last_arrival is None or any(t is None for t in received):
                 # Overloaded (the cooperation service then treats late reports as stale and
                 # takes the drones over): count it and stop, the numbers so far stand.
@@ -869,6 +881,10 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
         "steps": steps,
         **{f"{name}_p{p}_ms": v[i] for name, v in ms.items() for i, p in ((0, 50), (1, 99))},
         "last_release_max_ms": max(per_step, default=float("nan")) * 1000,
+        "gc_in_release_ms": {
+            "releases with a collection": sum(1 for g in gc_in_release if g > 0),
+            "max": max(gc_in_release, default=0.0) * 1000,
+        },
         "released_steps": len(per_step),
         "failed": failed,
     }
@@ -884,7 +900,8 @@ def _print_barrier(row: dict[str, Any]) -> None:
         f"written p50 {row['daemon_release_p50_ms']:.2f} ms p99 {row['daemon_release_p99_ms']:.2f} ms, "
         f"of which the burst p50 {row['burst_write_p50_ms']:.2f} ms p99 {row['burst_write_p99_ms']:.2f} ms; "
         f"read by the clients' processes p50 {row['last_read_p50_ms']:.2f} ms "
-        f"p99 {row['last_read_p99_ms']:.2f} ms; {row['released_steps']} barriers)"
+        f"p99 {row['last_read_p99_ms']:.2f} ms; {row['released_steps']} barriers; "
+        f"gc in releases {row['gc_in_release_ms']})"
         + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
         flush=True,
     )
