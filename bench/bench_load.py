@@ -207,13 +207,22 @@ async def _server(
                 burst_started[body.step] = started
             return sent
 
-        release = daemon.missions._release_now
+        if hasattr(daemon.missions, "_release_now"):
+            release = daemon.missions._release_now
 
-        def release_and_stamp(mission: Any, step: int) -> None:
-            completed.setdefault(step, time.time())
-            release(mission, step)
+            def release_and_stamp(mission: Any, step: int) -> None:
+                completed.setdefault(step, time.time())
+                release(mission, step)
 
-        daemon.missions._release_now = release_and_stamp  # type: ignore[method-assign]
+            daemon.missions._release_now = release_and_stamp  # type: ignore[method-assign]
+        else:  # the code before issue 16's round 4 (paired trials against an older tree)
+            release_async = daemon.missions._release
+
+            async def release_async_and_stamp(mission: Any, step: int) -> None:
+                completed.setdefault(step, time.time())
+                await release_async(mission, step)
+
+            daemon.missions._release = release_async_and_stamp  # type: ignore[method-assign]
         daemon.agents._handle = handle_and_stamp  # type: ignore[method-assign]
         daemon.agents.burst = burst_and_stamp  # type: ignore[method-assign]
         daemon.agents.ingest_probe = probe
