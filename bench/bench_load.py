@@ -164,17 +164,18 @@ async def _server(
         if "max_frames_per_s" in DaemonConfig.model_fields:  # the flood trial must not be rate limited
             overrides.update(max_frames_per_s=1e9, frame_burst=1_000_000_000)
         overrides.update(extra)  # --daemon-config, e.g. to switch a service off and see what it costs
-        config = DaemonConfig(
+        settings: dict[str, Any] = dict(
             listen_port=0,
-            http_host=None,
+            http_host=None,  # {"http_host": "127.0.0.1", "http_port": 0} turns the API (and live hub) on
             data_dir=Path(data_dir.name),
             fleet_key_hex=key_hex,
             max_agents=20_000,
             status_period_s=1.0 / STATUS_HZ,
             lost_after_periods=600,
             handshake_timeout_s=60,
-            **overrides,
         )
+        settings.update(overrides)
+        config = DaemonConfig(**settings)
         daemon = Daemon(config)
 
         async def on_tick(tick: Any) -> None:  # the newest report of each agent, as columns
@@ -687,6 +688,7 @@ class Harness:
             daemon=True,
         )
         self.server.start()
+        child.close()  # a server that dies then ends recv() with EOFError instead of hanging it
         ready, self.port, self.base_rss_kb = self.server_conn.recv()
         assert ready == "ready"
         names = [f"load-{i}" for i in range(agents)]
@@ -703,6 +705,7 @@ class Harness:
                 daemon=True,
             )
             proc.start()
+            child.close()
             self.worker_conns.append(parent)
             self.workers.append(proc)
         self.identities = names

@@ -28,6 +28,7 @@ from gcs.cooperation.returns import RETURN_PREFIX, Returner, assign_layers
 from gcs.events import EventBus
 from gcs.store import Store
 from gcs.sync import BarrierSet
+from gcs.telemetry import write_priority
 from protocol.actions import Action, ReturnToLaunch
 from protocol.packets import ActionFailure, Resume, StatusReport, SyncSignal
 from protocol.taskfile import TaskFile
@@ -586,12 +587,12 @@ class MissionRunner:
         """Persist the release of ``step``, then write it to every member's socket in one pass.
 
         The release row and its event are one transaction (a kill -9 between the two lost the
-        event once), committed before anyone hears of it. The store's write lock is held through
-        the burst: the telemetry writer thread, which takes it for each chunk it inserts, waits
-        blocked instead of competing with this thread for the GIL while the sockets are written
-        (each ``send`` lets another thread run, which then keeps the GIL for up to the switch
-        interval). The garbage collector is off for the same span (nothing it frees is needed
-        here; it runs at the next allocation threshold after).
+        event once), committed before anyone hears of it. The store's write lock is taken ahead
+        of the telemetry writer (``write_priority``: its chunk in progress commits after the next
+        row) and held through the burst, so the writer thread waits blocked instead of competing
+        with this thread for the GIL while the sockets are written (each ``send`` lets another
+        thread run, which may then keep the GIL for up to the switch interval). The garbage
+        collector is off for the same span (it runs at the next allocation threshold after).
         """
         mission.barriers.mark_released(step)
         members = sorted(mission.barriers.members)
@@ -599,7 +600,7 @@ class MissionRunner:
         collecting = gc.isenabled()
         gc.disable()
         try:
-            with self._store.write_lock:
+            with write_priority(self._store):
                 with self._store.atomic():
                     self._store.record_release(mission.id, step)
                     self._events.publish(
