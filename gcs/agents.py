@@ -232,7 +232,8 @@ class AgentManager:
         self.on_status_tick: HookList[TickHook] = HookList()  # each tick's reports as columns (StatusTick)
         self.on_sync: HookList[SyncHook] = HookList()
         # The barrier's direct path (gcs/missions.py): a 'finished' is handed to it from the frame's
-        # data_received, before the on_sync hooks get it, when its owner's consumer is idle.
+        # data_received, before the on_sync hooks get it, unless its owner's consumer still holds
+        # a join, sync or lost of that agent (_finished).
         self.on_finished: FinishedHook | None = None
         self.on_lost: HookList[LostHook] = HookList()
         self._hooks = HookDispatcher(
