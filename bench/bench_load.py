@@ -107,12 +107,16 @@ async def _server(
 
     gc_pauses: dict[int, list[float]] = {0: [], 1: [], 2: []}
     gc_started = [0.0]
+    gc_runs: list[tuple[float, float]] = []  # (wall start, seconds) of the newest collections
 
     def gc_watch(phase: str, info: dict[str, int]) -> None:
         if phase == "start":
             gc_started[0] = time.perf_counter()
         else:
-            gc_pauses[info["generation"]].append(time.perf_counter() - gc_started[0])
+            took = time.perf_counter() - gc_started[0]
+            gc_pauses[info["generation"]].append(took)
+            gc_runs.append((time.time() - took, took))
+            del gc_runs[:-1000]
 
     gc.callbacks.append(gc_watch)
     if os.environ.get("BENCH_TRACEMALLOC"):  # diagnosis: where the daemon's memory goes (slow)
@@ -146,6 +150,7 @@ async def _server(
     probe: Any = None
     released: dict[int, float] = {}  # step -> when the daemon's release burst was written
     burst_started: dict[int, float] = {}  # step -> when the release burst began
+    completed: dict[int, float] = {}  # step -> when the mission runner found the barrier complete
     latencies: list[float] = []  # agent timestamp -> written into the daemon's status table
     hook_latencies: list[float] = []  # agent timestamp -> a status hook (behind the status tick)
     arrivals: dict[int, float] = {}
@@ -159,17 +164,18 @@ async def _server(
         if "max_frames_per_s" in DaemonConfig.model_fields:  # the flood trial must not be rate limited
             overrides.update(max_frames_per_s=1e9, frame_burst=1_000_000_000)
         overrides.update(extra)  # --daemon-config, e.g. to switch a service off and see what it costs
-        config = DaemonConfig(
+        settings: dict[str, Any] = dict(
             listen_port=0,
-            http_host=None,
+            http_host=None,  # {"http_host": "127.0.0.1", "http_port": 0} turns the API (and live hub) on
             data_dir=Path(data_dir.name),
             fleet_key_hex=key_hex,
             max_agents=20_000,
             status_period_s=1.0 / STATUS_HZ,
             lost_after_periods=600,
             handshake_timeout_s=60,
-            **overrides,
         )
+        settings.update(overrides)
+        config = DaemonConfig(**settings)
         daemon = Daemon(config)
 
         async def on_tick(tick: Any) -> None:  # the newest report of each agent, as columns
@@ -202,6 +208,22 @@ async def _server(
                 burst_started[body.step] = started
             return sent
 
+        if hasattr(daemon.missions, "_release_now"):
+            release = daemon.missions._release_now
+
+            def release_and_stamp(mission: Any, step: int) -> None:
+                completed.setdefault(step, time.time())
+                release(mission, step)
+
+            daemon.missions._release_now = release_and_stamp  # type: ignore[method-assign]
+        else:  # the code before issue 16's round 4 (paired trials against an older tree)
+            release_async = daemon.missions._release
+
+            async def release_async_and_stamp(mission: Any, step: int) -> None:
+                completed.setdefault(step, time.time())
+                await release_async(mission, step)
+
+            daemon.missions._release = release_async_and_stamp  # type: ignore[method-assign]
         daemon.agents._handle = handle_and_stamp  # type: ignore[method-assign]
         daemon.agents.burst = burst_and_stamp  # type: ignore[method-assign]
         daemon.agents.ingest_probe = probe
@@ -305,7 +327,14 @@ async def _server(
         elif command == "events":
             conn.send(_event_kinds(daemon))
         elif command == "arrival":
-            conn.send((arrivals.get(args[0]), released.get(args[0]), burst_started.get(args[0])))
+            step = args[0]
+            begin, end = arrivals.get(step), released.get(step)
+            in_release = (  # collections that ran between the last arrival and the burst's end
+                sum(took for at, took in gc_runs if at + took >= begin and at <= end)
+                if begin is not None and end is not None
+                else 0.0
+            )
+            conn.send((begin, completed.get(step), burst_started.get(step), end, in_release))
         elif command == "stop":
             break
     stop_note = "clean"
@@ -418,7 +447,8 @@ class Client:
         self.seq = 0
         self.sent = 0
         self.closed = False
-        self.releases: dict[int, float] = {}
+        self.releases: dict[int, float] = {}  # step -> kernel receive time of its release
+        self.read_at: dict[int, float] = {}  # step -> when this process read it
         self.release_event = asyncio.Event()
 
     def write(self, frame: bytes) -> None:
@@ -446,30 +476,83 @@ async def _handshake(client: Client, key: bytes) -> None:
     client.seq = stream.seq
 
 
+SO_TIMESTAMPNS = 35  # Linux SO_TIMESTAMPNS(_OLD): the kernel stamps each received segment (CLOCK_REALTIME)
+
+
 async def _client_reader(client: Client) -> None:
-    """Drain what the daemon sends; note releases (stamped when their bytes arrive) and closes."""
+    """Drain what the daemon sends; note releases and closes.
+
+    A release is stamped twice: when the kernel put its bytes into this agent's socket (the
+    ``SO_TIMESTAMPNS`` receive timestamp, CLOCK_REALTIME like the daemon's ``time.time()``), and
+    when this process got round to reading them. One worker process hosts hundreds of agents, so
+    the second stamp also counts the worker's own queue of sockets to read (a real fleet has one
+    agent per machine); the first is when the release reached the agent. Reading goes through
+    ``recvmsg`` on a duplicate of the socket (the transport's own reading is paused).
+    """
+    import socket
+
     from protocol.packets import Close, SyncSignal
     from protocol.wire import ProtocolError
 
     stream = client.stream
-    assert stream is not None
-    frames = list(stream.backlog)
-    stream.backlog.clear()
+    assert stream is not None and client.writer is not None
+    transport = client.writer.transport
+    loop = asyncio.get_running_loop()
+    ended = loop.create_future()
+
+    def note(frames: Any, kernel: float, read: float) -> None:
+        for frame in frames:
+            if isinstance(frame.body, SyncSignal) and frame.body.kind == "release":
+                client.releases.setdefault(frame.body.step, kernel)
+                client.read_at.setdefault(frame.body.step, read)
+                client.release_event.set()
+            elif isinstance(frame.body, Close):
+                client.closed = True
+
     now = time.time()
-    with contextlib.suppress(ConnectionError, ProtocolError):
-        for _ in range(100_000_000):
-            for frame in frames:
-                if isinstance(frame.body, SyncSignal) and frame.body.kind == "release":
-                    client.releases.setdefault(frame.body.step, now)
-                    client.release_event.set()
-                elif isinstance(frame.body, Close):
-                    client.closed = True
-            data = await stream.reader.read(65_536)
-            if not data:
-                break
-            now = time.time()  # when the bytes reached this agent, before it decodes them
-            frames = list(stream.decoder.feed(data))
-    client.closed = True
+    note(list(stream.backlog), now, now)
+    stream.backlog.clear()
+    transport.pause_reading()
+    buffered: bytearray = stream.reader._buffer  # type: ignore[attr-defined]  # read before the pause
+    if buffered:
+        leftover = bytes(buffered)
+        buffered.clear()
+        note(list(stream.decoder.feed(leftover)), now, now)
+    raw = socket.socket(fileno=os.dup(transport.get_extra_info("socket").fileno()))
+    raw.setblocking(False)
+    raw.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    space = socket.CMSG_SPACE(16)
+
+    def readable() -> None:
+        try:
+            data, ancillary, _flags, _addr = raw.recvmsg(65_536, space)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            data, ancillary = b"", []
+        read = time.time()
+        if not data:
+            if not ended.done():
+                ended.set_result(None)
+            return
+        kernel = read
+        for level, kind, value in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= 16:
+                seconds, nanos = struct.unpack_from("qq", value)
+                kernel = seconds + nanos * 1e-9
+        try:
+            note(list(stream.decoder.feed(data)), kernel, read)
+        except ProtocolError:
+            if not ended.done():
+                ended.set_result(None)
+
+    loop.add_reader(raw.fileno(), readable)
+    try:
+        await ended
+    finally:
+        loop.remove_reader(raw.fileno())
+        raw.close()
+        client.closed = True
 
 
 async def _worker(
@@ -572,7 +655,7 @@ async def _worker(
                     c.release_event.clear()
                     with contextlib.suppress(TimeoutError):
                         await asyncio.wait_for(c.release_event.wait(), max(0.01, deadline - time.monotonic()))
-            conn.send([c.releases.get(step) for c in clients])
+            conn.send([(c.releases.get(step), c.read_at.get(step)) for c in clients])
         elif command == "close":
             if status_task is not None:
                 for c in clients:
@@ -605,6 +688,7 @@ class Harness:
             daemon=True,
         )
         self.server.start()
+        child.close()  # a server that dies then ends recv() with EOFError instead of hanging it
         ready, self.port, self.base_rss_kb = self.server_conn.recv()
         assert ready == "ready"
         names = [f"load-{i}" for i in range(agents)]
@@ -621,6 +705,7 @@ class Harness:
                 daemon=True,
             )
             proc.start()
+            child.close()
             self.worker_conns.append(parent)
             self.workers.append(proc)
         self.identities = names
@@ -748,10 +833,13 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
     from protocol.taskfile import AgentPlan, TaskFile
 
     harness = Harness("daemon", agents)
-    per_step: list[float] = []
+    per_step: list[float] = []  # last arrival -> the last member's kernel received its release
     per_agent: list[float] = []
+    read_step: list[float] = []  # last arrival -> the last member's process read it (client queueing too)
+    to_barrier: list[float] = []  # last arrival -> the mission runner found the barrier complete
     in_daemon: list[float] = []  # last arrival -> the burst written to every member's socket
     writing: list[float] = []  # the burst itself (every member's socket written)
+    gc_in_release: list[float] = []  # garbage collection between the last arrival and the burst's end
     failed = ""
     try:
         assert harness.connect() == agents
@@ -768,8 +856,10 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
         mission_id = harness.server_call("submit", task.model_dump_json())
         time.sleep(0.5 + agents / 2000)  # the type-4 batches reach everyone
         for step in range(steps):
-            received = [t for row in harness.workers_call("finish", mission_id, step, 30.0) for t in row]
-            last_arrival, written, started = harness.server_call("arrival", step)
+            stamps = [t for row in harness.workers_call("finish", mission_id, step, 30.0) for t in row]
+            received = [kernel for kernel, _ in stamps]
+            last_arrival, complete, started, written, gc_s = harness.server_call("arrival", step)
+            gc_in_release.append(gc_s)
             if last_arrival is None or any(t is None for t in received):
                 # Overloaded (the cooperation service then treats late reports as stale and
                 # takes the drones over): count it and stop, the numbers so far stand.
@@ -777,6 +867,9 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
                 failed += f"; daemon events {harness.server_call('events')}"
                 break
             per_step.append(max(received) - last_arrival)
+            read_step.append(max(read for _, read in stamps) - last_arrival)
+            if complete is not None:
+                to_barrier.append(complete - last_arrival)
             if written is not None:
                 in_daemon.append(written - last_arrival)
                 writing.append(written - started)
@@ -784,20 +877,46 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
             time.sleep(0.05)
     finally:
         harness.close()
+    ms = {
+        name: (percentile(values, 0.5) * 1000, percentile(values, 0.99) * 1000)
+        for name, values in (
+            ("last_release", per_step),
+            ("per_agent_release", per_agent),
+            ("last_read", read_step),
+            ("to_barrier", to_barrier),
+            ("daemon_release", in_daemon),
+            ("burst_write", writing),
+        )
+    }
     return {
         "agents": agents,
         "steps": steps,
-        "last_release_p50_ms": percentile(per_step, 0.5) * 1000,
-        "last_release_p99_ms": percentile(per_step, 0.99) * 1000,
-        "per_agent_release_p50_ms": percentile(per_agent, 0.5) * 1000,
-        "per_agent_release_p99_ms": percentile(per_agent, 0.99) * 1000,
-        "daemon_release_p50_ms": percentile(in_daemon, 0.5) * 1000,
-        "daemon_release_p99_ms": percentile(in_daemon, 0.99) * 1000,
-        "burst_write_p50_ms": percentile(writing, 0.5) * 1000,
-        "burst_write_p99_ms": percentile(writing, 0.99) * 1000,
+        **{f"{name}_p{p}_ms": v[i] for name, v in ms.items() for i, p in ((0, 50), (1, 99))},
+        "last_release_max_ms": max(per_step, default=float("nan")) * 1000,
+        "gc_in_release_ms": {
+            "releases with a collection": sum(1 for g in gc_in_release if g > 0),
+            "max": max(gc_in_release, default=0.0) * 1000,
+        },
         "released_steps": len(per_step),
         "failed": failed,
     }
+
+
+def _print_barrier(row: dict[str, Any]) -> None:
+    print(
+        f"  {row['agents']:>6} agents  last arrival -> last release "
+        f"p50 {row['last_release_p50_ms']:7.2f} ms  "
+        f"p99 {row['last_release_p99_ms']:7.2f} ms  (max {row['last_release_max_ms']:.2f} ms; "
+        f"per agent p50 {row['per_agent_release_p50_ms']:.2f} ms; in the daemon, arrival -> barrier "
+        f"complete p50 {row['to_barrier_p50_ms']:.2f} ms p99 {row['to_barrier_p99_ms']:.2f} ms, -> burst "
+        f"written p50 {row['daemon_release_p50_ms']:.2f} ms p99 {row['daemon_release_p99_ms']:.2f} ms, "
+        f"of which the burst p50 {row['burst_write_p50_ms']:.2f} ms p99 {row['burst_write_p99_ms']:.2f} ms; "
+        f"read by the clients' processes p50 {row['last_read_p50_ms']:.2f} ms "
+        f"p99 {row['last_read_p99_ms']:.2f} ms; {row['released_steps']} barriers; "
+        f"gc in releases {row['gc_in_release_ms']})"
+        + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
+        flush=True,
+    )
 
 
 def throughput_trial(kind: str, clients: int, seconds: float) -> dict[str, Any]:
@@ -925,6 +1044,9 @@ def main() -> int:
     )
     parser.add_argument("--only-fleet", type=int, help="just one fleet trial of this size (diagnosis)")
     parser.add_argument("--only-barrier", type=int, help="just the barrier trial with this many agents")
+    parser.add_argument(
+        "--barrier-steps", type=int, default=40, help="barriers per barrier trial (p99 over them)"
+    )
     parser.add_argument("--json", action="store_true", help="clients send JSON status bodies (v1 agents)")
     parser.add_argument("--profile", help="with --only-fleet: write the daemon's cProfile stats here")
     args = parser.parse_args()
@@ -939,7 +1061,8 @@ def main() -> int:
         print(f"  gc pauses: {row['gc_pauses']}")
         return 0
     if args.only_barrier:
-        row = barrier_trial(args.only_barrier, 20)
+        row = barrier_trial(args.only_barrier, args.barrier_steps)
+        _print_barrier(row)
         print(json.dumps(row, indent=1))
         return 0
     began = time.monotonic()
@@ -956,18 +1079,9 @@ def main() -> int:
     print("\nsync barrier release latency (agents streaming status at 10 Hz):", flush=True)
     barriers = []
     for n in (10, 100) if args.quick else (10, 100, 1000):
-        row = barrier_trial(n, 10 if args.quick else 20)
+        row = barrier_trial(n, 10 if args.quick else args.barrier_steps)
         barriers.append(row)
-        print(
-            f"  {n:>6} agents  last arrival -> last release p50 {row['last_release_p50_ms']:7.2f} ms  "
-            f"p99 {row['last_release_p99_ms']:7.2f} ms  "
-            f"(per agent p50 {row['per_agent_release_p50_ms']:.2f} ms; in the daemon, arrival -> burst "
-            f"written p50 {row['daemon_release_p50_ms']:.2f} ms p99 {row['daemon_release_p99_ms']:.2f} ms, "
-            f"of which the burst p50 {row['burst_write_p50_ms']:.2f} ms "
-            f"p99 {row['burst_write_p99_ms']:.2f} ms; "
-            f"{row['released_steps']} barriers)" + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
-            flush=True,
-        )
+        _print_barrier(row)
 
     print("\nthroughput, the same status frames flooded by 20 clients:", flush=True)
     flood_s = 2.0 if args.quick else 4.0

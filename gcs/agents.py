@@ -211,6 +211,7 @@ JoinHook = Callable[[AgentSession, Resume | None], Awaitable[None]]
 StatusHook = Callable[[AgentSession, StatusReport], Awaitable[None]]
 TickHook = Callable[[StatusTick], Awaitable[None]]
 SyncHook = Callable[[AgentSession, SyncSignal], Awaitable[None]]
+FinishedHook = Callable[[AgentSession, SyncSignal], bool]
 LostHook = Callable[[str], Awaitable[None]]
 
 
@@ -230,6 +231,10 @@ class AgentManager:
         self.on_status_changes: HookList[StatusHook] = HookList()  # reports whose state changed (STATE_BYTES)
         self.on_status_tick: HookList[TickHook] = HookList()  # each tick's reports as columns (StatusTick)
         self.on_sync: HookList[SyncHook] = HookList()
+        # The barrier's direct path (gcs/missions.py): a 'finished' is handed to it from the frame's
+        # data_received, before the on_sync hooks get it, unless its owner's consumer still holds
+        # a join, sync or lost of that agent (_finished).
+        self.on_finished: FinishedHook | None = None
         self.on_lost: HookList[LostHook] = HookList()
         self._hooks = HookDispatcher(
             {
@@ -611,7 +616,7 @@ class AgentManager:
         elif isinstance(body, SyncSignal):
             if body.kind != "finished":
                 raise ProtocolError("agents may only send 'finished' sync signals")
-            self._publish("sync", session.identity, session, body)
+            self._finished(session, body)
         elif isinstance(body, Close):
             self._events.publish(
                 "agent_closed",
@@ -624,6 +629,29 @@ class AgentManager:
                 f"type {frame.packet_type.value} ({frame.packet_type.name}) "
                 "is not valid from an agent after the handshake"
             )
+
+    def _finished(self, session: AgentSession, signal: SyncSignal) -> None:
+        """A 'finished' sync signal: to the barrier at once, then to every ``on_sync`` hook.
+
+        The last arrival of a barrier releases it from here, in this ``data_received`` call (no
+        hook queue and no task switch in between): ``on_finished`` records the arrival and, when
+        it completes the barrier, persists and bursts the release. Not while the consumer of its
+        owner still holds a join or lost of the agent (``on_finished`` itself declines while the
+        agent's newest report carries a failsafe or a failure): then the owner's ``on_sync`` hook
+        takes the arrival, in order. A plain status report still waiting for the tick (flushed
+        below, for the other hooks) says nothing the barrier depends on.
+        """
+        direct = self.on_finished
+        if (
+            direct is not None
+            and not self._hooks_closed
+            and not self._hooks.queued_for(direct, session.identity)
+        ):
+            try:
+                direct(session, signal)
+            except Exception:  # a bug costs this arrival (as a failing hook would), not the session
+                log.exception("barrier arrival of %s failed", session.identity)
+        self._publish("sync", session.identity, session, signal)
 
     # --- the status tick ------------------------------------------------------------------------
 

@@ -307,6 +307,14 @@ class HookDispatcher:
         for hook, consumer in self._route("tick"):
             consumer.offer_batch(_Item("tick", hook, "", (tick,), version, size=size))
 
+    def queued_for(self, hook: Callable[..., object], agent: str) -> bool:
+        """Whether the consumer of ``hook``'s owner still holds a join, sync or lost of ``agent``
+        (status batches not counted): a caller may act for that owner on the agent's next event
+        right away without overtaking one of those."""
+        owner = _owner(hook)
+        consumer = self._consumers.get(id(owner))
+        return consumer is not None and consumer.owner is owner and agent in consumer._latest
+
     def has(self, kind: HookKind) -> bool:
         """Whether any hook of ``kind`` is registered (the status tick builds reports only for them)."""
         return bool(self._hooks[kind])
@@ -376,7 +384,7 @@ class HookDispatcher:
             await consumer.stop()
 
 
-def _owner(hook: Hook) -> object:
+def _owner(hook: Callable[..., object]) -> object:
     """The object a bound-method hook belongs to, else the callable itself."""
     return hook.__self__ if hasattr(hook, "__self__") else hook
 

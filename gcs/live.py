@@ -2,9 +2,16 @@
 
 The agent manager keeps only each agent's latest status; operators also need a short history
 (flown tracks, link age, coverage so far) and a push stream. :class:`LiveHub` hooks
-``on_status`` and subscribes to the event bus once, keeps a bounded ring per agent, and hands
-each message, serialised once, to every WebSocket client's bounded queue. A slow client loses
-its oldest messages (counted), never slows the daemon or the other clients.
+``on_status_tick`` and subscribes to the event bus once, keeps a bounded ring per agent, and
+hands each message, serialised once, to every WebSocket client's bounded queue. A slow client
+loses its oldest messages (counted), never slows the daemon or the other clients.
+
+Why the tick: with the API on, an ``on_status`` hook made the daemon build a ``StatusReport``
+for every report of every agent (and the hub a ``StatusSample`` on top). From the tick's columns
+the ring keeps each compact report as the bytes it came in (a report that came decoded as its
+object); a ``StatusReport`` is built only for a WebSocket client that wants that agent's status
+now (once per report, whatever the number of clients) and for history pages and tracks when
+they are read.
 """
 
 from __future__ import annotations
@@ -14,14 +21,18 @@ import collections
 import contextlib
 import json
 import logging
+import struct
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 from pydantic import BaseModel, TypeAdapter
 
+from gcs.agents_table import FIXED_DTYPE, MAX_BODY, ROW_BYTES, StatusTick
 from gcs.events import Event
 from gcs.metrics import DaemonMetrics
+from protocol import status_binary
 from protocol.packets import Geofence, StatusReport
 
 if TYPE_CHECKING:
@@ -40,6 +51,31 @@ class StatusSample(BaseModel):
 
 
 _SAMPLES = TypeAdapter(list[StatusSample])
+
+Payload = bytes | StatusReport
+"""A ring entry's report: the compact body as it came (decoded when read), or the report object
+of one that came decoded (JSON, tail, replayed)."""
+Entry = tuple[float, Payload, str | None]
+"""One sample in an agent's ring: daemon receive time (UNIX s), the report, its mission id."""
+_LAT_LON = struct.Struct("<dd")
+_LAT_AT = FIXED_DTYPE.fields["lat"][1]  # type: ignore[index]
+assert FIXED_DTYPE.fields["lon"][1] == _LAT_AT + 8  # type: ignore[index]
+
+
+def sample_report(payload: Payload) -> StatusReport:
+    """The report of a ring entry (a compact body is decoded, and checked, here)."""
+    return payload if isinstance(payload, StatusReport) else status_binary.decode(payload)
+
+
+def _position(payload: Payload) -> tuple[float, float] | None:
+    """(lat, lon) of a ring entry, or None; no report built for a compact body."""
+    if isinstance(payload, StatusReport):
+        p = payload.position
+        return None if p is None else (p.lat, p.lon)
+    if not payload[1] & status_binary.HAS_POSITION:
+        return None
+    lat, lon = _LAT_LON.unpack_from(payload, _LAT_AT)
+    return float(lat), float(lon)
 
 
 @dataclass(eq=False)
@@ -66,6 +102,7 @@ class StreamClient:
         self.queue.put_nowait(text)
 
     def wants_status(self, identity: str, now: float) -> bool:
+        """Whether this client gets ``identity``'s report received at ``now`` (filters, rate)."""
         if not self.status or (self.agents is not None and identity not in self.agents):
             return False
         if self.min_interval_s > 0:
@@ -90,7 +127,7 @@ class LiveHub:
     def __init__(self, daemon: Daemon, history_size: int = 3000, event_ring: int = 2000) -> None:
         self.daemon = daemon
         self.metrics = DaemonMetrics(daemon)
-        self.history: dict[str, collections.deque[StatusSample]] = {}
+        self.history: dict[str, collections.deque[Entry]] = {}
         self.recent_events: collections.deque[Event] = collections.deque(maxlen=event_ring)
         self.clients: set[StreamClient] = set()
         self.geofence: Geofence | None = None
@@ -98,7 +135,7 @@ class LiveHub:
         self._history_size = history_size
         self._events_queue: asyncio.Queue[Event] | None = None
         self._pump: asyncio.Task[None] | None = None
-        daemon.agents.on_status.append(self._on_status)
+        daemon.agents.on_status_tick.append(self._on_tick)
         daemon.agents.on_sync.append(self._on_sync)
 
     # --- lifecycle (a Service: the daemon stops it with its other services) ------------------------
@@ -120,29 +157,60 @@ class LiveHub:
 
     # --- inputs -----------------------------------------------------------------------------------
 
-    async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
-        now = time.time()
-        ring = self.history.get(session.identity)
+    async def _on_tick(self, tick: StatusTick) -> None:
+        """A status tick: each row into its agent's ring, the metrics, and the stream clients."""
+        count = len(tick)
+        if not count:
+            return
+        raw = tick.cols.view(np.uint8).reshape(count, ROW_BYTES)
+        sizes = raw[:, MAX_BODY].tolist()
+        paused = ((tick.cols["flags"] & status_binary.PAUSED) != 0).tolist()
+        received = tick.received.tolist()
+        streaming = bool(self.clients)
+        for i, session in enumerate(tick.owners):
+            report = tick.decoded(i)
+            if report is not None:
+                self._record(session, received[i], report, report.mission_id, report.paused, streaming)
+                continue
+            payload = raw[i, : sizes[i]].tobytes()
+            mission = tick.mode_mission(i)[1]
+            self._record(session, received[i], payload, mission, paused[i], streaming, tick, i)
+
+    def _record(
+        self,
+        session: AgentSession,
+        received: float,
+        payload: Payload,
+        mission: str | None,
+        paused: bool,
+        streaming: bool,
+        tick: StatusTick | None = None,
+        index: int = 0,
+    ) -> None:
+        """One report: ring, metrics, and (built once, only if a client wants it) the stream message."""
+        identity = session.identity
+        ring = self.history.get(identity)
         if ring is None:
-            ring = self.history[session.identity] = collections.deque(maxlen=self._history_size)
-        ring.append(StatusSample(received=now, status=status))
-        self.metrics.on_status(session, status)
-        if not self.clients:
+            ring = self.history[identity] = collections.deque(maxlen=self._history_size)
+        ring.append((received, payload, mission))
+        self.metrics.on_report(identity, paused)
+        if not streaming:
             return
         text: str | None = None
         for client in self.clients:
-            if client.wants_status(session.identity, now):
+            if client.wants_status(identity, received):
                 if text is None:
+                    status = tick.report(index) if tick is not None else sample_report(payload)
                     text = (
-                        f'{{"type":"status","agent":{json.dumps(session.identity)},"cid":{session.cid},'
-                        f'"received":{now!r},"status":{status.model_dump_json(exclude_none=True)}}}'
+                        f'{{"type":"status","agent":{json.dumps(identity)},"cid":{session.cid},'
+                        f'"received":{received!r},"status":{status.model_dump_json(exclude_none=True)}}}'
                     )
                 client.offer(text)
 
     async def remote_status(self, session: AgentSession, status: StatusReport) -> None:
         """A status of a drone linked to another daemon of the cluster (gcs/cluster/node.py): the
         dashboard's stream, history and metrics show the whole fleet."""
-        await self._on_status(session, status)
+        self._record(session, time.time(), status, status.mission_id, status.paused, bool(self.clients))
 
     async def _on_sync(self, session: AgentSession, signal: Any) -> None:
         self.metrics.on_sync(session, signal)
@@ -175,24 +243,23 @@ class LiveHub:
         """
         ring = self.history.get(identity, ())
         telemetry = getattr(self.daemon, "telemetry", None)
-        older = since > 0 and (not ring or since < ring[0].received)
+        older = since > 0 and (not ring or since < ring[0][0])
         if older and telemetry is not None and hasattr(telemetry, "history_json"):
             encoded: bytes = await telemetry.history_json(
                 identity, since, until if until is not None else float("inf"), limit, every
             )
             return encoded
         end = until if until is not None else float("inf")
-        recent = [s for s in ring if since < s.received <= end]
+        recent = [entry for entry in ring if since < entry[0] <= end]
         if every > 1:
             recent = recent[::-1][::every][::-1]
-        return await asyncio.to_thread(_encode_samples, recent[-limit:])
+        return await asyncio.to_thread(_encode_entries, recent[-limit:])
 
     def track(self, identity: str, mission_id: str | None = None) -> list[tuple[float, float]]:
         return [
-            (p.lat, p.lon)
-            for s in self.history.get(identity, ())
-            if (p := s.status.position) is not None
-            and (mission_id is None or s.status.mission_id == mission_id)
+            point
+            for _, payload, mission in self.history.get(identity, ())
+            if (mission_id is None or mission == mission_id) and (point := _position(payload)) is not None
         ]
 
     def subscribe(self, client: StreamClient) -> None:
@@ -208,6 +275,18 @@ ENCODE_CHUNK = 500
 """Samples serialised per call: pydantic's Rust core keeps the GIL for a whole call, so a long
 page is encoded in slices that each hold it for a few milliseconds (the event loop thread gets
 its turn in between)."""
+
+
+def _encode_entries(entries: list[Entry]) -> bytes:
+    """Ring entries as a JSON array of :class:`StatusSample` (in a worker thread: the compact
+    bodies are decoded here, off the event loop)."""
+    samples = []
+    for received, payload, _ in entries:
+        try:
+            samples.append(StatusSample(received=received, status=sample_report(payload)))
+        except status_binary.StatusBodyError:  # the tick let it through: cannot happen; skipped
+            continue
+    return _encode_samples(samples)
 
 
 def _encode_samples(samples: list[StatusSample]) -> bytes:

@@ -95,15 +95,19 @@ class DaemonMetrics:
     # --- hooks ------------------------------------------------------------------------------------
 
     def on_status(self, session: AgentSession, status: StatusReport) -> None:
+        self.on_report(session.identity, status.paused)
+
+    def on_report(self, identity: str, paused: bool) -> None:
+        """One status report of ``identity`` (the live hub reads ``paused`` from the tick's columns)."""
         now = time.monotonic()
-        self.status.labels(session.identity).inc()
+        self.status.labels(identity).inc()
         self._recent.append(now)
         if self._first is None:
             self._first = now
-        was = self._paused.get(session.identity, False)
-        if status.paused and not was:
-            self.holds.labels(session.identity).inc()
-        self._paused[session.identity] = status.paused
+        was = self._paused.get(identity, False)
+        if paused and not was:
+            self.holds.labels(identity).inc()
+        self._paused[identity] = paused
 
     def on_sync(self, session: AgentSession, signal: SyncSignal) -> None:
         self._arrivals.setdefault((signal.mission_id, signal.step, session.identity), time.monotonic())

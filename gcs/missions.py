@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import secrets
 import time
@@ -27,6 +28,7 @@ from gcs.cooperation.returns import RETURN_PREFIX, Returner, assign_layers
 from gcs.events import EventBus
 from gcs.store import Store
 from gcs.sync import BarrierSet
+from gcs.telemetry import write_priority
 from protocol.actions import Action, ReturnToLaunch
 from protocol.packets import ActionFailure, Resume, StatusReport, SyncSignal
 from protocol.taskfile import TaskFile
@@ -122,6 +124,8 @@ class MissionRunner:
         agents.on_join.append(self._on_join)
         agents.on_status_changes.append(self._on_status)  # completed step, failsafe, failure: state changes
         agents.on_sync.append(self._on_sync)
+        agents.on_finished = self._arrive_now  # the direct path: the last arrival releases at once
+        self._taken: dict[int, SyncSignal] = {}  # id -> signal the direct path took (its hook skips it)
         agents.on_lost.append(self._on_lost)
 
     # --- lifecycle ------------------------------------------------------------------------------
@@ -509,6 +513,8 @@ class MissionRunner:
             self._finish(mission, "completed", f"all {len(flying)} agents finished{note}")
 
     async def _on_sync(self, session: AgentSession, signal: SyncSignal) -> None:
+        if self._taken.pop(id(signal), None) is signal:
+            return  # the direct path (_arrive_now) counted it already
         if signal.mission_id.startswith(RETURN_PREFIX):
             return  # a return's wait point: the return coordinator releases it
         mission = self._mission_of(session.identity, signal.mission_id)
@@ -522,43 +528,95 @@ class MissionRunner:
                 agent=session.identity,
             )
             return
+        if self._record_arrival(mission, session, signal):
+            await self._release(mission, signal.step)
+
+    def _arrive_now(self, session: AgentSession, signal: SyncSignal) -> bool:
+        """A 'finished' straight from the agent's frame (``AgentManager.on_finished``); True if taken.
+
+        Called only while this runner's hook consumer holds no join or lost of the agent. A
+        barrier this completes is released in the same call (persisted, then one burst): no hook
+        queue, no task switch. Left to the ``on_sync`` hook, in order: an agent whose newest
+        report carries a failsafe or a failure (the hook may exclude it first), a cluster (the
+        release is claimed in shared state first, which is awaited), returns' wait points, and
+        missions not run here.
+        """
+        if self.claim_release is not None or signal.mission_id.startswith(RETURN_PREFIX):
+            return False
+        mission = self._mission_of(session.identity, signal.mission_id)
+        if mission is None:
+            return False
+        status = session.status
+        if status is not None and (status.failsafe is not None or status.failure is not None):
+            return False
+        if len(self._taken) >= 4096:  # hooks closed at shutdown never pop theirs: bounded
+            self._taken.clear()
+        self._taken[id(signal)] = signal
+        if self._record_arrival(mission, session, signal):
+            self._release_now(mission, signal.step)
+        return True
+
+    def _record_arrival(self, mission: ActiveMission, session: AgentSession, signal: SyncSignal) -> bool:
+        """Count an arrival at a barrier; True when it completes the barrier (now to be released).
+
+        A repeated arrival at a released step is answered with the release at once; the first
+        arrival at a barrier starts its sync timeout.
+        """
         try:
             complete = mission.barriers.arrive(session.identity, signal.step)
         except ValueError as exc:
             self._events.publish("sync_ignored", str(exc), severity="warning", agent=session.identity)
-            return
+            return False
         if signal.step in mission.barriers.released:
             session.post(SyncSignal(mission_id=mission.id, step=signal.step, kind="release"))
-            return
-        if complete:
-            await self._release(mission, signal.step)
-        elif signal.step not in mission.timers:
+            return False
+        if not complete and signal.step not in mission.timers:
             timeout = mission.task.sync_timeout_s
             mission.timers[signal.step] = asyncio.get_running_loop().call_later(
                 timeout, lambda: asyncio.ensure_future(self._barrier_timeout(mission, signal.step))
             )
+        return complete
 
     async def _release(self, mission: ActiveMission, step: int) -> None:
         if self.claim_release is not None and not await self.claim_release(mission.id, step):
             mission.barriers.mark_released(step)  # another daemon released it; it told the agents
             return
+        self._release_now(mission, step)
+
+    def _release_now(self, mission: ActiveMission, step: int) -> None:
+        """Persist the release of ``step``, then write it to every member's socket in one pass.
+
+        The release row and its event are one transaction (a kill -9 between the two lost the
+        event once), committed before anyone hears of it. The store's write lock is taken ahead
+        of the telemetry writer (``write_priority``: its chunk in progress commits after the next
+        row) and held through the burst, so the writer thread waits blocked instead of competing
+        with this thread for the GIL while the sockets are written (each ``send`` lets another
+        thread run, which may then keep the GIL for up to the switch interval). The garbage
+        collector is off for the same span (it runs at the next allocation threshold after).
+        """
         mission.barriers.mark_released(step)
         members = sorted(mission.barriers.members)
-        # Persisted once, with its event in the same transaction (a kill -9 between the two lost
-        # the event once), before anyone hears of it.
-        with self._store.atomic():
-            self._store.record_release(mission.id, step)
-            self._events.publish(
-                "sync_released",
-                f"step {step} released to {len(members)} agents",
-                mission_id=mission.id,
-                data={"step": step, "agents": members},
-            )
+        release = SyncSignal(mission_id=mission.id, step=step, kind="release")
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            with write_priority(self._store):
+                with self._store.atomic():
+                    self._store.record_release(mission.id, step)
+                    self._events.publish(
+                        "sync_released",
+                        f"step {step} released to {len(members)} agents",
+                        mission_id=mission.id,
+                        data={"step": step, "agents": members},
+                    )
+                # One burst: encoded once, written to every member's socket in this pass.
+                self._agents.burst(members, release)
+        finally:
+            if collecting:
+                gc.enable()
         timer = mission.timers.pop(step, None)
         if timer is not None:
             timer.cancel()
-        # One burst: encoded once, written to every member's socket in this pass.
-        self._agents.burst(members, SyncSignal(mission_id=mission.id, step=step, kind="release"))
         self._arm_watchdog(mission)
 
     async def _barrier_timeout(self, mission: ActiveMission, step: int) -> None:

@@ -20,6 +20,7 @@ import asyncio
 import collections
 import contextlib
 import logging
+import socket
 import struct
 import time
 from collections.abc import Callable
@@ -84,9 +85,13 @@ class Outbox:
     _in_flight: list[_Outgoing] = field(default_factory=list)
     _drain_due: bool = False  # write_now wrote past the queue: the writer drains it
     _seq: int = 0
+    _sock: socket.socket | None = None  # the plain TCP socket under the transport (None with TLS)
 
     def __post_init__(self) -> None:
         self._seq = self.first_seq
+        sock = getattr(self.writer.transport, "_sock", None)  # asyncio's selector TCP transport only
+        if isinstance(sock, socket.socket) and sock.type == socket.SOCK_STREAM:
+            self._sock = sock
 
     def start(self) -> None:
         self._task = asyncio.create_task(self._run(), name=f"outbox-{self.identity}")
@@ -125,10 +130,12 @@ class Outbox:
     def write_now(self, frame: bytes, ptype: int, now: float | None = None) -> bool:
         """Write a pre-encoded normal-lane frame (any seq; it gets ours) to the socket right now.
 
-        For a burst to many agents (a barrier release): one ``transport.write`` per agent in one
-        pass, no task switch per agent (the writer task is woken only to drain what the kernel
-        did not take, so a stuck peer is cut off as usual). When frames are already queued it
-        queues behind them (order is kept).
+        For a burst to many agents (a barrier release): one ``send`` per agent in one pass, no
+        task switch per agent. When the transport holds nothing the frame goes straight to the
+        plain TCP socket (``sock.send``: what ``transport.write`` would do, without its
+        bookkeeping); what the kernel does not take, and every frame of a TLS session, goes
+        through the transport, and the writer task is woken to drain it (so a stuck peer is cut
+        off as usual). When frames are already queued it queues behind them (order is kept).
         """
         if not self.open:
             return False
@@ -145,15 +152,23 @@ class Outbox:
             self._seq += 1
             out = bytearray(frame)
             _SEQ.pack_into(out, _SEQ_OFFSET, self._seq % (1 << 32))
-            transport.write(out)
+            sent = 0
+            sock = self._sock
+            if sock is not None and not waiting and not transport.is_closing():
+                try:
+                    sent = sock.send(out)
+                except (BlockingIOError, InterruptedError):  # the kernel's buffer is full
+                    sent = 0  # (not contextlib.suppress: ~0.5 us a socket in a 1,000-socket burst)
+            if sent < len(out):
+                transport.write(out[sent:] if sent else out)
+                if transport.get_write_buffer_size():  # the kernel did not take it all
+                    self._drain_due = True  # the writer task drains it (and cuts a stuck peer off)
+                    self._wakeup.set()
         except (OSError, RuntimeError, AttributeError) as exc:
             self.cut_off(f"write failed: {exc}")
             return False
         self.last_tx = now if now is not None else time.monotonic()
         self.written += 1
-        if transport.get_write_buffer_size():  # the kernel did not take it all
-            self._drain_due = True  # the writer task drains it (and cuts a stuck peer off)
-            self._wakeup.set()
         return True
 
     def _enqueue(self, body: Body, urgent: bool | None, done: asyncio.Future[bool] | None) -> bool:
