@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import contextlib
 import json
 import multiprocessing as mp
@@ -240,6 +241,7 @@ async def _server(
         import tracemalloc
 
         baseline = tracemalloc.take_snapshot()
+    objects_before = _object_counts() if os.environ.get("BENCH_OBJECTS") else None
     conn.send(("ready", port, rss_kb()))
     cpu_mark = time.process_time()
     profiler = cProfile.Profile() if profile else None
@@ -266,8 +268,33 @@ async def _server(
                 import tracemalloc
 
                 group = os.environ.get("BENCH_TRACEMALLOC_BY", "lineno")
-                top = tracemalloc.take_snapshot().compare_to(baseline, group)[:30]
+                top = tracemalloc.take_snapshot().compare_to(baseline, group)[
+                    : int(os.environ.get("BENCH_TRACEMALLOC_TOP", "30"))
+                ]
                 print("\n".join(str(stat) for stat in top), file=sys.stderr, flush=True)
+            if objects_before is not None:  # diagnosis: live objects per type per agent, since ready
+                agents = max(1, len(daemon.agents.sessions) if daemon else 1)
+                counts, sizes = _object_counts()
+                counts.subtract(objects_before[0])
+                sizes.subtract(objects_before[1])
+                lines = [
+                    f"{sizes[name] / agents:8.0f} B {n / agents:7.2f}  {name}"
+                    for name, n in counts.most_common(60)
+                    if n > 0
+                ]
+                total = sum(sizes.values()) / agents
+                print(
+                    f"objects per agent ({total:.0f} B, shallow sizes of GC-tracked objects):\n"
+                    + "\n".join(sorted(lines, reverse=True)),
+                    file=sys.stderr,
+                    flush=True,
+                )
+            if os.environ.get("BENCH_TRIM"):  # diagnosis: how much of the RSS is memory malloc keeps free
+                import ctypes
+
+                before = rss_kb()
+                ctypes.CDLL("libc.so.6").malloc_trim(0)
+                print(f"malloc_trim: RSS {before} -> {rss_kb()} KiB", file=sys.stderr, flush=True)
             if profiler is not None and profile:
                 profiler.disable()
                 profiler.dump_stats(profile)
@@ -318,6 +345,21 @@ async def _server(
         server.close()
     data_dir.cleanup()
     conn.send(stop_note)
+
+
+def _object_counts() -> tuple[collections.Counter[str], collections.Counter[str]]:
+    """Live objects the collector tracks, and their shallow bytes, per type (``BENCH_OBJECTS=1``)."""
+    import gc
+
+    gc.unfreeze()  # frozen objects are not listed (the daemon freezes a large fleet's heap)
+    gc.collect()
+    counts: collections.Counter[str] = collections.Counter()
+    sizes: collections.Counter[str] = collections.Counter()
+    for o in gc.get_objects():
+        name = type(o).__qualname__
+        counts[name] += 1
+        sizes[name] += sys.getsizeof(o)
+    return counts, sizes
 
 
 def _service_marks(daemon: Any) -> dict[str, float]:

@@ -1,9 +1,13 @@
-"""Per-agent outbound queue and writer: one bounded queue and one writer task per session.
+"""Per-agent outbound queue and writer: one bounded queue per session, a writer task while it has work.
 
 Why: a peer that stops reading must only ever stall its own writer. Callers enqueue (``post``,
 never blocks) or enqueue and wait for the frame to be written and drained (``send``); the writer
-task owns the socket. Two lanes: an *urgent* frame (operator/safety commands, close) is placed
-ahead of every queued *normal* frame (mission traffic, geofence, parameters, keepalive, sync
+task owns the socket while it runs. It is started when there is something to write or drain and
+ends when the queue is empty and the socket drained, so an idle session costs no task (a fleet of
+thousands mostly idles between keepalives: docs/performance.md, "Round 4: memory").
+
+Two lanes: an *urgent* frame (operator/safety commands, close) is placed ahead of every queued
+*normal* frame (mission traffic, geofence, parameters, keepalive, sync
 releases), with one exception: type-4 frames (PerformActions) keep their relative order
 whatever their lane, because the agent applies them in order (a ``replace`` cancels a
 ``pause``), so a pause overtaking the replace it was sent after would be lost. Normal frames
@@ -17,7 +21,6 @@ transport is closed and every waiting ``send`` resolves False.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import logging
 import struct
@@ -63,7 +66,11 @@ class _Outgoing:
 
 @dataclass(eq=False, slots=True)
 class Outbox:
-    """The outbound side of one session. ``start()`` once; the writer ends when the session is cut off."""
+    """The outbound side of one session; its writer task runs only while there is work.
+
+    ``on_cut_off(outbox, reason)`` is told when the peer is cut off (one shared callable for every
+    session: nothing per agent).
+    """
 
     writer: asyncio.StreamWriter
     identity: str
@@ -72,15 +79,16 @@ class Outbox:
     first_seq: int = 1
     version: int = PROTOCOL_VERSION  # the session's protocol version: a v1 peer gets v1 bodies
     max_frames: int = MAX_QUEUED_FRAMES
-    on_cut_off: Callable[[str], None] | None = None
+    on_cut_off: Callable[[Outbox, str], None] | None = None
     last_tx: float = field(default_factory=time.monotonic)
     written: int = 0
     open: bool = True
     cut_off_reason: str | None = None
-    _queue: collections.deque[_Outgoing] = field(default_factory=collections.deque)
+    # A list, not a deque: an empty deque holds a 64-slot block (~600 B) per session; this queue is
+    # almost always empty and never longer than max_frames.
+    _queue: list[_Outgoing] = field(default_factory=list)
     _queued_bytes: int = 0
-    _wakeup: asyncio.Event = field(default_factory=asyncio.Event)
-    _task: asyncio.Task[None] | None = None
+    _task: asyncio.Task[None] | None = None  # the writer, while there is something to write or drain
     _in_flight: list[_Outgoing] = field(default_factory=list)
     _drain_due: bool = False  # write_now wrote past the queue: the writer drains it
     _seq: int = 0
@@ -88,8 +96,10 @@ class Outbox:
     def __post_init__(self) -> None:
         self._seq = self.first_seq
 
-    def start(self) -> None:
-        self._task = asyncio.create_task(self._run(), name=f"outbox-{self.identity}")
+    def _wake(self) -> None:
+        """Start the writer task unless it runs already (it ends by itself once idle)."""
+        if self._task is None and self.open:
+            self._task = asyncio.get_running_loop().create_task(self._run())
 
     @property
     def queued(self) -> int:
@@ -153,7 +163,7 @@ class Outbox:
         self.written += 1
         if transport.get_write_buffer_size():  # the kernel did not take it all
             self._drain_due = True  # the writer task drains it (and cuts a stuck peer off)
-            self._wakeup.set()
+            self._wake()
         return True
 
     def _enqueue(self, body: Body, urgent: bool | None, done: asyncio.Future[bool] | None) -> bool:
@@ -176,7 +186,7 @@ class Outbox:
         else:
             self._queue.append(item)
         self._queued_bytes += len(frame)
-        self._wakeup.set()
+        self._wake()
         return True
 
     def _urgent_position(self, ptype: int) -> int:
@@ -191,20 +201,19 @@ class Outbox:
     # --- writer ---------------------------------------------------------------------------------
 
     async def _run(self) -> None:
+        """Write and drain until nothing is queued and nothing is left to drain, then end."""
         try:
             while self.open:
                 if not self._queue:
-                    if self._drain_due:
-                        self._drain_due = False
-                        async with asyncio.timeout(self.send_timeout_s):
-                            await self.writer.drain()
-                        continue
-                    self._wakeup.clear()
-                    await self._wakeup.wait()
+                    if not self._drain_due:
+                        return
+                    self._drain_due = False
+                    async with asyncio.timeout(self.send_timeout_s):
+                        await self.writer.drain()
                     continue
                 batch_bytes = 0
                 while self._queue and batch_bytes < MAX_BATCH_BYTES:
-                    item = self._queue.popleft()
+                    item = self._queue.pop(0)
                     self._queued_bytes -= len(item.frame)
                     self._seq += 1
                     frame = bytearray(item.frame)
@@ -225,7 +234,9 @@ class Outbox:
         except (OSError, ConnectionError, RuntimeError) as exc:
             self.cut_off(f"write failed: {exc}")
         finally:
-            self._fail_pending()
+            self._task = None
+            if not self.open:
+                self._fail_pending()
 
     def cut_off(self, reason: str) -> None:
         """Close the transport and fail every waiting frame (idempotent)."""
@@ -237,15 +248,13 @@ class Outbox:
         with contextlib.suppress(Exception):
             self.writer.close()
         self._fail_pending()
-        self._wakeup.set()
         if self.on_cut_off is not None:
-            self.on_cut_off(reason)
+            self.on_cut_off(self, reason)
 
     def close(self) -> None:
         """The session ended for another reason: stop quietly, fail what is still waiting."""
         self.open = False
         self._fail_pending()
-        self._wakeup.set()
 
     def _fail_pending(self) -> None:
         for item in [*self._in_flight, *self._queue]:
