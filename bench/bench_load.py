@@ -44,6 +44,8 @@ import sys
 import tempfile
 import time
 import zlib
+from array import array
+from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -74,7 +76,7 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def percentile(values: list[float], p: float) -> float:
+def percentile(values: Sequence[float], p: float) -> float:
     if not values:
         return float("nan")
     ordered = sorted(values)
@@ -147,8 +149,10 @@ async def _server(
     probe: Any = None
     released: dict[int, float] = {}  # step -> when the daemon's release burst was written
     burst_started: dict[int, float] = {}  # step -> when the release burst began
-    latencies: list[float] = []  # agent timestamp -> written into the daemon's status table
-    hook_latencies: list[float] = []  # agent timestamp -> a status hook (behind the status tick)
+    # Arrays of doubles, not lists of floats: this process's RSS is the daemon's memory figure, and a
+    # list costs 32 B per report (2-3 KiB per agent over a trial), an array 8.
+    latencies = array("d")  # agent timestamp -> written into the daemon's status table
+    hook_latencies = array("d")  # agent timestamp -> a status hook (behind the status tick)
     arrivals: dict[int, float] = {}
     counter = {"frames": 0}
     daemon: Daemon | None = None
@@ -242,6 +246,7 @@ async def _server(
 
         baseline = tracemalloc.take_snapshot()
     objects_before = _object_counts() if os.environ.get("BENCH_OBJECTS") else None
+    maps_before = _rss_by_mapping() if os.environ.get("BENCH_SMAPS") else None
     conn.send(("ready", port, rss_kb()))
     cpu_mark = time.process_time()
     profiler = cProfile.Profile() if profile else None
@@ -255,8 +260,8 @@ async def _server(
                 counter["ingest0"] = daemon.agents.ingest_frames
             for pauses in gc_pauses.values():
                 pauses.clear()
-            latencies.clear()
-            hook_latencies.clear()
+            del latencies[:]
+            del hook_latencies[:]
             counter["frames"] = 0
             cpu_mark = time.process_time()
             marks = _service_marks(daemon)
@@ -272,6 +277,12 @@ async def _server(
                     : int(os.environ.get("BENCH_TRACEMALLOC_TOP", "30"))
                 ]
                 print("\n".join(str(stat) for stat in top), file=sys.stderr, flush=True)
+                grown = sum(
+                    stat.size_diff for stat in tracemalloc.take_snapshot().compare_to(baseline, group)
+                )
+                print(
+                    f"traced memory grew by {grown / 1024:.0f} KiB since ready", file=sys.stderr, flush=True
+                )
             if objects_before is not None:  # diagnosis: live objects per type per agent, since ready
                 agents = max(1, len(daemon.agents.sessions) if daemon else 1)
                 counts, sizes = _object_counts()
@@ -289,6 +300,16 @@ async def _server(
                     file=sys.stderr,
                     flush=True,
                 )
+            if maps_before is not None:  # diagnosis: which mappings the RSS grew in (heap, anonymous, files)
+                grown_maps = _rss_by_mapping()
+                grown_maps.subtract(maps_before)
+                print(
+                    f"RSS growth by mapping (KiB): {dict(grown_maps.most_common(8))}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            if os.environ.get("BENCH_MALLOCSTATS"):  # diagnosis: pymalloc's arenas, used and free bytes
+                sys._debugmallocstats()  # to stderr
             if os.environ.get("BENCH_TRIM"):  # diagnosis: how much of the RSS is memory malloc keeps free
                 import ctypes
 
@@ -360,6 +381,24 @@ def _object_counts() -> tuple[collections.Counter[str], collections.Counter[str]
         counts[name] += 1
         sizes[name] += sys.getsizeof(o)
     return counts, sizes
+
+
+def _rss_by_mapping() -> collections.Counter[str]:
+    """This process's RSS in KiB per kind of mapping (``BENCH_SMAPS=1``): [heap], anonymous by size, files."""
+    rss: collections.Counter[str] = collections.Counter()
+    name = "?"
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        fields = line.split()
+        if "-" in fields[0] and len(fields) >= 5:  # a mapping's header line
+            start, end = (int(x, 16) for x in fields[0].split("-"))
+            size = (end - start) >> 10
+            kind = "1MiB (pymalloc arena)" if size == 1024 else ">1MiB" if size > 1024 else "<1MiB"
+            name = fields[5] if len(fields) > 5 else f"anon {kind}"
+            if name.startswith("/"):
+                name = "files"
+        elif fields[0] == "Rss:":
+            rss[name] += int(fields[1])
+    return rss
 
 
 def _service_marks(daemon: Any) -> dict[str, float]:

@@ -569,7 +569,12 @@ class AgentManager:
         assert session is not None  # only served connections get here
         session.last_rx = now  # complete packets count as life, stray bytes do not
         replayed = isinstance(frame.body, StatusReport) and frame.body.buffered
-        if not (conn.replay if replayed else conn.live).take(now):
+        bucket = conn.live
+        if replayed:
+            if conn.replay is None:  # only an agent that replays status needs this budget (full at first)
+                conn.replay = TokenBucket(self.config.replay_frames_per_s, self.config.replay_burst)
+            bucket = conn.replay
+        if not bucket.take(now):
             raise self._over_budget(replayed)
 
     def _over_budget(self, replayed: bool) -> RateLimited:
@@ -951,9 +956,9 @@ class _Connection(asyncio.BufferedProtocol):
         self._manager = manager
         self.session: AgentSession | None = None  # set once the peer is authenticated
         self.reader: asyncio.StreamReader | None = None  # the handshake's bytes (None once served)
-        self.decoder = FrameDecoder(PRE_AUTH_MAX_BODY)  # replaced by the handshake stream's once served
+        self.decoder: FrameDecoder  # the handshake stream's, once served
         self.live = TokenBucket(config.max_frames_per_s, config.frame_burst)
-        self.replay = TokenBucket(config.replay_frames_per_s, config.replay_burst)
+        self.replay: TokenBucket | None = None  # replayed status reports' budget (made on first use)
         self.ended = False
         self.lost = False
         self._paused = False

@@ -89,7 +89,7 @@ class Outbox:
     _queue: list[_Outgoing] = field(default_factory=list)
     _queued_bytes: int = 0
     _task: asyncio.Task[None] | None = None  # the writer, while there is something to write or drain
-    _in_flight: list[_Outgoing] = field(default_factory=list)
+    _in_flight: list[_Outgoing] | None = None  # the batch being drained (the writer's)
     _drain_due: bool = False  # write_now wrote past the queue: the writer drains it
     _seq: int = 0
 
@@ -212,6 +212,7 @@ class Outbox:
                         await self.writer.drain()
                     continue
                 batch_bytes = 0
+                self._in_flight = batch = []
                 while self._queue and batch_bytes < MAX_BATCH_BYTES:
                     item = self._queue.pop(0)
                     self._queued_bytes -= len(item.frame)
@@ -220,15 +221,15 @@ class Outbox:
                     _SEQ.pack_into(frame, _SEQ_OFFSET, self._seq % (1 << 32))
                     self.writer.write(frame)
                     batch_bytes += len(frame)
-                    self._in_flight.append(item)
+                    batch.append(item)
                 self.last_tx = time.monotonic()
                 async with asyncio.timeout(self.send_timeout_s):
                     await self.writer.drain()
-                self.written += len(self._in_flight)
-                for item in self._in_flight:
+                self.written += len(batch)
+                for item in batch:
                     if item.done is not None and not item.done.done():
                         item.done.set_result(True)
-                self._in_flight.clear()
+                self._in_flight = None
         except TimeoutError:
             self.cut_off(f"socket did not drain within {self.send_timeout_s:g} s")
         except (OSError, ConnectionError, RuntimeError) as exc:
@@ -257,10 +258,10 @@ class Outbox:
         self._fail_pending()
 
     def _fail_pending(self) -> None:
-        for item in [*self._in_flight, *self._queue]:
+        for item in [*(self._in_flight or ()), *self._queue]:
             if item.done is not None and not item.done.done():
                 item.done.set_result(False)
-        self._in_flight.clear()
+        self._in_flight = None
         self._queue.clear()
         self._queued_bytes = 0
 
