@@ -15,7 +15,8 @@ always keep their order among themselves.
 
 The queue is bounded in frames and in bytes (queued plus the transport's own buffer); a peer
 that overflows it, or whose socket does not drain within ``send_timeout_s``, is cut off: the
-transport is closed and every waiting ``send`` resolves False.
+transport is aborted (what it holds is dropped, so the connection ends at once) and every waiting
+``send`` resolves False.
 """
 
 from __future__ import annotations
@@ -240,14 +241,14 @@ class Outbox:
                 self._fail_pending()
 
     def cut_off(self, reason: str) -> None:
-        """Close the transport and fail every waiting frame (idempotent)."""
+        """Abort the transport and fail every waiting frame (idempotent)."""
         if not self.open:
             return
         self.open = False
         self.cut_off_reason = reason
         log.warning("send to %s failed: %s", self.identity, reason)
-        with contextlib.suppress(Exception):
-            self.writer.close()
+        with contextlib.suppress(Exception):  # aborted: a close would wait for the stuck bytes to drain
+            self.writer.transport.abort()
         self._fail_pending()
         if self.on_cut_off is not None:
             self.on_cut_off(self, reason)
