@@ -161,3 +161,35 @@ async def test_a_stuck_peer_that_only_gets_bursts_is_cut_off(tmp_path: Path) -> 
             assert [e.agent for e in daemon.events.history(kind="agent_cut_off")] == ["deaf"]
         finally:
             deaf.close()
+
+
+async def test_frames_pipelined_behind_the_proof_are_all_served(tmp_path: Path) -> None:
+    """Hundreds of KiB sent with the proof, before the answer: the handshake's reader pauses the
+    socket meanwhile; once the session is served every frame is ingested and reading resumes."""
+    key = new_key()
+    count = 2000  # ~300 KB: more than the handshake reader holds before it pauses the socket
+    async with running_daemon(tmp_path, key, max_frames_per_s=10_000.0, frame_burst=10_000) as daemon:
+        client = await RawClient.connect(daemon.listen_port)
+        try:
+            handshake = ClientHandshake("eager", bytes.fromhex(key), compact_status=True)
+            await client.send(handshake.hello())
+            challenge = await client.receive()
+            assert challenge is not None
+            proof = client.stream.frame(handshake.on_challenge(challenge.body))
+            client.stream.compact_status = True  # offered; the answer will confirm it
+            reports = b"".join(client.stream.frame(_report(float(t))) for t in range(1, count + 1))
+            assert len(reports) > 256 << 10
+            await client.send_raw(proof + reports)
+            answer = await client.receive()
+            assert answer is not None and handshake.on_answer(answer.body).compact_status
+            await wait_for(
+                lambda: (s := daemon.agents.session("eager")) is not None and s.status_count == count,
+                10.0,
+                f"all {count} pipelined reports",
+            )
+            session = daemon.agents.session("eager")
+            assert session is not None and session.status == _report(float(count))
+            await client.send_raw(client.stream.frame(_report(count + 1.0)))  # reading goes on
+            await wait_for(lambda: session.status_count == count + 1, 5.0, "a report after them")
+        finally:
+            client.close()
