@@ -255,6 +255,7 @@ async def _server(
         command, *args = await loop.run_in_executor(None, conn.recv)
         if command == "reset":  # (latency=True): False = count ingested frames only (flood trial)
             counter["latency"] = int(args[0]) if args else 1
+            counter["rss_at_reset_kb"] = rss_kb()  # every agent connected, none reporting yet
             if daemon is not None:
                 daemon.agents.ingest_probe = probe if counter["latency"] else None
                 counter["ingest0"] = daemon.agents.ingest_frames
@@ -343,6 +344,7 @@ async def _server(
                     "hook_p99_ms": percentile(hook_latencies, 0.99) * 1000,
                     "connected": connected,
                     "rss_kb": rss_kb(),
+                    "rss_at_reset_kb": counter.get("rss_at_reset_kb", 0),
                     "cpu_s": time.process_time() - cpu_mark,
                 }
             )
@@ -770,6 +772,8 @@ def fleet_trial(agents: int, seconds: float) -> dict[str, Any]:
         "client_workers_cpu_share": sum(r["cpu_s"] for r in sent_rows) / seconds,
         "daemon_rss_mb": stats["rss_kb"] / 1024,
         "rss_per_agent_kb": (stats["rss_kb"] - harness.base_rss_kb) / agents,
+        # Connected, before any status: the sessions alone, without what a loaded trial leaves queued.
+        "rss_per_connected_agent_kb": (stats["rss_at_reset_kb"] - harness.base_rss_kb) / agents,
         "services_us_per_report": stats["services_us"],
         "events": stats["events"],
         "gc_pauses": stats["gc_pauses"],
@@ -817,7 +821,8 @@ def _print_fleet(row: dict[str, Any]) -> None:
         f"dropped {row['dropped_agents']:>3}  p50 {row['latency_p50_ms']:7.2f} ms  "
         f"p99 {row['latency_p99_ms']:8.2f} ms  (hooks p99 {row['hook_latency_p99_ms']:6.1f} ms, "
         f"{row['hook_seen'] / max(1, row['received']):4.0%} seen)  cpu {row['daemon_cpu_share']:4.0%} "
-        f"(clients {row['client_workers_cpu_share']:4.0%})  rss/agent {row['rss_per_agent_kb']:6.1f} KiB  "
+        f"(clients {row['client_workers_cpu_share']:4.0%})  rss/agent {row['rss_per_agent_kb']:6.1f} KiB "
+        f"(connected {row['rss_per_connected_agent_kb']:4.1f})  "
         f"{'PASS' if row['passed'] else 'fail'}  (full gc: {row['gc_pauses']['gen2']})",
         flush=True,
     )

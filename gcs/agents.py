@@ -1,7 +1,8 @@
 """Agent manager: TCP sessions, the authenticated handshake, CIDs, liveness, frame routing.
 
-One connection task (the handshake, then waiting for the session's end) and one writer task
-per session (gcs/outbox.py: a bounded outbound queue with an urgent lane). The handshake reads
+One protocol object per connection (:class:`_Connection`) and, for the handshake only, one
+task; each session's outbound frames go through its outbox (gcs/outbox.py: a bounded queue
+with an urgent lane, written by a task that runs only while there is work). The handshake reads
 frames through the shared :class:`protocol.stream.FramedStream` and is
 :class:`protocol.session.ServerHandshake` (versions negotiated, refusals with codes). A
 connection must complete it within ``handshake_timeout_s`` with frames under 1 KiB, and at
@@ -10,7 +11,8 @@ error closes only that connection (type 6 ``protocol_error`` first), never the d
 other agents.
 
 Nothing is awaited on the read path. After the handshake the connection's frames are handled
-in its transport's ``data_received`` (:class:`_Connection`, no read task): a compact status
+in its protocol's ``buffer_updated`` from the manager's one shared read buffer (no read task, no
+allocation per read; a partial frame waits in the connection's decoder): a compact status
 body (``compact_status``, negotiated by the session layer) is only CRC- and rate-checked and
 copied as it is into the agent's row of the fleet status table (gcs/agents_table.py). The status
 tick (at most every ``STATUS_TICK_S``) checks the dirty rows as NumPy columns and hands the
@@ -123,7 +125,7 @@ class AgentSession:
     """One authenticated connection of one agent identity.
 
     Outbound frames go through the session's :class:`~gcs.outbox.Outbox` (its own bounded queue
-    and writer task), so a peer that does not read stalls only itself.
+    and a writer task while it has work), so a peer that does not read stalls only itself.
     """
 
     identity: str
@@ -556,8 +558,11 @@ class AgentManager:
             leftover = bytes(buffered)
             buffered.clear()
             conn.ingest(leftover)
-        if reader.at_eof() or reader.exception() is not None or conn.transport.is_closing():
+        transport = conn.transport
+        if reader.at_eof() or reader.exception() is not None or transport.is_closing():
             conn.finish()
+        elif not transport.is_reading():  # the reader paused it (a backlog of pipelined frames)
+            transport.resume_reading()
 
     def _take(self, conn: _Connection, frame: Frame, now: float) -> None:
         """The rate limit of a decoded frame (live frames and replayed status have separate budgets).
@@ -1003,10 +1008,10 @@ class _Connection(asyncio.BufferedProtocol):
         self._manager._spawn(self._manager._end(self, exc))
 
     def eof_received(self) -> bool:
-        if self.reader is not None:
+        if self.reader is not None:  # as asyncio's stream protocol: half-closed, a refusal still goes out
             self.reader.feed_eof()
-        else:
-            self.finish()
+            return self.transport.get_extra_info("sslcontext") is None  # (TLS cannot half-close)
+        self.finish()
         return False
 
     def connection_lost(self, exc: Exception | None) -> None:

@@ -137,7 +137,7 @@ class Outbox:
         """Write a pre-encoded normal-lane frame (any seq; it gets ours) to the socket right now.
 
         For a burst to many agents (a barrier release): one ``transport.write`` per agent in one
-        pass, no task switch per agent (the writer task is woken only to drain what the kernel
+        pass, no task switch per agent (the writer task is started only to drain what the kernel
         did not take, so a stuck peer is cut off as usual). When frames are already queued it
         queues behind them (order is kept).
         """
