@@ -354,9 +354,7 @@ class AgentManager:
             served = True
             self._serve(conn, stream)
             return
-        except asyncio.CancelledError:
-            raise
-        except BaseException as exc:
+        except Exception as exc:  # a bug must cost one connection, never the daemon
             if served:  # a frame that came right behind the proof ended it
                 conn.finish(exc)
                 return
