@@ -688,6 +688,9 @@ class Harness:
             daemon=True,
         )
         self.server.start()
+        if not self.server_conn.poll(120):  # bounded: a server that died at start (bad config) never answers
+            self.server.kill()
+            raise RuntimeError(f"the server process did not start (exit code {self.server.exitcode})")
         ready, self.port, self.base_rss_kb = self.server_conn.recv()
         assert ready == "ready"
         names = [f"load-{i}" for i in range(agents)]
