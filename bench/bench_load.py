@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import contextlib
 import json
 import multiprocessing as mp
@@ -43,6 +44,8 @@ import sys
 import tempfile
 import time
 import zlib
+from array import array
+from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -73,7 +76,7 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def percentile(values: list[float], p: float) -> float:
+def percentile(values: Sequence[float], p: float) -> float:
     if not values:
         return float("nan")
     ordered = sorted(values)
@@ -151,8 +154,10 @@ async def _server(
     released: dict[int, float] = {}  # step -> when the daemon's release burst was written
     burst_started: dict[int, float] = {}  # step -> when the release burst began
     completed: dict[int, float] = {}  # step -> when the mission runner found the barrier complete
-    latencies: list[float] = []  # agent timestamp -> written into the daemon's status table
-    hook_latencies: list[float] = []  # agent timestamp -> a status hook (behind the status tick)
+    # Arrays of doubles, not lists of floats: this process's RSS is the daemon's memory figure, and a
+    # list costs 32 B per report (2-3 KiB per agent over a trial), an array 8.
+    latencies = array("d")  # agent timestamp -> written into the daemon's status table
+    hook_latencies = array("d")  # agent timestamp -> a status hook (behind the status tick)
     arrivals: dict[int, float] = {}
     counter = {"frames": 0}
     daemon: Daemon | None = None
@@ -262,6 +267,8 @@ async def _server(
         import tracemalloc
 
         baseline = tracemalloc.take_snapshot()
+    objects_before = _object_counts() if os.environ.get("BENCH_OBJECTS") else None
+    maps_before = _rss_by_mapping() if os.environ.get("BENCH_SMAPS") else None
     conn.send(("ready", port, rss_kb()))
     cpu_mark = time.process_time()
     profiler = cProfile.Profile() if profile else None
@@ -270,13 +277,14 @@ async def _server(
         command, *args = await loop.run_in_executor(None, conn.recv)
         if command == "reset":  # (latency=True): False = count ingested frames only (flood trial)
             counter["latency"] = int(args[0]) if args else 1
+            counter["rss_at_reset_kb"] = rss_kb()  # every agent connected, none reporting yet
             if daemon is not None:
                 daemon.agents.ingest_probe = probe if counter["latency"] else None
                 counter["ingest0"] = daemon.agents.ingest_frames
             for pauses in gc_pauses.values():
                 pauses.clear()
-            latencies.clear()
-            hook_latencies.clear()
+            del latencies[:]
+            del hook_latencies[:]
             counter["frames"] = 0
             cpu_mark = time.process_time()
             marks = _service_marks(daemon)
@@ -288,8 +296,49 @@ async def _server(
                 import tracemalloc
 
                 group = os.environ.get("BENCH_TRACEMALLOC_BY", "lineno")
-                top = tracemalloc.take_snapshot().compare_to(baseline, group)[:30]
+                top = tracemalloc.take_snapshot().compare_to(baseline, group)[
+                    : int(os.environ.get("BENCH_TRACEMALLOC_TOP", "30"))
+                ]
                 print("\n".join(str(stat) for stat in top), file=sys.stderr, flush=True)
+                grown = sum(
+                    stat.size_diff for stat in tracemalloc.take_snapshot().compare_to(baseline, group)
+                )
+                print(
+                    f"traced memory grew by {grown / 1024:.0f} KiB since ready", file=sys.stderr, flush=True
+                )
+            if objects_before is not None:  # diagnosis: live objects per type per agent, since ready
+                agents = max(1, len(daemon.agents.sessions) if daemon else 1)
+                counts, sizes = _object_counts()
+                counts.subtract(objects_before[0])
+                sizes.subtract(objects_before[1])
+                lines = [
+                    f"{sizes[name] / agents:8.0f} B {n / agents:7.2f}  {name}"
+                    for name, n in counts.most_common(60)
+                    if n > 0
+                ]
+                total = sum(sizes.values()) / agents
+                print(
+                    f"objects per agent ({total:.0f} B, shallow sizes of GC-tracked objects):\n"
+                    + "\n".join(sorted(lines, reverse=True)),
+                    file=sys.stderr,
+                    flush=True,
+                )
+            if maps_before is not None:  # diagnosis: which mappings the RSS grew in (heap, anonymous, files)
+                grown_maps = _rss_by_mapping()
+                grown_maps.subtract(maps_before)
+                print(
+                    f"RSS growth by mapping (KiB): {dict(grown_maps.most_common(8))}",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            if os.environ.get("BENCH_MALLOCSTATS"):  # diagnosis: pymalloc's arenas, used and free bytes
+                sys._debugmallocstats()  # to stderr
+            if os.environ.get("BENCH_TRIM"):  # diagnosis: how much of the RSS is memory malloc keeps free
+                import ctypes
+
+                before = rss_kb()
+                ctypes.CDLL("libc.so.6").malloc_trim(0)
+                print(f"malloc_trim: RSS {before} -> {rss_kb()} KiB", file=sys.stderr, flush=True)
             if profiler is not None and profile:
                 profiler.disable()
                 profiler.dump_stats(profile)
@@ -317,6 +366,7 @@ async def _server(
                     "hook_p99_ms": percentile(hook_latencies, 0.99) * 1000,
                     "connected": connected,
                     "rss_kb": rss_kb(),
+                    "rss_at_reset_kb": counter.get("rss_at_reset_kb", 0),
                     "cpu_s": time.process_time() - cpu_mark,
                 }
             )
@@ -347,6 +397,39 @@ async def _server(
         server.close()
     data_dir.cleanup()
     conn.send(stop_note)
+
+
+def _object_counts() -> tuple[collections.Counter[str], collections.Counter[str]]:
+    """Live objects the collector tracks, and their shallow bytes, per type (``BENCH_OBJECTS=1``)."""
+    import gc
+
+    gc.unfreeze()  # frozen objects are not listed (the daemon freezes a large fleet's heap)
+    gc.collect()
+    counts: collections.Counter[str] = collections.Counter()
+    sizes: collections.Counter[str] = collections.Counter()
+    for o in gc.get_objects():
+        name = type(o).__qualname__
+        counts[name] += 1
+        sizes[name] += sys.getsizeof(o)
+    return counts, sizes
+
+
+def _rss_by_mapping() -> collections.Counter[str]:
+    """This process's RSS in KiB per kind of mapping (``BENCH_SMAPS=1``): [heap], anonymous by size, files."""
+    rss: collections.Counter[str] = collections.Counter()
+    name = "?"
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        fields = line.split()
+        if "-" in fields[0] and len(fields) >= 5:  # a mapping's header line
+            start, end = (int(x, 16) for x in fields[0].split("-"))
+            size = (end - start) >> 10
+            kind = "1MiB (pymalloc arena)" if size == 1024 else ">1MiB" if size > 1024 else "<1MiB"
+            name = fields[5] if len(fields) > 5 else f"anon {kind}"
+            if name.startswith("/"):
+                name = "files"
+        elif fields[0] == "Rss:":
+            rss[name] += int(fields[1])
+    return rss
 
 
 def _service_marks(daemon: Any) -> dict[str, float]:
@@ -689,6 +772,9 @@ class Harness:
         )
         self.server.start()
         child.close()  # a server that dies then ends recv() with EOFError instead of hanging it
+        if not self.server_conn.poll(120):  # bounded: a server that died at start (bad config) never answers
+            self.server.kill()
+            raise RuntimeError(f"the server process did not start (exit code {self.server.exitcode})")
         ready, self.port, self.base_rss_kb = self.server_conn.recv()
         assert ready == "ready"
         names = [f"load-{i}" for i in range(agents)]
@@ -774,6 +860,8 @@ def fleet_trial(agents: int, seconds: float) -> dict[str, Any]:
         "client_workers_cpu_share": sum(r["cpu_s"] for r in sent_rows) / seconds,
         "daemon_rss_mb": stats["rss_kb"] / 1024,
         "rss_per_agent_kb": (stats["rss_kb"] - harness.base_rss_kb) / agents,
+        # Connected, before any status: the sessions alone, without what a loaded trial leaves queued.
+        "rss_per_connected_agent_kb": (stats["rss_at_reset_kb"] - harness.base_rss_kb) / agents,
         "services_us_per_report": stats["services_us"],
         "events": stats["events"],
         "gc_pauses": stats["gc_pauses"],
@@ -821,7 +909,8 @@ def _print_fleet(row: dict[str, Any]) -> None:
         f"dropped {row['dropped_agents']:>3}  p50 {row['latency_p50_ms']:7.2f} ms  "
         f"p99 {row['latency_p99_ms']:8.2f} ms  (hooks p99 {row['hook_latency_p99_ms']:6.1f} ms, "
         f"{row['hook_seen'] / max(1, row['received']):4.0%} seen)  cpu {row['daemon_cpu_share']:4.0%} "
-        f"(clients {row['client_workers_cpu_share']:4.0%})  rss/agent {row['rss_per_agent_kb']:6.1f} KiB  "
+        f"(clients {row['client_workers_cpu_share']:4.0%})  rss/agent {row['rss_per_agent_kb']:6.1f} KiB "
+        f"(connected {row['rss_per_connected_agent_kb']:4.1f})  "
         f"{'PASS' if row['passed'] else 'fail'}  (full gc: {row['gc_pauses']['gen2']})",
         flush=True,
     )

@@ -1,7 +1,8 @@
 """Agent manager: TCP sessions, the authenticated handshake, CIDs, liveness, frame routing.
 
-One connection task (the handshake, then waiting for the session's end) and one writer task
-per session (gcs/outbox.py: a bounded outbound queue with an urgent lane). The handshake reads
+One protocol object per connection (:class:`_Connection`) and, for the handshake only, one
+task; each session's outbound frames go through its outbox (gcs/outbox.py: a bounded queue
+with an urgent lane, written by a task that runs only while there is work). The handshake reads
 frames through the shared :class:`protocol.stream.FramedStream` and is
 :class:`protocol.session.ServerHandshake` (versions negotiated, refusals with codes). A
 connection must complete it within ``handshake_timeout_s`` with frames under 1 KiB, and at
@@ -10,7 +11,8 @@ error closes only that connection (type 6 ``protocol_error`` first), never the d
 other agents.
 
 Nothing is awaited on the read path. After the handshake the connection's frames are handled
-in its transport's ``data_received`` (:class:`_FrameProtocol`, no read task): a compact status
+in its protocol's ``buffer_updated`` from the manager's one shared read buffer (no read task, no
+allocation per read; a partial frame waits in the connection's decoder): a compact status
 body (``compact_status``, negotiated by the session layer) is only CRC- and rate-checked and
 copied as it is into the agent's row of the fleet status table (gcs/agents_table.py). The status
 tick (at most every ``STATUS_TICK_S``) checks the dirty rows as NumPy columns and hands the
@@ -30,8 +32,9 @@ import contextlib
 import gc
 import logging
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -83,6 +86,9 @@ TICK_SLICE = 128
 """A tick's rows reach the tick hooks in slices of this many: a consumer yields between two
 slices once its step budget is spent (gcs/dispatch.py), so a whole fleet's tick never holds the
 loop for one service, and its loop time is counted without what ran in between."""
+READ_BUFFER_BYTES = 256 << 10
+"""Every served connection reads into the manager's one buffer of this size (asyncio's own read size)."""
+HANDSHAKE_READ_LIMIT = 1 << 16  # a connection's StreamReader during the handshake (flow control)
 FREEZE_MIN_AGENTS = 200  # smaller fleets: full collections are short anyway (and tests run many daemons)
 _SLOW_FLAGS = HAS_TAIL | BUFFERED  # a compact body with these is decoded at once (rare packets)
 
@@ -119,7 +125,7 @@ class AgentSession:
     """One authenticated connection of one agent identity.
 
     Outbound frames go through the session's :class:`~gcs.outbox.Outbox` (its own bounded queue
-    and writer task), so a peer that does not read stalls only itself.
+    and a writer task while it has work), so a peer that does not read stalls only itself.
     """
 
     identity: str
@@ -246,7 +252,9 @@ class AgentManager:
                 "lost": self.on_lost,
             }
         )
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks: set[asyncio.Task[None]] = set()  # handshakes and session ends under way
+        self._serving = 0  # sessions whose frames are served (their end is still to come)
+        self._read_buffer = memoryview(bytearray(READ_BUFFER_BYTES))  # every connection reads into it
         self.table = StatusTable()  # every served session's newest status (gcs/agents_table.py)
         self.status_tick_s = STATUS_TICK_S
         self._tick_due = False
@@ -322,44 +330,68 @@ class AgentManager:
 
     # --- connections ----------------------------------------------------------------------------
 
-    async def handle_connection(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        """asyncio.start_server callback: handshake, then the frame loop, then cleanup."""
-        task = asyncio.current_task()
-        if task is not None:
-            self._tasks.add(task)
+    def connection(self) -> _Connection:
+        """The protocol factory of the agent listener (``loop.create_server``): one object per connection."""
+        return _Connection(self)
+
+    async def handle_connection(self, conn: _Connection) -> None:
+        """The connection's one task, for its handshake only: once the session is served its frames
+        are handled by the protocol (:class:`_Connection`) and this task ends."""
+        writer = conn.writer
         peer = _peer_name(writer)
+        reader = conn.reader
+        assert reader is not None
         # Before the agent is known a frame is small: a handshake packet is well under 1 KiB.
         stream = FramedStream(reader, writer, max_body=PRE_AUTH_MAX_BODY, version=PROTOCOL_VERSION)
-        session: AgentSession | None = None
         handshake = ServerHandshake(self._keys.key_for)
+        served = False
         try:
             if self._pending_handshakes >= self.config.max_handshakes:
                 self.busy_refusals += 1
                 raise Refused(Code.BUSY, f"{self.config.max_handshakes} handshakes in progress; retry later")
             self._pending_handshakes += 1
             try:
-                session = await asyncio.wait_for(
-                    self._handshake(stream, handshake, peer), self.config.handshake_timeout_s
+                await asyncio.wait_for(
+                    self._handshake(stream, handshake, conn, peer), self.config.handshake_timeout_s
                 )
             finally:
                 self._pending_handshakes -= 1
-            await self._frame_loop(session, stream)
-        except TimeoutError:
+            served = True
+            self._serve(conn, stream)
+            return
+        except Exception as exc:  # a bug must cost one connection, never the daemon
+            if served:  # a frame that came right behind the proof ended it
+                conn.finish(exc)
+                return
+            await self._refuse(stream, handshake, peer, exc, conn.session)
+        finally:
+            if not served:  # never served: a session created for it is dropped
+                if conn.session is not None:
+                    await self._disconnected(conn.session)
+                with contextlib.suppress(Exception):
+                    writer.close()
+
+    async def _refuse(
+        self,
+        stream: FramedStream,
+        handshake: ServerHandshake,
+        peer: str,
+        exc: BaseException,
+        session: AgentSession | None,
+    ) -> None:
+        """A handshake that failed: the event, and the refusal sent to the peer (bounded)."""
+        if isinstance(exc, TimeoutError):
             self._events.publish(
                 "handshake_timeout", f"{peer} did not complete the handshake in time", severity="warning"
             )
             await stream.close(close_for(Code.HANDSHAKE_TIMEOUT, "handshake timeout"))
-        except Refused as exc:
+        elif isinstance(exc, Refused):
             if exc.code != Code.BUSY or self.busy_refusals == 1 or self.busy_refusals % 100 == 0:
                 self._events.publish("agent_refused", f"{peer}: {exc} ({exc.code})", severity="warning")
             known = {c.value for c in Code}
             code = Code(exc.code) if exc.code in known else Code.PROTOCOL_ERROR
             await stream.close(*handshake.refusal(code, str(exc), exc.retry_after_s))
-        except RateLimited as exc:
-            assert session is not None
-            self._events.publish("agent_cut_off", str(exc), severity="error", agent=session.identity)
-            await session.close(CloseReason.PROTOCOL_ERROR, str(exc), code=Code.RATE_LIMITED)
-        except ProtocolError as exc:
+        elif isinstance(exc, ProtocolError):
             who = session.identity if session else peer
             self._events.publish(
                 "protocol_error",
@@ -367,23 +399,38 @@ class AgentManager:
                 severity="warning",
                 agent=session.identity if session else None,
             )
-            if session is not None:
+            await stream.close(close_for(Code.PROTOCOL_ERROR, str(exc)))
+        elif not isinstance(exc, (ConnectionError, OSError, asyncio.IncompleteReadError)):
+            log.error("unexpected error on connection from %s", peer, exc_info=exc)
+
+    async def _end(self, conn: _Connection, exc: BaseException | None) -> None:
+        """A served session is over (``exc``: what ended it): tell the peer why, then clean up."""
+        session = conn.session
+        assert session is not None
+        try:
+            if isinstance(exc, RateLimited):
+                self._events.publish("agent_cut_off", str(exc), severity="error", agent=session.identity)
+                await session.close(CloseReason.PROTOCOL_ERROR, str(exc), code=Code.RATE_LIMITED)
+            elif isinstance(exc, ProtocolError):
+                self._events.publish(
+                    "protocol_error", f"{session.identity}: {exc}", severity="warning", agent=session.identity
+                )
                 await session.close(CloseReason.PROTOCOL_ERROR, str(exc), code=Code.PROTOCOL_ERROR)
-            else:
-                await stream.close(close_for(Code.PROTOCOL_ERROR, str(exc)))
-        except (ConnectionError, OSError, asyncio.IncompleteReadError):
-            pass
-        except asyncio.CancelledError:
-            raise
-        except Exception:  # a bug must cost one connection, never the daemon
-            log.exception("unexpected error on connection from %s", peer)
+            elif exc is not None and not isinstance(
+                exc, (ConnectionError, OSError, asyncio.IncompleteReadError)
+            ):
+                log.error("unexpected error on connection from %s", session.peer, exc_info=exc)
         finally:
-            if session is not None:
-                await self._disconnected(session)
+            self._serving -= 1
+            await self._disconnected(session)
             with contextlib.suppress(Exception):
-                writer.close()
-            if task is not None:
-                self._tasks.discard(task)
+                conn.writer.close()
+
+    def _spawn(self, coro: Coroutine[Any, Any, None]) -> None:
+        """Run ``coro`` as a task the manager waits for on shutdown (a session's end)."""
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     def _admit(self, request: RequestCid, writer: asyncio.StreamWriter) -> None:
         """Refusals that depend on the daemon, not on the key (Refused with a code)."""
@@ -416,7 +463,9 @@ class AgentManager:
         except CidExhausted as exc:
             raise Refused(Code.CID_EXHAUSTED, str(exc), 300.0) from None
 
-    async def _handshake(self, stream: FramedStream, handshake: ServerHandshake, peer: str) -> AgentSession:
+    async def _handshake(
+        self, stream: FramedStream, handshake: ServerHandshake, conn: _Connection, peer: str
+    ) -> AgentSession:
         hello = (await stream.read_frame()).body
         challenge = handshake.on_hello(hello)
         stream.version = handshake.version
@@ -441,6 +490,7 @@ class AgentManager:
             self.config.max_pending_bytes,
             first_seq=stream.seq,
             version=stream.version,
+            on_cut_off=self._cut_off,
         )
         session = AgentSession(
             identity=request.identity,
@@ -453,8 +503,7 @@ class AgentManager:
             version=stream.version,
             compact_status=handshake.compact_status,
         )
-        outbox.on_cut_off = lambda reason: self._cut_off(session, reason)
-        outbox.start()
+        conn.session = session
         was_lost = request.identity in self.lost
         accepted = handshake.accept(cid, self._parameters(), time.time(), lost=was_lost)
         previous = self.sessions.get(request.identity)
@@ -489,44 +538,51 @@ class AgentManager:
             update={"status_period_s": self.config.status_period_s}
         )
 
-    async def _frame_loop(self, session: AgentSession, stream: FramedStream) -> None:
-        """Serve the session's frames until it ends; raises what ended it (protocol error, rate limit).
-
-        Frames that came right behind the proof come first. Then the connection's protocol is
-        swapped for a :class:`_FrameProtocol`, so frames are handled in the transport's
-        ``data_received`` callback (:meth:`_ingest`): no task wake-up and no ``StreamReader``
-        copy per read. The stream protocol stays behind it for write flow control.
-        """
-        transport = session.writer.transport
-        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        conn = _FrameProtocol(self, session, stream.decoder, transport.get_protocol(), done)
+    def _serve(self, conn: _Connection, stream: FramedStream) -> None:
+        """Serve the session's frames from now on in the protocol's ``buffer_updated`` (:meth:`_ingest`):
+        no task and no stream objects per connection. Frames that came right behind the proof come
+        first; raises what ends the session among them (protocol error, rate limit)."""
+        session = conn.session
+        assert session is not None and conn.reader is not None
+        reader, conn.reader = conn.reader, None  # from here on the protocol ingests what arrives
+        conn.decoder = stream.decoder
         session.row = self.table.attach(conn)
         session.table = self.table
+        self._serving += 1
         while stream.backlog:
             frame = stream.backlog.popleft()
             self._take(conn, frame, time.monotonic())
             self._handle(session, frame)
             if not session.open:
+                conn.finish()
                 return
-        transport.set_protocol(conn)
-        buffered: bytearray = stream.reader._buffer  # type: ignore[attr-defined]  # read after the proof
+        buffered: bytearray = reader._buffer  # type: ignore[attr-defined]  # read after the proof
         if buffered:
             leftover = bytes(buffered)
             buffered.clear()
-            conn.data_received(leftover)
-        if stream.reader.at_eof() or transport.is_closing():
+            conn.ingest(leftover)
+        transport = conn.transport
+        if reader.at_eof() or reader.exception() is not None or transport.is_closing():
             conn.finish()
-        await done
+        elif not transport.is_reading():  # the reader paused it (a backlog of pipelined frames)
+            transport.resume_reading()
 
-    def _take(self, conn: _FrameProtocol, frame: Frame, now: float) -> None:
+    def _take(self, conn: _Connection, frame: Frame, now: float) -> None:
         """The rate limit of a decoded frame (live frames and replayed status have separate budgets).
 
         Live frames and replayed (``buffered``) status reports are counted in separate buckets,
         so an agent catching up after an outage is not cut off for it (docs/protocol.md).
         """
-        conn.session.last_rx = now  # complete packets count as life, stray bytes do not
+        session = conn.session
+        assert session is not None  # only served connections get here
+        session.last_rx = now  # complete packets count as life, stray bytes do not
         replayed = isinstance(frame.body, StatusReport) and frame.body.buffered
-        if not (conn.replay if replayed else conn.live).take(now):
+        bucket = conn.live
+        if replayed:
+            if conn.replay is None:  # only an agent that replays status needs this budget (full at first)
+                conn.replay = TokenBucket(self.config.replay_frames_per_s, self.config.replay_burst)
+            bucket = conn.replay
+        if not bucket.take(now):
             raise self._over_budget(replayed)
 
     def _over_budget(self, replayed: bool) -> RateLimited:
@@ -539,7 +595,7 @@ class AgentManager:
         )
         return RateLimited(f"more than {rate:g} {kind}/s (burst {burst}); cut off")
 
-    def _ingest(self, conn: _FrameProtocol, data: bytes) -> bool:
+    def _ingest(self, conn: _Connection, data: bytes | memoryview) -> bool:
         """Every frame ``data`` completes; False once the session is over.
 
         The hot path: a compact status body without tail (not replayed) is copied into the
@@ -548,6 +604,7 @@ class AgentManager:
         """
         started = time.perf_counter()
         session, table, frames = conn.session, self.table, 0
+        assert session is not None  # only served connections get here
         probe = self.ingest_probe
         try:
             for ptype, seq, payload in conn.decoder.split(data):
@@ -816,9 +873,10 @@ class AgentManager:
                     data={"exception": name},
                 )
 
-    def _cut_off(self, session: AgentSession, reason: str) -> None:
-        """The session's outbox gave up on the peer (overflow or no drain): the session ends."""
-        if not session.open:
+    def _cut_off(self, outbox: Outbox, reason: str) -> None:
+        """A session's outbox gave up on the peer (overflow or no drain): the session ends."""
+        session = self.sessions.get(outbox.identity)
+        if session is None or session.outbox is not outbox or not session.open:
             return
         session.open = False
         self._events.publish("agent_cut_off", f"{reason}; cut off", severity="error", agent=session.identity)
@@ -872,8 +930,12 @@ class AgentManager:
     async def close_all(self, reason: CloseReason, message: str) -> None:
         sessions = self.connected()
         await asyncio.gather(*(s.close(reason, message) for s in sessions))
-        if self._tasks:  # closed transports end every frame loop; give them a moment to clean up
-            await asyncio.wait(list(self._tasks), timeout=2.0)
+        deadline = time.monotonic() + 2.0  # closed transports end every session; a moment to clean up
+        while (self._tasks or self._serving) and time.monotonic() < deadline:
+            if self._tasks:
+                await asyncio.wait(list(self._tasks), timeout=max(0.0, deadline - time.monotonic()))
+            else:  # a transport's connection_lost (which ends its session) is still to come
+                await asyncio.sleep(0.01)
         self._hooks_closed = True  # a tick still scheduled must not start new consumers
         await self._hooks.close()
 
@@ -892,61 +954,130 @@ class AgentManager:
         return self._hooks.stats()
 
 
-class _FrameProtocol(asyncio.Protocol):
-    """An agent connection after its handshake: frames handled as bytes arrive (``_frame_loop``).
+class _Connection(asyncio.BufferedProtocol):
+    """One agent connection from accept to close: the only object per connection besides the session.
 
-    The one object per connection that the ingest needs (the session, its decoder, its two rate
-    buckets). Write flow control (``pause_writing`` / ``resume_writing``) and ``connection_lost``
-    are passed on to the stream protocol the connection started with, so ``StreamWriter.drain()``
-    in the session's outbox keeps working.
+    During the handshake the bytes feed a ``StreamReader`` that the connection's one task reads
+    through :class:`~protocol.stream.FramedStream`. Once the session is served
+    (:meth:`AgentManager._serve`) that task and the reader are gone: every read lands in the
+    manager's one shared buffer (``get_buffer``) and ``buffer_updated`` hands it to
+    :meth:`AgentManager._ingest`, which consumes it at once (a partial frame stays in the
+    connection's decoder), so no read allocates. Writes go through a ``StreamWriter`` whose flow
+    control is this object's (``pause_writing``/``resume_writing``/``_drain_helper``), which is what
+    the session's outbox drains on. A session's end runs in a task started only then (:meth:`finish`).
     """
 
-    __slots__ = ("_done", "_manager", "_stream", "decoder", "live", "replay", "session")
+    __slots__ = (
+        "_drain_waiters",
+        "_manager",
+        "_paused",
+        "decoder",
+        "ended",
+        "live",
+        "lost",
+        "reader",
+        "replay",
+        "session",
+        "transport",
+        "writer",
+    )
 
-    def __init__(
-        self,
-        manager: AgentManager,
-        session: AgentSession,
-        decoder: FrameDecoder,
-        stream_protocol: asyncio.BaseProtocol,
-        done: asyncio.Future[None],
-    ) -> None:
+    def __init__(self, manager: AgentManager) -> None:
         config = manager.config
-        self._manager, self.session, self.decoder = manager, session, decoder
+        self._manager = manager
+        self.session: AgentSession | None = None  # set once the peer is authenticated
+        self.reader: asyncio.StreamReader | None = None  # the handshake's bytes (None once served)
+        self.decoder: FrameDecoder  # the handshake stream's, once served
         self.live = TokenBucket(config.max_frames_per_s, config.frame_burst)
-        self.replay = TokenBucket(config.replay_frames_per_s, config.replay_burst)
-        self._stream = stream_protocol
-        self._done = done
+        self.replay: TokenBucket | None = None  # replayed status reports' budget (made on first use)
+        self.ended = False
+        self.lost = False
+        self._paused = False
+        self._drain_waiters: list[asyncio.Future[None]] | None = None
 
-    def finish(self, exc: BaseException | None = None) -> None:
-        if not self._done.done():
-            if exc is None:
-                self._done.set_result(None)
-            else:
-                self._done.set_exception(exc)
+    # --- asyncio protocol: the connection -------------------------------------------------------
 
-    def data_received(self, data: bytes) -> None:
-        if self._done.done():
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        loop = asyncio.get_running_loop()
+        self.transport = transport
+        self.reader = asyncio.StreamReader(limit=HANDSHAKE_READ_LIMIT, loop=loop)
+        self.reader.set_transport(transport)
+        self.writer = asyncio.StreamWriter(transport, self, None, loop)
+        self._manager._spawn(self._manager.handle_connection(self))
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return self._manager._read_buffer
+
+    def buffer_updated(self, nbytes: int) -> None:
+        data = self._manager._read_buffer[:nbytes]
+        if self.reader is not None:  # the handshake: its task reads the bytes (copied)
+            self.reader.feed_data(data)
+        else:
+            self.ingest(data)
+
+    def ingest(self, data: bytes | memoryview) -> None:
+        """Handle the frames ``data`` completes, synchronously (``data`` may be the shared buffer)."""
+        if self.ended:
             return
         try:
             if not self._manager._ingest(self, data):
                 self.finish()
-        except Exception as exc:  # ends this session only: handle_connection deals with it
+        except Exception as exc:  # ends this session only (AgentManager._end deals with it)
             self.finish(exc)
 
+    def finish(self, exc: BaseException | None = None) -> None:
+        """The served session is over (``exc``: why); its end runs in a task of its own, once."""
+        if self.ended or self.reader is not None:  # not served yet: the handshake task ends it
+            return
+        self.ended = True
+        self._manager._spawn(self._manager._end(self, exc))
+
     def eof_received(self) -> bool:
+        if self.reader is not None:  # as asyncio's stream protocol: half-closed, a refusal still goes out
+            self.reader.feed_eof()
+            return self.transport.get_extra_info("sslcontext") is None  # (TLS cannot half-close)
         self.finish()
         return False
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self.finish()
-        self._stream.connection_lost(exc)
+        self.lost = True
+        self._wake_drainers()
+        if self.reader is None:
+            self.finish()
+        elif exc is None:
+            self.reader.feed_eof()
+        else:
+            self.reader.set_exception(exc)
+
+    # --- write flow control (what StreamWriter.drain() waits on) --------------------------------
 
     def pause_writing(self) -> None:
-        self._stream.pause_writing()
+        self._paused = True
 
     def resume_writing(self) -> None:
-        self._stream.resume_writing()
+        self._paused = False
+        self._wake_drainers()
+
+    def _wake_drainers(self) -> None:
+        waiters, self._drain_waiters = self._drain_waiters, None
+        for waiter in waiters or ():
+            if not waiter.done():
+                waiter.set_result(None)
+
+    async def _drain_helper(self) -> None:
+        """Return once the transport takes more (``StreamWriter.drain``); raises once it is lost."""
+        if self.lost:
+            raise ConnectionResetError("Connection lost")
+        if not self._paused:
+            return
+        waiter: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        if self._drain_waiters is None:
+            self._drain_waiters = []
+        self._drain_waiters.append(waiter)
+        await waiter
+        if self.lost:
+            raise ConnectionResetError("Connection lost")
 
 
 _REASON_CODES = {

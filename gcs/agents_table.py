@@ -2,7 +2,7 @@
 
 Why: at 10 Hz from thousands of agents, building a validated ``StatusReport`` (and a hook call
 per service) for every report costs the event loop ~50 us a report. Here the ingest of a compact
-status body (gcs/agents.py, in the transport's ``data_received``) only copies the body's bytes
+status body (gcs/agents.py, in the connection's ``buffer_updated``) only copies the body's bytes
 into the agent's row and marks the row dirty; no Python object is made per report. Once per
 status tick the agent manager takes the dirty rows, reads their fixed fields as NumPy columns
 (:data:`ROW_DTYPE`, the little-endian layout of ``protocol.status_binary``) and turns only the

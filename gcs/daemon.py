@@ -249,11 +249,10 @@ class Daemon:
         for agent, owner, reason in self.store.holds():
             self.authority.restore_hold(agent, owner, reason)
         tls = server_tls_context(self.config)
-        self._server = await asyncio.start_server(
-            self.agents.handle_connection,
+        self._server = await asyncio.get_running_loop().create_server(
+            self.agents.connection,  # one protocol object per agent connection (gcs/agents.py)
             self.config.listen_host,
             self.config.listen_port,
-            limit=1 << 16,
             ssl=tls,
             ssl_handshake_timeout=self.config.handshake_timeout_s if tls else None,
         )

@@ -42,7 +42,7 @@ StatusBatch = list[tuple[Any, Any]]  # (session, report) pairs, in arrival order
 DEFAULT_CAPACITY = 10_000
 STEP_BUDGET_S = 0.005
 """A consumer with a backlog runs hooks for this long before letting the loop go round. The
-frames are read in ``data_received`` callbacks (no read task per connection to compete with),
+frames are read in protocol callbacks (``buffer_updated``) (no read task per connection to compete with),
 so a short slice keeps every socket read close to its arrival while several consumers work
 through a status batch of the whole fleet."""
 SLOW_HOOK_S = 0.5  # a hook call longer than this is logged (once per consumer per minute)

@@ -1,9 +1,13 @@
-"""Per-agent outbound queue and writer: one bounded queue and one writer task per session.
+"""Per-agent outbound queue and writer: one bounded queue per session, a writer task while it has work.
 
 Why: a peer that stops reading must only ever stall its own writer. Callers enqueue (``post``,
 never blocks) or enqueue and wait for the frame to be written and drained (``send``); the writer
-task owns the socket. Two lanes: an *urgent* frame (operator/safety commands, close) is placed
-ahead of every queued *normal* frame (mission traffic, geofence, parameters, keepalive, sync
+task owns the socket while it runs. It is started when there is something to write or drain and
+ends when the queue is empty and the socket drained, so an idle session costs no task (a fleet of
+thousands mostly idles between keepalives: docs/performance.md, "Round 4: memory").
+
+Two lanes: an *urgent* frame (operator/safety commands, close) is placed ahead of every queued
+*normal* frame (mission traffic, geofence, parameters, keepalive, sync
 releases), with one exception: type-4 frames (PerformActions) keep their relative order
 whatever their lane, because the agent applies them in order (a ``replace`` cancels a
 ``pause``), so a pause overtaking the replace it was sent after would be lost. Normal frames
@@ -11,13 +15,13 @@ always keep their order among themselves.
 
 The queue is bounded in frames and in bytes (queued plus the transport's own buffer); a peer
 that overflows it, or whose socket does not drain within ``send_timeout_s``, is cut off: the
-transport is closed and every waiting ``send`` resolves False.
+transport is aborted (what it holds is dropped, so the connection ends at once) and every waiting
+``send`` resolves False.
 """
 
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import logging
 import socket
@@ -64,7 +68,11 @@ class _Outgoing:
 
 @dataclass(eq=False, slots=True)
 class Outbox:
-    """The outbound side of one session. ``start()`` once; the writer ends when the session is cut off."""
+    """The outbound side of one session; its writer task runs only while there is work.
+
+    ``on_cut_off(outbox, reason)`` is told when the peer is cut off (one shared callable for every
+    session: nothing per agent).
+    """
 
     writer: asyncio.StreamWriter
     identity: str
@@ -73,16 +81,17 @@ class Outbox:
     first_seq: int = 1
     version: int = PROTOCOL_VERSION  # the session's protocol version: a v1 peer gets v1 bodies
     max_frames: int = MAX_QUEUED_FRAMES
-    on_cut_off: Callable[[str], None] | None = None
+    on_cut_off: Callable[[Outbox, str], None] | None = None
     last_tx: float = field(default_factory=time.monotonic)
     written: int = 0
     open: bool = True
     cut_off_reason: str | None = None
-    _queue: collections.deque[_Outgoing] = field(default_factory=collections.deque)
+    # A list, not a deque: an empty deque holds a 64-slot block (~600 B) per session; this queue is
+    # almost always empty and never longer than max_frames.
+    _queue: list[_Outgoing] = field(default_factory=list)
     _queued_bytes: int = 0
-    _wakeup: asyncio.Event = field(default_factory=asyncio.Event)
-    _task: asyncio.Task[None] | None = None
-    _in_flight: list[_Outgoing] = field(default_factory=list)
+    _task: asyncio.Task[None] | None = None  # the writer, while there is something to write or drain
+    _in_flight: list[_Outgoing] | None = None  # the batch being drained (the writer's)
     _drain_due: bool = False  # write_now wrote past the queue: the writer drains it
     _seq: int = 0
     _sock: socket.socket | None = None  # the plain TCP socket under the transport (None with TLS)
@@ -93,8 +102,10 @@ class Outbox:
         if isinstance(sock, socket.socket) and sock.type == socket.SOCK_STREAM:
             self._sock = sock
 
-    def start(self) -> None:
-        self._task = asyncio.create_task(self._run(), name=f"outbox-{self.identity}")
+    def _wake(self) -> None:
+        """Start the writer task unless it runs already (it ends by itself once idle)."""
+        if self._task is None and self.open:
+            self._task = asyncio.get_running_loop().create_task(self._run())
 
     @property
     def queued(self) -> int:
@@ -134,7 +145,7 @@ class Outbox:
         task switch per agent. When the transport holds nothing the frame goes straight to the
         plain TCP socket (``sock.send``: what ``transport.write`` would do, without its
         bookkeeping); what the kernel does not take, and every frame of a TLS session, goes
-        through the transport, and the writer task is woken to drain it (so a stuck peer is cut
+        through the transport, and the writer task is started to drain it (so a stuck peer is cut
         off as usual). When frames are already queued it queues behind them (order is kept).
         """
         if not self.open:
@@ -163,7 +174,7 @@ class Outbox:
                 transport.write(out[sent:] if sent else out)
                 if transport.get_write_buffer_size():  # the kernel did not take it all
                     self._drain_due = True  # the writer task drains it (and cuts a stuck peer off)
-                    self._wakeup.set()
+                    self._wake()
         except (OSError, RuntimeError, AttributeError) as exc:
             self.cut_off(f"write failed: {exc}")
             return False
@@ -191,7 +202,7 @@ class Outbox:
         else:
             self._queue.append(item)
         self._queued_bytes += len(frame)
-        self._wakeup.set()
+        self._wake()
         return True
 
     def _urgent_position(self, ptype: int) -> int:
@@ -206,67 +217,67 @@ class Outbox:
     # --- writer ---------------------------------------------------------------------------------
 
     async def _run(self) -> None:
+        """Write and drain until nothing is queued and nothing is left to drain, then end."""
         try:
             while self.open:
                 if not self._queue:
-                    if self._drain_due:
-                        self._drain_due = False
-                        async with asyncio.timeout(self.send_timeout_s):
-                            await self.writer.drain()
-                        continue
-                    self._wakeup.clear()
-                    await self._wakeup.wait()
+                    if not self._drain_due:
+                        return
+                    self._drain_due = False
+                    async with asyncio.timeout(self.send_timeout_s):
+                        await self.writer.drain()
                     continue
                 batch_bytes = 0
+                self._in_flight = batch = []
                 while self._queue and batch_bytes < MAX_BATCH_BYTES:
-                    item = self._queue.popleft()
+                    item = self._queue.pop(0)
                     self._queued_bytes -= len(item.frame)
                     self._seq += 1
                     frame = bytearray(item.frame)
                     _SEQ.pack_into(frame, _SEQ_OFFSET, self._seq % (1 << 32))
                     self.writer.write(frame)
                     batch_bytes += len(frame)
-                    self._in_flight.append(item)
+                    batch.append(item)
                 self.last_tx = time.monotonic()
                 async with asyncio.timeout(self.send_timeout_s):
                     await self.writer.drain()
-                self.written += len(self._in_flight)
-                for item in self._in_flight:
+                self.written += len(batch)
+                for item in batch:
                     if item.done is not None and not item.done.done():
                         item.done.set_result(True)
-                self._in_flight.clear()
+                self._in_flight = None
         except TimeoutError:
             self.cut_off(f"socket did not drain within {self.send_timeout_s:g} s")
         except (OSError, ConnectionError, RuntimeError) as exc:
             self.cut_off(f"write failed: {exc}")
         finally:
-            self._fail_pending()
+            self._task = None
+            if not self.open:
+                self._fail_pending()
 
     def cut_off(self, reason: str) -> None:
-        """Close the transport and fail every waiting frame (idempotent)."""
+        """Abort the transport and fail every waiting frame (idempotent)."""
         if not self.open:
             return
         self.open = False
         self.cut_off_reason = reason
         log.warning("send to %s failed: %s", self.identity, reason)
-        with contextlib.suppress(Exception):
-            self.writer.close()
+        with contextlib.suppress(Exception):  # aborted: a close would wait for the stuck bytes to drain
+            self.writer.transport.abort()
         self._fail_pending()
-        self._wakeup.set()
         if self.on_cut_off is not None:
-            self.on_cut_off(reason)
+            self.on_cut_off(self, reason)
 
     def close(self) -> None:
         """The session ended for another reason: stop quietly, fail what is still waiting."""
         self.open = False
         self._fail_pending()
-        self._wakeup.set()
 
     def _fail_pending(self) -> None:
-        for item in [*self._in_flight, *self._queue]:
+        for item in [*(self._in_flight or ()), *self._queue]:
             if item.done is not None and not item.done.done():
                 item.done.set_result(False)
-        self._in_flight.clear()
+        self._in_flight = None
         self._queue.clear()
         self._queued_bytes = 0
 

@@ -171,7 +171,7 @@ class FrameDecoder:
         """Bytes received but not yet part of a complete frame."""
         return len(self._buffer)
 
-    def feed(self, data: bytes) -> Iterator[Frame]:
+    def feed(self, data: bytes | bytearray | memoryview) -> Iterator[Frame]:
         """Add ``data`` and yield every frame it completes."""
         if self._failed is not None:
             raise self._failed
@@ -182,7 +182,7 @@ class FrameDecoder:
                 return
             yield frame
 
-    def split(self, data: bytes) -> Iterator[tuple[int, int, bytes]]:
+    def split(self, data: bytes | bytearray | memoryview) -> Iterator[tuple[int, int, bytes]]:
         """Add ``data`` and yield ``(type byte, seq, body)`` of every frame it completes, CRC checked.
 
         The bodies are not decoded (:func:`decode_body` does that): the daemon's ingest copies a
