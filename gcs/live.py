@@ -119,12 +119,24 @@ class StreamClient:
         return "[" + ",".join(items) + "]"
 
 
+HISTORY_BUDGET = 200_000
+"""Status entries the live rings hold over the whole fleet (~60 MB); see ``LiveHub.ring_size``."""
+MIN_RING = 50
+"""Entries an agent's ring keeps however large the fleet (5 s at 10 Hz)."""
+
+
 class LiveHub:
     """Rings and fan-out for one daemon; also the daemon's metrics and the operator's last geofence."""
 
     name = "live-hub"
 
-    def __init__(self, daemon: Daemon, history_size: int = 3000, event_ring: int = 2000) -> None:
+    def __init__(
+        self,
+        daemon: Daemon,
+        history_size: int = 3000,
+        event_ring: int = 2000,
+        history_budget: int = HISTORY_BUDGET,
+    ) -> None:
         self.daemon = daemon
         self.metrics = DaemonMetrics(daemon)
         self.history: dict[str, collections.deque[Entry]] = {}
@@ -132,7 +144,9 @@ class LiveHub:
         self.clients: set[StreamClient] = set()
         self.geofence: Geofence | None = None
         self.plans: dict[str, Any] = {}  # mission id -> PlanPreview of missions started from a plan
-        self._history_size = history_size
+        self._history_size = history_size  # per agent, for a small fleet (5 min at 10 Hz)
+        self.history_budget = history_budget  # entries over the whole fleet (set before agents join)
+        self._ring_size = history_size  # what new rings get now (the budget shared by the fleet)
         self._events_queue: asyncio.Queue[Event] | None = None
         self._pump: asyncio.Task[None] | None = None
         daemon.agents.on_status_tick.append(self._on_tick)
@@ -191,7 +205,7 @@ class LiveHub:
         identity = session.identity
         ring = self.history.get(identity)
         if ring is None:
-            ring = self.history[identity] = collections.deque(maxlen=self._history_size)
+            ring = self._new_ring(identity)
         ring.append((received, payload, mission))
         self.metrics.on_report(identity, paused)
         if not streaming:
@@ -206,6 +220,26 @@ class LiveHub:
                         f'"received":{received!r},"status":{status.model_dump_json(exclude_none=True)}}}'
                     )
                 client.offer(text)
+
+    def ring_size(self, agents: int) -> int:
+        """Ring length per agent for a fleet of ``agents``: ``history_size`` while the fleet's
+        rings fit ``history_budget`` entries, then the budget shared (at least ``MIN_RING``).
+        Older history pages come from the telemetry log, so a large fleet loses nothing; the
+        rings only bound the daemon's memory (an entry is ~290 bytes: 3,000 of them for each of
+        2,000 drones would be 1.7 GB)."""
+        return max(MIN_RING, min(self._history_size, self.history_budget // max(1, agents)))
+
+    def _new_ring(self, identity: str) -> collections.deque[Entry]:
+        """A ring for a new agent; when the fleet has grown past the budget by half again, every
+        ring is cut to the new share (its newest entries kept; rare: the share halves at most
+        once per doubling of the fleet)."""
+        size = self.ring_size(len(self.history) + 1)
+        if size * 3 < self._ring_size * 2:
+            for name, old in self.history.items():
+                self.history[name] = collections.deque(old, maxlen=size)
+            self._ring_size = size
+        ring = self.history[identity] = collections.deque(maxlen=self._ring_size)
+        return ring
 
     async def remote_status(self, session: AgentSession, status: StatusReport) -> None:
         """A status of a drone linked to another daemon of the cluster (gcs/cluster/node.py): the

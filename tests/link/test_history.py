@@ -147,3 +147,35 @@ def test_telemetry_writer_drops_the_oldest_rows_when_behind(tmp_path: Path) -> N
     finally:
         writer.stop()
         store.close()
+
+
+async def test_live_rings_share_a_fleet_budget_and_older_pages_come_from_the_log(tmp_path: Path) -> None:
+    """The rings bound the daemon's memory as the fleet grows (2,000 drones x 3,000 entries would
+    be 1.7 GB): each ring is cut to the fleet's share, and a page older than a ring is read from
+    the telemetry log, so nothing an operator asks for is lost."""
+    from gcs.live import MIN_RING, LiveHub
+
+    key = new_key()
+    names = ["drone-1", "drone-2", "drone-3"]
+    async with running_daemon(tmp_path, key, http_host="127.0.0.1", http_port=0) as daemon:
+        hub = next(s for s in daemon.services if isinstance(s, LiveHub))
+        hub.history_budget = 120  # 120 for one drone, 60 each for two or three (>= MIN_RING)
+        assert [hub.ring_size(n) for n in (1, 2, 3, 1000)] == [120, 60, MIN_RING, MIN_RING]
+        agents = [start_agent(n, daemon.listen_port, key, index=i) for i, n in enumerate(names)]
+        try:
+            await wait_for(lambda: len(daemon.agents.connected()) == 3, 10, "three agents")
+            first = time.time()
+            await wait_for(lambda: all(len(hub.history.get(n, ())) >= 60 for n in names), 30, "full rings")
+            await asyncio.sleep(1.0)  # the telemetry writer flushes every 0.5 s
+            assert all(len(hub.history[n]) == 60 for n in names), {n: len(hub.history[n]) for n in names}
+            ring_start = hub.history["drone-1"][0][0]
+            assert ring_start > first
+            async with httpx.AsyncClient(base_url=f"http://127.0.0.1:{daemon.http_port}", timeout=30) as http:
+                page = await http.get(
+                    "/api/v1/agents/drone-1/history", params={"since": first - 1, "limit": 10_000}
+                )
+            assert page.status_code == 200, page.text
+            samples = page.json()
+            assert len(samples) > 60 and samples[0]["received"] < ring_start, (len(samples), ring_start)
+        finally:
+            await stop_agents(agents)
