@@ -41,3 +41,13 @@ class LocalFrame:
 
     def to_latlon(self, north: float, east: float) -> tuple[float, float]:
         return self.lat0 + north / self._k_north, self.lon0 + east / self._k_east
+
+
+def distance_m_array(lat1: ArrayLike, lon1: ArrayLike, lat2: ArrayLike, lon2: ArrayLike) -> FloatArray:
+    """``protocol.geo.distance_m`` (haversine, metres) element by element, the same formula."""
+    p1, p2 = np.radians(lat1), np.radians(lat2)
+    dp = p2 - p1
+    dl = np.radians(np.subtract(lon2, lon1))
+    a = np.sin(dp / 2) ** 2 + np.cos(p1) * np.cos(p2) * np.sin(dl / 2) ** 2
+    out: FloatArray = 2 * EARTH_RADIUS_M * np.arcsin(np.minimum(1.0, np.sqrt(a)))
+    return out

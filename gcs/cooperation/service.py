@@ -7,8 +7,11 @@ publishes their events through a throttle so a persistent condition cannot bury 
 ticker re-asserts holds (seed 000: "for safety reasons ... sent periodically"), runs the
 fleet-wide checks when reports are scarce and catches drones whose status stopped arriving.
 
-Per report only the agent's own picture is updated (tracking, emergency and divergence edges);
-the fleet-wide checks (collision, connectivity: O(fleet) each) run on their own fixed tick of
+Per status tick the reports go into the fleet's arrays (gcs/cooperation/fleet.py) in one
+vectorised pass, with the battery estimators; column compares flag the reports the per-agent
+checks (tracking, emergency and divergence edges) may act on, and only those are built into a
+``StatusReport`` and checked, each agent's intents applied before the next's. The fleet-wide
+checks (collision, connectivity: O(fleet) each) run on their own fixed tick of
 ``collision.min_check_interval_s`` when a report has arrived since the last one, never inside
 the status consumer, so their cost does not grow with the report rate.
 
@@ -31,7 +34,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 
 from gcs.agents import AgentSession
-from gcs.agents_table import StatusTick
+from gcs.agents_table import ROW_BYTES, StatusTick
 from gcs.authority import PRIORITY
 from gcs.context import ServiceContext
 from gcs.cooperation.collision_monitor import CollisionMonitor
@@ -42,6 +45,7 @@ from gcs.cooperation.divergence_monitor import DivergenceMonitor
 from gcs.cooperation.emergency_monitor import EmergencyMonitor
 from gcs.cooperation.energy import EnergyModel, fallback_model
 from gcs.cooperation.event_throttle import EventThrottle
+from gcs.cooperation.fleet import Fleet
 from gcs.cooperation.geo import LocalFrame
 from gcs.cooperation.intents import (
     EndOrderIntent,
@@ -55,7 +59,7 @@ from gcs.cooperation.intents import (
 from gcs.cooperation.legs import agent_acceptance_radius
 from gcs.cooperation.preflight import PreflightChecks, start_points
 from gcs.cooperation.recording import FlightRecorder
-from gcs.cooperation.tracking import TrackedAgent, track
+from gcs.cooperation.tracking import Kinematics, TrackedAgent, track
 from gcs.events import Severity
 from protocol.actions import Action
 from protocol.packets import AgentParameters, Resume, SetParameters, StatusReport
@@ -70,6 +74,11 @@ LOST_LINK_ACTION = {"event": "continue", "hold": "hold", "return": "rtl", "rtl":
 Airspace = Literal["fleet", "local", "none"]
 """Which drones this daemon's collision check decides for: every drone of the cluster, only its
 own (cut off from the cluster), or none (another daemon decides)."""
+
+
+def _carries_more(report: StatusReport | None) -> bool:
+    """A report that came decoded with fields the columns do not hold (exceptions, a failsafe)."""
+    return report is not None and bool(report.exceptions or report.failsafe or report.failure)
 
 
 class ClusterView(Protocol):
@@ -100,6 +109,8 @@ class CooperationService:
         self.connectivity = ConnectivityMonitor(config.connectivity)
         self.recorder = FlightRecorder(config.energy)
         self.agents: dict[str, TrackedAgent] = {}
+        self.fleet = Fleet(config.emergency, scale)  # the agents' newest reports as arrays
+        self.built = 0  # reports built for the per-agent checks (the rest only went into the arrays)
         self.energy_model: EnergyModel = fallback_model(config.energy.fallback_power_w)
         self.frame: LocalFrame | None = None
         self.base: tuple[float, float] | None = config.connectivity.base
@@ -174,13 +185,13 @@ class CooperationService:
     def _publish(
         self, kind: str, message: str, severity: str, agent: str | None, data: dict[str, Any]
     ) -> None:
-        mission = self.agents[agent].status.mission_id if agent in self.agents else None
+        mission = self.agents[agent].state.mission_id if agent in self.agents else None
         level: Severity = "error" if severity == "error" else "warning" if severity == "warning" else "info"
         self.ctx.events.publish(kind, message, severity=level, agent=agent, mission_id=mission, data=data)
 
     def _mission_id(self, ident: str) -> str:
         agent = self.agents.get(ident)
-        status = agent.status if agent else None
+        status = agent.state if agent else None
         return status.mission_id if status is not None and status.mission_id else EMERGENCY_MISSION
 
     async def apply(self, intents: list[Intent]) -> None:
@@ -239,8 +250,10 @@ class CooperationService:
                 return
         self.remote.discard(identity)
         agent = self.agents.pop(identity, None)
-        if agent is not None and agent.recorder is not None:
-            agent.recorder.close()
+        if agent is not None:
+            self.fleet.release(agent)
+            if agent.recorder is not None:
+                agent.recorder.close()
         self.collision.forget(identity)
         self.ctx.authority.drop_holds(identity, ("collision",), "agent lost")
 
@@ -251,7 +264,7 @@ class CooperationService:
             return
         self.remote.add(session.identity)
         try:
-            self._track(session, status, time.monotonic(), local=False)
+            self._track(session, status, time.monotonic(), local=False, row=False)
             self._fleet_due = True
         except Exception:
             log.exception("cooperation: remote status failed for %s", session.identity)
@@ -261,25 +274,40 @@ class CooperationService:
         if identity in self.remote:
             await self._on_lost(identity)
 
-    def _track(
-        self, session: AgentSession, status: StatusReport, now: float, local: bool = True
-    ) -> TrackedAgent:
-        """Update the agent's picture (position, plan position) from a positioned report."""
+    def _adopt(self, session: AgentSession, status: StatusReport, now: float, local: bool) -> TrackedAgent:
+        """The agent's picture, made (with a fleet slot) on its first positioned report."""
         ident = session.identity
+        agent = self.agents.get(ident)
+        if agent is not None:
+            return agent
         position = status.position
         assert position is not None
-        agent = self.agents.get(ident)
-        if agent is None:
-            agent = TrackedAgent(ident, session.cid, session.home, status, position, now)
-            self.agents[ident] = agent
-            if self.frame is None:
-                self.frame = LocalFrame(position.lat, position.lon)
-            if self.base is None and local:  # this base station: where our own agents start
-                home = session.home
-                self.base = (home.lat, home.lon) if home else (position.lat, position.lon)
-        agent.status, agent.position, agent.received = status, position, now
+        agent = TrackedAgent(ident, session.cid, session.home, status, position, now)
+        self.agents[ident] = agent
+        self.fleet.attach(agent, session)
+        if self.frame is None:
+            self.frame = LocalFrame(position.lat, position.lon)
+        if self.base is None and local:  # this base station: where our own agents start
+            home = session.home
+            self.base = (home.lat, home.lon) if home else (position.lat, position.lon)
+        return agent
+
+    def _track(
+        self, session: AgentSession, status: StatusReport, now: float, local: bool = True, row: bool = True
+    ) -> TrackedAgent:
+        """Update the agent's picture (position, plan position) from a positioned report
+        (``row``: the status tick wrote the report's row into the fleet's arrays already)."""
+        agent = self._adopt(session, status, now, local)
+        fleet, slot = self.fleet, agent.slot
+        if not row:
+            fleet.put_report(slot, status, now)
+        fleet.sessions[slot] = session
+        agent.seen(status, now)
+        ident = session.identity
         agent.connected = session.open
-        agent.home = session.home or agent.home
+        if session.home is not None and agent.home is not session.home:
+            agent.home = session.home
+            fleet.home[slot] = (session.home.lat, session.home.lon)
         track(
             agent,
             status,
@@ -293,25 +321,70 @@ class CooperationService:
         return agent
 
     async def _on_tick(self, tick: StatusTick) -> None:
-        """A status tick: the positioned live rows (picked on the columns) are tracked and checked,
-        each agent's intents applied before the next agent's checks, as per report before."""
+        """A status tick: the positioned live rows (picked on the columns) go into the fleet's
+        arrays; the rows a gate flags (:meth:`_gate`) are built into reports and checked, each
+        agent's intents applied before the next agent's checks, as per report before."""
         flags = tick.cols["flags"]
-        rows = np.flatnonzero(((flags & HAS_POSITION) != 0) & ((flags & BUFFERED) == 0)).tolist()
-        if not rows:
+        rows = np.flatnonzero(((flags & HAS_POSITION) != 0) & ((flags & BUFFERED) == 0))
+        if not len(rows):
             return
+        self._fleet_due = True
+        now = time.monotonic()
+        try:
+            flagged = self._gate(tick, rows, now)
+        except Exception:  # a bug here must not cost the agents their checks: every row is checked
+            log.exception("cooperation: status tick gate failed")
+            flagged = rows.tolist()
         owners = tick.owners  # a slice of a tick (gcs/agents.py TICK_SLICE): no yield needed in here
-        for i in rows:
+        for i in flagged:
             session = owners[i]
-            intents = self._checks(session, tick.report(i))
+            self.built += 1
+            intents = self._checks(session, tick.report(i), now)
             if intents:
                 try:
                     await self.apply(intents)
                 except Exception:  # a bug here must not cost the agent its connection
                     log.exception("cooperation: status handling failed for %s", session.identity)
 
-    def _checks(self, session: AgentSession, status: StatusReport) -> list[Intent]:
+    def _gate(self, tick: StatusTick, rows: np.ndarray[Any, np.dtype[np.intp]], now: float) -> list[int]:
+        """Write the tick's ``rows`` into the fleet's arrays (and battery estimators); the rows whose
+        report the per-agent checks must see: a new or relinked agent, a report that came decoded
+        with exceptions or a failsafe (not in the columns), a fence to check, a changed state, a sticky slot
+        (mission, condition in force), or a column gate (``Fleet.gate``)."""
+        owners, fleet, agents = tick.owners, self.fleet, self.agents
+        fences, remote = self.ctx.geofences, self.remote
+        forced = np.zeros(len(rows), dtype=bool)
+        slots = np.empty(len(rows), dtype=np.intp)
+        sessions = fleet.sessions
+        for k, i in enumerate(rows.tolist()):
+            session = owners[i]
+            ident = session.identity
+            agent = agents.get(ident)
+            if agent is None:
+                agent = self._adopt(session, tick.report(i), now, True)
+                forced[k] = True
+            elif (
+                sessions[agent.slot] is not session
+                or not session.open
+                or _carries_more(tick.decoded(i))
+                or ident in remote
+                or (fences and ident in fences)
+            ):
+                forced[k] = True
+            slots[k] = agent.slot
+        cols = tick.cols[rows]
+        flag = fleet.write(slots, cols.view(np.uint8).reshape(-1, ROW_BYTES), now)
+        flag |= forced | fleet.sticky[slots]
+        if self.config.emergency.enabled:
+            fleet.feed_battery(slots, cols)
+            flag |= fleet.gate(slots, cols)
+        if self.config.energy.record_dir is not None:  # the flight log takes every report
+            flag[:] = True
+        picked: list[int] = rows[flag].tolist()
+        return picked
+
+    def _checks(self, session: AgentSession, status: StatusReport, now: float) -> list[Intent]:
         """Track one positioned live report and run the per-report checks; the intents to apply."""
-        now = time.monotonic()
         ident = session.identity
         self.remote.discard(ident)  # linked here (again)
         intents: list[Intent] = []
@@ -323,10 +396,22 @@ class CooperationService:
             if self.config.divergence.enabled:
                 busy = self.ctx.authority.is_held(ident) or self._outranked(ident, "divergence")
                 intents += self.divergence.on_status(agent, status, busy, now)
-            self._fleet_due = True
+            self.fleet.settle(agent, self._sticky(agent, status))
         except Exception:  # a bug here must not cost the agent its connection
             log.exception("cooperation: status handling failed for %s", ident)
         return intents
+
+    @staticmethod
+    def _sticky(agent: TrackedAgent, status: StatusReport) -> bool:
+        """Must every report of the agent go to the per-agent checks? While it has a mission (plan
+        tracking and divergence follow each report), a condition is pending or in force (its
+        edge must see it clear), or it is marked disconnected."""
+        return (
+            status.mission_id is not None
+            or agent.plan is not None
+            or not agent.connected
+            or any(name in agent.conditions for name in ("fence", "battery", "gps"))
+        )
 
     def _new_judge(self) -> DivergenceJudge:
         return DivergenceJudge(self.config.divergence)
@@ -360,12 +445,18 @@ class CooperationService:
 
     def _fresh(self, now: float) -> list[TrackedAgent]:
         limit = self._stale_limit()
-        return [a for a in self.agents.values() if a.connected and now - a.received <= limit]
+        received = self.fleet.received.tolist()
+        return [a for a in self.agents.values() if a.connected and now - received[a.slot] <= limit]
+
+    def _kinematics(self, agents: list[TrackedAgent]) -> Kinematics:
+        """The agents' newest positions and velocities, read from the fleet's arrays."""
+        return Kinematics.of(self.fleet.cols[[a.slot for a in agents]])
 
     def _collision_pass(self, fresh: list[TrackedAgent], now: float) -> list[Intent]:
         """One fleet-wide collision check; drones under a higher source's control never yield."""
         assert self.frame is not None
-        return self.collision.check(fresh, self.frame, lambda i: self._outranked(i, "collision"), now)
+        outranked = lambda i: self._outranked(i, "collision")  # noqa: E731
+        return self.collision.check(fresh, self._kinematics(fresh), self.frame, outranked, now)
 
     def _collision_scope(self, now: float) -> list[TrackedAgent]:
         """The fresh drones this daemon's collision check decides for (all of them, embedded)."""
@@ -419,7 +510,7 @@ class CooperationService:
         w = self._link_range()
         if self.config.connectivity.enabled and w is not None and self.base is not None:
             own = [a for a in fresh if a.ident not in self.remote]  # links to this base station
-            intents += self.connectivity.check(own, self.frame, self.base, w, now)
+            intents += self.connectivity.check(own, self._kinematics(own), self.frame, self.base, w, now)
         return intents
 
     def _link_range(self) -> float | None:

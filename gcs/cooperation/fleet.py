@@ -1,0 +1,175 @@
+"""The tracked agents' newest reports as arrays, and the gates that pick who needs a closer look.
+
+Why: at 2,000 agents and 10 Hz, building a ``StatusReport`` and running every per-agent check
+(plan tracking, emergency edges, divergence) for each report cost the event loop ~16 us a report.
+Almost every report of a healthy fleet changes nothing those checks act on. Here a status tick's
+rows are copied into per-agent rows (the fleet status table's raw layout, read as NumPy columns),
+the battery estimators are fed in one vectorised pass, and cheap column compares (:meth:`Fleet.gate`)
+flag the rows that need the per-agent Python checks: a new agent, a changed state (flags, steps,
+mode, mission), a mission or a condition in force, GPS below 3D, a battery near the return-home
+need. Only those get a report built and checked; the others cost a few array writes.
+
+A gate must flag *every* row the per-report checks would act on (tests/cooperation/
+test_fleet_gates.py checks that against the checks themselves for random reports).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gcs.agents_table import ROW_BYTES, ROW_DTYPE, STATE_BYTES, row_report
+from gcs.cooperation.config import EmergencyConfig
+from gcs.cooperation.emergency import NO_RETURN_MODES, BatteryColumns
+from gcs.cooperation.geo import distance_m_array
+from gcs.cooperation.tracking import TrackedAgent
+from protocol import status_binary
+from protocol.packets import StatusReport
+from protocol.status_binary import ARMED, LANDED
+
+IntArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
+STATE_INDEX = np.array(STATE_BYTES, dtype=np.intp)
+BATTERY_MARGIN_PCT = 1.0
+"""A battery within this many % of its return-home need gets the exact (scalar) check; the
+vectorised estimate agrees with it to ~1e-9 %, so the margin only guards rounding."""
+
+
+class Fleet:
+    """Per agent slot: the newest raw report row, its version and arrival, home, battery history.
+
+    ``rows`` are :data:`gcs.agents_table.ROW_BYTES` bytes each, the status table's layout, so a
+    tick's rows copy in with one assignment and :attr:`cols` reads them as columns. ``version``
+    counts the rows written; a :class:`TrackedAgent` builds its report again only when its row's
+    version moved on (``TrackedAgent.status``).
+    """
+
+    def __init__(self, emergency: EmergencyConfig, vehicle_time_scale: float, capacity: int = 64) -> None:
+        self.config = emergency
+        self.vehicle_time_scale = vehicle_time_scale
+        n = max(1, capacity)
+        self.raw = np.zeros((n, ROW_BYTES), dtype=np.uint8)
+        self.version = np.zeros(n, dtype=np.int64)
+        self.received = np.zeros(n)  # monotonic
+        self.home = np.full((n, 2), np.nan)  # lat, lon (NaN: none)
+        self.sticky = np.zeros(n, dtype=bool)  # every report goes to the per-agent checks
+        self.no_return = np.zeros(n, dtype=bool)  # mode RTL or LAND (as of the last built report)
+        self.battery = BatteryColumns(emergency.battery_window_s, n)
+        self.agents: list[TrackedAgent | None] = [None] * n
+        self.sessions: list[Any] = [None] * n  # the session whose reports fill the slot
+        self._free: list[int] = []
+        self._used = 0
+
+    @property
+    def capacity(self) -> int:
+        return len(self.version)
+
+    @property
+    def cols(self) -> np.ndarray[Any, Any]:
+        """Every slot's newest report as the status table's columns (a view, no copy)."""
+        return self.raw.view(ROW_DTYPE)[:, 0]
+
+    def attach(self, agent: TrackedAgent, session: object) -> int:
+        """A cleared slot for a new tracked agent (its row written by the caller)."""
+        if self._free:
+            slot = self._free.pop()
+        else:
+            if self._used == self.capacity:
+                self._grow()
+            slot = self._used
+            self._used += 1
+        self.raw[slot] = 0
+        self.version[slot] += 1
+        self.home[slot] = np.nan
+        self.sticky[slot] = True
+        self.no_return[slot] = False
+        self.battery.reset(np.array([slot], dtype=np.intp))
+        self.agents[slot], self.sessions[slot] = agent, session
+        agent.rows, agent.slot = self, slot
+        if agent.home is not None:
+            self.home[slot] = (agent.home.lat, agent.home.lon)
+        agent.battery = self.battery.view(slot)
+        return slot
+
+    def release(self, agent: TrackedAgent) -> None:
+        """The agent left: its slot is free (the agent keeps its last report)."""
+        slot = agent.slot
+        if slot < 0 or self.agents[slot] is not agent:
+            return
+        agent.rows, agent.slot = None, -1
+        self.agents[slot] = self.sessions[slot] = None
+        self._free.append(slot)
+
+    def _grow(self) -> None:
+        """Double every array (views taken before stay on the old ones)."""
+        old = self.capacity
+        n = old * 2
+        self.raw = np.concatenate([self.raw, np.zeros((old, ROW_BYTES), dtype=np.uint8)])
+        self.version = np.concatenate([self.version, np.zeros(old, dtype=np.int64)])
+        self.received = np.concatenate([self.received, np.zeros(old)])
+        self.home = np.concatenate([self.home, np.full((old, 2), np.nan)])
+        self.sticky = np.concatenate([self.sticky, np.zeros(old, dtype=bool)])
+        self.no_return = np.concatenate([self.no_return, np.zeros(old, dtype=bool)])
+        self.battery.grow(n)
+        self.agents += [None] * old
+        self.sessions += [None] * old
+
+    def put_report(self, slot: int, report: StatusReport, now: float) -> None:
+        """A report that came as an object only (cluster): its fixed fields into the row. The row
+        has no mode or mission, so the next row from a tick counts as a changed state."""
+        self.raw[slot] = 0
+        body = status_binary.encode(report)[: status_binary.FIXED_SIZE]
+        self.raw[slot, : len(body)] = np.frombuffer(body, dtype=np.uint8)
+        self.version[slot] += 1
+        self.received[slot] = now
+
+    def report(self, slot: int) -> StatusReport:
+        """The slot's newest report built from its row (the row passed the tick's range check)."""
+        return row_report(self.raw[slot].tobytes())
+
+    def write(self, slots: IntArray, raw: NDArray[np.uint8], now: float) -> BoolArray:
+        """A tick's rows (``raw``, one per slot) become the slots' newest reports; which changed
+        state (:data:`STATE_BYTES`) from the row before."""
+        changed: BoolArray = (self.raw[slots[:, None], STATE_INDEX] != raw[:, STATE_INDEX]).any(axis=1)
+        self.raw[slots] = raw
+        self.version[slots] += 1
+        self.received[slots] = now
+        return changed
+
+    def feed_battery(self, slots: IntArray, cols: np.ndarray[Any, Any]) -> None:
+        """Every armed, flying report with a battery % into its slot's estimator (``cols``: the rows)."""
+        flags, pct = cols["flags"], cols["battery_pct"]
+        take = ((flags & (ARMED | LANDED)) == ARMED) & ~np.isnan(pct)
+        if take.any():
+            self.battery.add(slots[take], cols["time"][take], pct[take], cols["lat"][take], cols["lon"][take])
+
+    def gate(self, slots: IntArray, cols: np.ndarray[Any, Any]) -> BoolArray:
+        """Which rows the emergency checks may act on beyond a changed state or a sticky slot: GPS
+        below 3D in the air, or a battery within :data:`BATTERY_MARGIN_PCT` of its return need
+        (the same estimate ``emergency.return_home_shortfall`` makes, on columns)."""
+        flags, pct = cols["flags"], cols["battery_pct"]
+        flying = (flags & (ARMED | LANDED)) == ARMED
+        flag: BoolArray = flying & (cols["fix"] < 3)
+        home = self.home[slots]
+        check = flying & ~np.isnan(pct) & ~np.isnan(home[:, 0]) & ~self.no_return[slots]
+        if check.any():
+            s = slots[check]
+            cfg = self.config
+            rate = self.battery.drop_rate(s)
+            speed = self.battery.ground_speed(s)
+            dist = distance_m_array(cols["lat"][check], cols["lon"][check], home[check, 0], home[check, 1])
+            descent = np.maximum(cols["alt_rel"][check], 0.0) / (cfg.descent_mps * self.vehicle_time_scale)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                needed = rate * (dist / speed + descent) * cfg.battery_safety_factor + cfg.battery_reserve_pct
+                near = (rate > 0) & (pct[check] < needed + BATTERY_MARGIN_PCT)
+            flag[check] |= near
+        return flag
+
+    def settle(self, agent: TrackedAgent, sticky: bool) -> None:
+        """After the per-agent checks of a built report: whether every report of the agent needs
+        them (a mission, a condition in force...), and its mode for the battery gate."""
+        if agent.slot >= 0:
+            self.sticky[agent.slot] = sticky
+            self.no_return[agent.slot] = agent.state.mode in NO_RETURN_MODES
