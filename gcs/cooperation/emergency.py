@@ -59,6 +59,8 @@ class BatteryColumns:
         self.last = np.full((n, 3), np.nan)  # t, lat, lon of the last report taken (NaN t: none)
         self.point = np.zeros((n, 2))  # lat, lon of the newest sample in the ring
         self.max_speed = np.zeros(n)
+        self.rate = np.full(n, np.nan)  # drop_rate() as of the last change of the row's history
+        self.speed = np.full(n, np.nan)  # ground_speed() likewise
 
     @property
     def capacity(self) -> int:
@@ -72,6 +74,8 @@ class BatteryColumns:
         fresh = BatteryColumns(self.window_s, extra)
         for name in ("ring", "head", "count", "base", "sums", "track", "last", "point", "max_speed"):
             setattr(self, name, np.concatenate([getattr(self, name), getattr(fresh, name)]))
+        for name in ("rate", "speed"):
+            setattr(self, name, np.concatenate([getattr(self, name), getattr(fresh, name)]))
 
     def reset(self, slots: IntArray) -> None:
         """Forget the history of ``slots`` (a new drone in the slot, or its clock went back)."""
@@ -84,6 +88,8 @@ class BatteryColumns:
         self.last[slots] = np.nan
         self.point[slots] = 0.0
         self.max_speed[slots] = 0.0
+        self.rate[slots] = np.nan
+        self.speed[slots] = np.nan
 
     def add(self, slots: IntArray, t: FloatArray, pct: FloatArray, lat: FloatArray, lon: FloatArray) -> None:
         """One report per row of ``slots`` (distinct; armed, flying, positioned, with a battery %)."""
@@ -100,12 +106,30 @@ class BatteryColumns:
         if back.any():  # the clock went back: start over
             self.reset(slots[back])
             had &= ~back
-        moving = had & (dt > 0)
+        # The fastest leg between reports; a drone that did not move cannot raise it (distance 0).
+        moving = had & (dt > 0) & ((lat != last[:, 1]) | (lon != last[:, 2]))
+        faster = slots[:0]
         if moving.any():
             m = slots[moving]
             speed = distance_m_array(last[moving, 1], last[moving, 2], lat[moving], lon[moving]) / dt[moving]
-            self.max_speed[m] = np.maximum(self.max_speed[m], speed)
+            up = speed > self.max_speed[m]
+            faster = m[up]
+            self.max_speed[faster] = speed[up]
         self.last[slots, 0], self.last[slots, 1], self.last[slots, 2] = t, lat, lon
+        sampled = self._sample(slots, t, pct, lat, lon)
+        self._estimate(np.concatenate([faster, slots[back], sampled]))  # every row whose history changed
+
+    def _estimate(self, slots: IntArray) -> None:
+        """Refresh the cached :attr:`rate` and :attr:`speed` of ``slots``."""
+        if len(slots):
+            self.rate[slots] = self.drop_rate(slots)
+            self.speed[slots] = self.ground_speed(slots)
+
+    def _sample(
+        self, slots: IntArray, t: FloatArray, pct: FloatArray, lat: FloatArray, lon: FloatArray
+    ) -> IntArray:
+        """Put each report into its ring unless it is closer than the resolution to the one before;
+        the slots that took a sample."""
         count, head, size = self.count[slots], self.head[slots], self.size
         newest = (head + count - 1) % size
         newest_t = self.ring[slots, newest, 0] + self.base[slots]
@@ -113,8 +137,9 @@ class BatteryColumns:
             close = (count > 0) & (t - newest_t < self.window_s / self.RESOLUTION)
         take = ~close  # closer to the sample before than the ring's resolution: not a sample
         if not take.any():
-            return
+            return slots[:0]
         s, t, pct, lat, lon, count = slots[take], t[take], pct[take], lat[take], lon[take], count[take]
+        sampled = s
         first = count == 0
         segment = np.zeros(len(s))
         if not first.all():
@@ -146,6 +171,7 @@ class BatteryColumns:
                 break
             self._expire(s[old])
             s, rel = s[old], rel[old]
+        return sampled
 
     def _expire(self, slots: IntArray) -> None:
         """Drop the oldest sample of each of ``slots`` from the ring and the sums."""
@@ -201,11 +227,11 @@ class BatteryView:
         self._slots = np.array([slot], dtype=np.intp)
 
     def drop_rate(self) -> float | None:
-        rate = float(self._columns.drop_rate(self._slots)[0])
+        rate = float(self._columns.rate[self._slots[0]])
         return None if math.isnan(rate) else rate
 
     def ground_speed(self) -> float | None:
-        speed = float(self._columns.ground_speed(self._slots)[0])
+        speed = float(self._columns.speed[self._slots[0]])
         return None if math.isnan(speed) else speed
 
     @property

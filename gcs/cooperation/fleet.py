@@ -31,7 +31,12 @@ from protocol.status_binary import ARMED, LANDED
 
 IntArray = NDArray[np.intp]
 BoolArray = NDArray[np.bool_]
-STATE_INDEX = np.array(STATE_BYTES, dtype=np.intp)
+_RUNS: list[tuple[int, int]] = []  # STATE_BYTES as runs of consecutive bytes (compared as slices)
+for _byte in STATE_BYTES:
+    if _RUNS and _RUNS[-1][1] == _byte:
+        _RUNS[-1] = (_RUNS[-1][0], _byte + 1)
+    else:
+        _RUNS.append((_byte, _byte + 1))
 BATTERY_MARGIN_PCT = 1.0
 """A battery within this many % of its return-home need gets the exact (scalar) check; the
 vectorised estimate agrees with it to ~1e-9 %, so the margin only guards rounding."""
@@ -59,6 +64,7 @@ class Fleet:
         self.battery = BatteryColumns(emergency.battery_window_s, n)
         self.agents: list[TrackedAgent | None] = [None] * n
         self.sessions: list[Any] = [None] * n  # the session whose reports fill the slot
+        self.by_session: dict[Any, int] = {}  # that session -> the slot
         self._free: list[int] = []
         self._used = 0
 
@@ -86,7 +92,8 @@ class Fleet:
         self.sticky[slot] = True
         self.no_return[slot] = False
         self.battery.reset(np.array([slot], dtype=np.intp))
-        self.agents[slot], self.sessions[slot] = agent, session
+        self.agents[slot] = agent
+        self.link(slot, session)
         agent.rows, agent.slot = self, slot
         if agent.home is not None:
             self.home[slot] = (agent.home.lat, agent.home.lon)
@@ -99,8 +106,20 @@ class Fleet:
         if slot < 0 or self.agents[slot] is not agent:
             return
         agent.rows, agent.slot = None, -1
-        self.agents[slot] = self.sessions[slot] = None
+        self.link(slot, None)
+        self.agents[slot] = None
         self._free.append(slot)
+
+    def link(self, slot: int, session: object) -> None:
+        """``session``'s reports fill ``slot`` from now on (None: no session)."""
+        old = self.sessions[slot]
+        if old is session:
+            return
+        if old is not None and self.by_session.get(old) == slot:
+            del self.by_session[old]
+        self.sessions[slot] = session
+        if session is not None:
+            self.by_session[session] = slot
 
     def _grow(self) -> None:
         """Double every array (views taken before stay on the old ones)."""
@@ -132,7 +151,10 @@ class Fleet:
     def write(self, slots: IntArray, raw: NDArray[np.uint8], now: float) -> BoolArray:
         """A tick's rows (``raw``, one per slot) become the slots' newest reports; which changed
         state (:data:`STATE_BYTES`) from the row before."""
-        changed: BoolArray = (self.raw[slots[:, None], STATE_INDEX] != raw[:, STATE_INDEX]).any(axis=1)
+        old = self.raw[slots]
+        changed = np.zeros(len(slots), dtype=bool)
+        for start, stop in _RUNS:
+            changed |= (old[:, start:stop] != raw[:, start:stop]).any(axis=1)
         self.raw[slots] = raw
         self.version[slots] += 1
         self.received[slots] = now
@@ -153,18 +175,18 @@ class Fleet:
         flying = (flags & (ARMED | LANDED)) == ARMED
         flag: BoolArray = flying & (cols["fix"] < 3)
         home = self.home[slots]
+        battery = self.battery
         check = flying & ~np.isnan(pct) & ~np.isnan(home[:, 0]) & ~self.no_return[slots]
+        check &= battery.rate[slots] > 0  # (NaN: not enough history) no drop, no return need
+        check &= ~np.isnan(battery.speed[slots])
         if check.any():
             s = slots[check]
             cfg = self.config
-            rate = self.battery.drop_rate(s)
-            speed = self.battery.ground_speed(s)
+            rate, speed = battery.rate[s], battery.speed[s]
             dist = distance_m_array(cols["lat"][check], cols["lon"][check], home[check, 0], home[check, 1])
             descent = np.maximum(cols["alt_rel"][check], 0.0) / (cfg.descent_mps * self.vehicle_time_scale)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                needed = rate * (dist / speed + descent) * cfg.battery_safety_factor + cfg.battery_reserve_pct
-                near = (rate > 0) & (pct[check] < needed + BATTERY_MARGIN_PCT)
-            flag[check] |= near
+            needed = rate * (dist / speed + descent) * cfg.battery_safety_factor + cfg.battery_reserve_pct
+            flag[check] |= pct[check] < needed + BATTERY_MARGIN_PCT
         return flag
 
     def settle(self, agent: TrackedAgent, sticky: bool) -> None:

@@ -34,7 +34,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 
 from gcs.agents import AgentSession
-from gcs.agents_table import ROW_BYTES, StatusTick
+from gcs.agents_table import ROW_BYTES, ROW_DTYPE, StatusTick
 from gcs.authority import PRIORITY
 from gcs.context import ServiceContext
 from gcs.cooperation.collision_monitor import CollisionMonitor
@@ -301,7 +301,7 @@ class CooperationService:
         fleet, slot = self.fleet, agent.slot
         if not row:
             fleet.put_report(slot, status, now)
-        fleet.sessions[slot] = session
+        fleet.link(slot, session)
         agent.seen(status, now)
         ident = session.identity
         agent.connected = session.open
@@ -351,37 +351,35 @@ class CooperationService:
         report the per-agent checks must see: a new or relinked agent, a report that came decoded
         with exceptions or a failsafe (not in the columns), a fence to check, a changed state, a sticky slot
         (mission, condition in force), or a column gate (``Fleet.gate``)."""
-        owners, fleet, agents = tick.owners, self.fleet, self.agents
+        owners, fleet = tick.owners, self.fleet
+        picked = [owners[i] for i in rows.tolist()]
+        known = fleet.by_session.get
+        slots = np.array([known(session, -1) for session in picked], dtype=np.intp)
+        forced = slots < 0  # new agent, or a new session of a known one
+        if not all([session.open for session in picked]):
+            forced |= ~np.array([session.open for session in picked], dtype=bool)
+        built = tick.built()
+        if built:
+            more = {i for i in built if _carries_more(tick.decoded(i))}
+            forced |= np.isin(rows, list(more))
         fences, remote = self.ctx.geofences, self.remote
-        forced = np.zeros(len(rows), dtype=bool)
-        slots = np.empty(len(rows), dtype=np.intp)
-        sessions = fleet.sessions
-        for k, i in enumerate(rows.tolist()):
-            session = owners[i]
-            ident = session.identity
-            agent = agents.get(ident)
-            if agent is None:
-                agent = self._adopt(session, tick.report(i), now, True)
-                forced[k] = True
-            elif (
-                sessions[agent.slot] is not session
-                or not session.open
-                or _carries_more(tick.decoded(i))
-                or ident in remote
-                or (fences and ident in fences)
-            ):
-                forced[k] = True
+        if fences or remote:
+            forced |= np.array([s.identity in fences or s.identity in remote for s in picked], dtype=bool)
+        for k in np.flatnonzero(slots < 0).tolist():
+            session = picked[k]
+            agent = self.agents.get(session.identity) or self._adopt(session, tick.report(rows[k]), now, True)
             slots[k] = agent.slot
-        cols = tick.cols[rows]
-        flag = fleet.write(slots, cols.view(np.uint8).reshape(-1, ROW_BYTES), now)
+        raw = tick.cols.view(np.uint8).reshape(-1, ROW_BYTES)[rows]  # whole rows: mode, mission too
+        cols = raw.view(ROW_DTYPE).reshape(-1)  # (fancy indexing the columns would drop those bytes)
+        flag = fleet.write(slots, raw, now)
         flag |= forced | fleet.sticky[slots]
         if self.config.emergency.enabled:
             fleet.feed_battery(slots, cols)
             flag |= fleet.gate(slots, cols)
         if self.config.energy.record_dir is not None:  # the flight log takes every report
             flag[:] = True
-        picked: list[int] = rows[flag].tolist()
-        return picked
+        checked: list[int] = rows[flag].tolist()
+        return checked
 
     def _checks(self, session: AgentSession, status: StatusReport, now: float) -> list[Intent]:
         """Track one positioned live report and run the per-report checks; the intents to apply."""
