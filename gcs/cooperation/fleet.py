@@ -81,6 +81,7 @@ class Fleet:
         """A cleared slot for a new tracked agent (its row written by the caller)."""
         if self._free:
             slot = self._free.pop()
+            self.battery.reset(np.array([slot], dtype=np.intp))  # a fresh row is clear already
         else:
             if self._used == self.capacity:
                 self._grow()
@@ -91,7 +92,6 @@ class Fleet:
         self.home[slot] = np.nan
         self.sticky[slot] = True
         self.no_return[slot] = False
-        self.battery.reset(np.array([slot], dtype=np.intp))
         self.agents[slot] = agent
         self.link(slot, session)
         agent.rows, agent.slot = self, slot
