@@ -21,9 +21,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gcs.agents_table import ROW_BYTES, ROW_DTYPE, STATE_BYTES, row_report
-from gcs.cooperation.config import EmergencyConfig
+from gcs.cooperation.config import DivergenceConfig, EmergencyConfig
 from gcs.cooperation.emergency import NO_RETURN_MODES, BatteryColumns
-from gcs.cooperation.geo import distance_m_array
+from gcs.cooperation.geo import distance_m_array, ned_offset_m_array
+from gcs.cooperation.legs import Point
 from gcs.cooperation.tracking import TrackedAgent
 from protocol import status_binary
 from protocol.packets import StatusReport
@@ -37,6 +38,9 @@ for _byte in STATE_BYTES:
         _RUNS[-1] = (_RUNS[-1][0], _byte + 1)
     else:
         _RUNS.append((_byte, _byte + 1))
+LEG_MARGIN_M = 0.5
+"""A drone within this many metres of a divergence limit (cross-track, hover drift, lag) gets the
+exact check; the columns' flat-earth estimate agrees with it to millimetres."""
 BATTERY_MARGIN_PCT = 1.0
 """A battery within this many % of its return-home need gets the exact (scalar) check; the
 vectorised estimate agrees with it to ~1e-9 %, so the margin only guards rounding."""
@@ -51,8 +55,15 @@ class Fleet:
     version moved on (``TrackedAgent.status``).
     """
 
-    def __init__(self, emergency: EmergencyConfig, vehicle_time_scale: float, capacity: int = 64) -> None:
+    def __init__(
+        self,
+        emergency: EmergencyConfig,
+        divergence: DivergenceConfig,
+        vehicle_time_scale: float,
+        capacity: int = 64,
+    ) -> None:
         self.config = emergency
+        self.divergence = divergence
         self.vehicle_time_scale = vehicle_time_scale
         n = max(1, capacity)
         self.raw = np.zeros((n, ROW_BYTES), dtype=np.uint8)
@@ -61,6 +72,15 @@ class Fleet:
         self.home = np.full((n, 2), np.nan)  # lat, lon (NaN: none)
         self.sticky = np.zeros(n, dtype=bool)  # every report goes to the per-agent checks
         self.no_return = np.zeros(n, dtype=bool)  # mode RTL or LAND (as of the last built report)
+        self.prev = np.zeros((n, 3))  # lat, lon, alt_rel of the row before the newest
+        # The leg the drone flies as of its last built report (gcs/cooperation/legs.py Leg):
+        self.leg_kind = np.zeros(n, dtype=np.int8)  # 0 none (or no plan), 1 a line, 2 a hover point
+        self.leg = np.zeros((n, 4))  # start lat, lon (a line), target lat, lon
+        self.leg_speed = np.full(n, np.nan)  # planned speed (NaN: none)
+        self.leg_started = np.zeros(n)  # report time the running segment started (lag)
+        self.lag_pending = np.zeros(n, dtype=bool)  # a lag event may still come on this leg
+        self.planned = np.zeros(n, dtype=bool)  # tracked in a mission plan
+        self.skipped = np.zeros(n, dtype=bool)  # the newest row was not built (not tracked)
         self.battery = BatteryColumns(emergency.battery_window_s, n)
         self.agents: list[TrackedAgent | None] = [None] * n
         self.sessions: list[Any] = [None] * n  # the session whose reports fill the slot
@@ -92,6 +112,9 @@ class Fleet:
         self.home[slot] = np.nan
         self.sticky[slot] = True
         self.no_return[slot] = False
+        self.leg_kind[slot] = 0
+        self.planned[slot] = False
+        self.skipped[slot] = False
         self.agents[slot] = agent
         self.link(slot, session)
         agent.rows, agent.slot = self, slot
@@ -131,6 +154,14 @@ class Fleet:
         self.home = np.concatenate([self.home, np.full((old, 2), np.nan)])
         self.sticky = np.concatenate([self.sticky, np.zeros(old, dtype=bool)])
         self.no_return = np.concatenate([self.no_return, np.zeros(old, dtype=bool)])
+        self.prev = np.concatenate([self.prev, np.zeros((old, 3))])
+        self.leg_kind = np.concatenate([self.leg_kind, np.zeros(old, dtype=np.int8)])
+        self.leg = np.concatenate([self.leg, np.zeros((old, 4))])
+        self.leg_speed = np.concatenate([self.leg_speed, np.full(old, np.nan)])
+        self.leg_started = np.concatenate([self.leg_started, np.zeros(old)])
+        self.lag_pending = np.concatenate([self.lag_pending, np.zeros(old, dtype=bool)])
+        self.planned = np.concatenate([self.planned, np.zeros(old, dtype=bool)])
+        self.skipped = np.concatenate([self.skipped, np.zeros(old, dtype=bool)])
         self.battery.grow(n)
         self.agents += [None] * old
         self.sessions += [None] * old
@@ -138,11 +169,19 @@ class Fleet:
     def put_report(self, slot: int, report: StatusReport, now: float) -> None:
         """A report that came as an object only (cluster): its fixed fields into the row. The row
         has no mode or mission, so the next row from a tick counts as a changed state."""
+        self._keep_previous(np.array([slot], dtype=np.intp))
         self.raw[slot] = 0
         body = status_binary.encode(report)[: status_binary.FIXED_SIZE]
         self.raw[slot, : len(body)] = np.frombuffer(body, dtype=np.uint8)
         self.version[slot] += 1
         self.received[slot] = now
+        self.skipped[slot] = False
+
+    def stick(self, agent: TrackedAgent) -> None:
+        """The agent's next report goes to the per-agent checks (a decision about it was made
+        outside them: its plan position or orders may have changed)."""
+        if agent.slot >= 0:
+            self.sticky[agent.slot] = True
 
     def report(self, slot: int) -> StatusReport:
         """The slot's newest report built from its row (the row passed the tick's range check)."""
@@ -151,6 +190,7 @@ class Fleet:
     def write(self, slots: IntArray, raw: NDArray[np.uint8], now: float) -> BoolArray:
         """A tick's rows (``raw``, one per slot) become the slots' newest reports; which changed
         state (:data:`STATE_BYTES`) from the row before."""
+        self._keep_previous(slots)
         old = self.raw[slots]
         changed = np.zeros(len(slots), dtype=bool)
         for start, stop in _RUNS:
@@ -159,6 +199,51 @@ class Fleet:
         self.version[slots] += 1
         self.received[slots] = now
         return changed
+
+    def _keep_previous(self, slots: IntArray) -> None:
+        cols = self.cols
+        self.prev[slots, 0], self.prev[slots, 1] = cols["lat"][slots], cols["lon"][slots]
+        self.prev[slots, 2] = cols["alt_rel"][slots]
+
+    def previous(self, slot: int) -> Point:
+        """Where the drone was at the report before its newest (lat, lon, alt_rel)."""
+        lat, lon, alt_rel = self.prev[slot].tolist()
+        return (lat, lon, alt_rel)
+
+    def leg_gate(self, slots: IntArray, cols: np.ndarray[Any, Any]) -> BoolArray:
+        """Which rows of drones in a plan may be acted on by divergence: within
+        :data:`LEG_MARGIN_M` of the correction limit off the leg (``divergence.leg_error`` on
+        columns, the same flat-earth offsets from the leg's start) or of a lag event."""
+        flag = np.zeros(len(slots), dtype=bool)
+        kind = self.leg_kind[slots]
+        if not kind.any():
+            return flag
+        cfg, margin = self.divergence, LEG_MARGIN_M
+        leg = self.leg[slots]
+        lat, lon = cols["lat"], cols["lon"]
+        hover = kind == 2
+        if hover.any():
+            n, e = ned_offset_m_array(leg[hover, 2], leg[hover, 3], lat[hover], lon[hover])
+            flag[hover] = np.hypot(n, e) >= cfg.hover_drift_m - margin
+        line = kind == 1
+        if line.any():
+            s = slots[line]
+            sn, se = ned_offset_m_array(leg[line, 0], leg[line, 1], leg[line, 2], leg[line, 3])
+            pn, pe = ned_offset_m_array(leg[line, 0], leg[line, 1], lat[line], lon[line])
+            length = np.hypot(sn, se)
+            point = length < 1e-6
+            safe = np.where(point, 1.0, length)
+            un, ue = sn / safe, se / safe
+            along = np.where(point, 0.0, pn * un + pe * ue)
+            clamped = np.minimum(np.maximum(along, 0.0), length)
+            cross = np.where(point, np.hypot(pn, pe), np.hypot(pn - clamped * un, pe - clamped * ue))
+            near = cross >= cfg.correct_m - margin
+            elapsed = (cols["time"][line] - self.leg_started[s]) * self.vehicle_time_scale
+            with np.errstate(invalid="ignore"):
+                expected = np.minimum(np.where(point, 0.0, length), self.leg_speed[s] * elapsed)
+                near |= self.lag_pending[s] & (expected - along > cfg.lag_event_m - margin)
+            flag[line] = near
+        return flag
 
     def feed_battery(self, slots: IntArray, cols: np.ndarray[Any, Any]) -> None:
         """Every armed, flying report with a battery % into its slot's estimator (``cols``: the rows)."""
@@ -191,7 +276,21 @@ class Fleet:
 
     def settle(self, agent: TrackedAgent, sticky: bool) -> None:
         """After the per-agent checks of a built report: whether every report of the agent needs
-        them (a mission, a condition in force...), and its mode for the battery gate."""
-        if agent.slot >= 0:
-            self.sticky[agent.slot] = sticky
-            self.no_return[agent.slot] = agent.state.mode in NO_RETURN_MODES
+        them (a condition in force...), its mode for the battery gate, its leg for the leg gate."""
+        slot = agent.slot
+        if slot < 0:
+            return
+        self.sticky[slot] = sticky
+        self.no_return[slot] = agent.state.mode in NO_RETURN_MODES
+        plan = agent.plan
+        self.planned[slot] = plan is not None
+        leg = plan.leg(agent.state.waiting_sync) if plan is not None else None
+        if plan is None or leg is None:
+            self.leg_kind[slot] = 0
+            return
+        self.leg_kind[slot] = 2 if leg.start is None else 1
+        start = leg.start or leg.target
+        self.leg[slot] = (start[0], start[1], leg.target[0], leg.target[1])
+        self.leg_speed[slot] = np.nan if leg.speed is None else leg.speed
+        self.leg_started[slot] = plan.segment_started
+        self.lag_pending[slot] = agent.judge is not None and agent.judge.lag_pending(leg)

@@ -51,3 +51,12 @@ def distance_m_array(lat1: ArrayLike, lon1: ArrayLike, lat2: ArrayLike, lon2: Ar
     a = np.sin(dp / 2) ** 2 + np.cos(p1) * np.cos(p2) * np.sin(dl / 2) ** 2
     out: FloatArray = 2 * EARTH_RADIUS_M * np.arcsin(np.minimum(1.0, np.sqrt(a)))
     return out
+
+
+def ned_offset_m_array(
+    lat0: ArrayLike, lon0: ArrayLike, lat: ArrayLike, lon: ArrayLike
+) -> tuple[FloatArray, FloatArray]:
+    """``protocol.geo.ned_offset_m`` (flat-earth north/east metres) element by element."""
+    north: FloatArray = np.radians(np.subtract(lat, lat0)) * EARTH_RADIUS_M
+    east: FloatArray = np.radians(np.subtract(lon, lon0)) * EARTH_RADIUS_M * np.cos(np.radians(lat0))
+    return north, east

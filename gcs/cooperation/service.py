@@ -61,7 +61,7 @@ from gcs.cooperation.preflight import PreflightChecks, start_points
 from gcs.cooperation.recording import FlightRecorder
 from gcs.cooperation.tracking import Kinematics, TrackedAgent, track
 from gcs.events import Severity
-from protocol.actions import Action
+from protocol.actions import Action, Waypoints
 from protocol.packets import AgentParameters, Resume, SetParameters, StatusReport
 from protocol.status_binary import BUFFERED, HAS_POSITION
 
@@ -109,7 +109,7 @@ class CooperationService:
         self.connectivity = ConnectivityMonitor(config.connectivity)
         self.recorder = FlightRecorder(config.energy)
         self.agents: dict[str, TrackedAgent] = {}
-        self.fleet = Fleet(config.emergency, scale)  # the agents' newest reports as arrays
+        self.fleet = Fleet(config.emergency, config.divergence, scale)  # the agents' newest reports as arrays
         self.built = 0  # reports built for the per-agent checks (the rest only went into the arrays)
         self.energy_model: EnergyModel = fallback_model(config.energy.fallback_power_w)
         self.frame: LocalFrame | None = None
@@ -198,6 +198,9 @@ class CooperationService:
         """Hand each intent to the authority (which may refuse it) or to the event log."""
         authority = self.ctx.authority
         for intent in intents:
+            target = self.agents.get(getattr(intent, "ident", None) or "")
+            if target is not None:
+                self.fleet.stick(target)
             if isinstance(intent, EventIntent):
                 assert self._throttle is not None
                 self._throttle.publish(
@@ -378,8 +381,36 @@ class CooperationService:
             flag |= fleet.gate(slots, cols)
         if self.config.energy.record_dir is not None:  # the flight log takes every report
             flag[:] = True
+        planned = fleet.planned[slots]
+        if planned.any():
+            flag |= self._plan_gate(slots, cols, planned & ~flag)
+            for k in np.flatnonzero(planned & flag & fleet.skipped[slots]).tolist():
+                agent = fleet.agents[slots[k]]
+                if agent is not None and agent.plan is not None:  # as if the report before was tracked
+                    agent.plan.passed(fleet.previous(agent.slot))
+        fleet.skipped[slots] = ~flag
         checked: list[int] = rows[flag].tolist()
         return checked
+
+    def _plan_gate(
+        self,
+        slots: np.ndarray[Any, np.dtype[np.intp]],
+        cols: np.ndarray[Any, Any],
+        rows: np.ndarray[Any, Any],
+    ) -> np.ndarray[Any, np.dtype[np.bool_]]:
+        """Of ``rows`` (drones in a plan, not flagged yet): those whose plan is gone (tracking must
+        drop it) or whose position is near a divergence limit (``Fleet.leg_gate``)."""
+        flag = np.zeros(len(slots), dtype=bool)
+        plan_of, agents = self.ctx.missions.plan_of, self.fleet.agents
+        for k in np.flatnonzero(rows).tolist():
+            agent = agents[slots[k]]
+            mission = agent.state.mission_id if agent is not None else None
+            flag[k] = agent is None or mission is None or plan_of(mission, agent.ident) is None
+        if self.config.divergence.enabled:
+            rest = rows & ~flag
+            if rest.any():
+                flag[rest] = self.fleet.leg_gate(slots[rest], cols[rest])
+        return flag
 
     def _checks(self, session: AgentSession, status: StatusReport, now: float) -> list[Intent]:
         """Track one positioned live report and run the per-report checks; the intents to apply."""
@@ -401,13 +432,17 @@ class CooperationService:
 
     @staticmethod
     def _sticky(agent: TrackedAgent, status: StatusReport) -> bool:
-        """Must every report of the agent go to the per-agent checks? While it has a mission (plan
-        tracking and divergence follow each report), a condition is pending or in force (its
-        edge must see it clear), or it is marked disconnected."""
+        """Must every report of the agent go to the per-agent checks? While its mission's plan is
+        not known here yet, it flies a detour or a waypoints action (the plan position follows each
+        report), a divergence error is being timed or a condition is pending or in force (its edge
+        must see it clear), or it is marked disconnected."""
+        plan, judge = agent.plan, agent.judge
         return (
-            status.mission_id is not None
-            or agent.plan is not None
+            (status.mission_id is not None and plan is None)  # its plan may turn up
             or not agent.connected
+            or agent.detour_step is not None
+            or (plan is not None and isinstance(plan.current_action, Waypoints))  # (waypoint by position)
+            or (judge is not None and judge.persisting)
             or any(name in agent.conditions for name in ("fence", "battery", "gps"))
         )
 

@@ -16,11 +16,12 @@ from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from gcs.agents_table import StatusTable, StatusTick
-from gcs.cooperation.config import CooperationConfig, EmergencyConfig
+from gcs.cooperation.config import CooperationConfig, DivergenceConfig, EmergencyConfig
 from gcs.cooperation.emergency import BatteryColumns, BatteryEstimator
-from gcs.cooperation.intents import Intent
+from gcs.cooperation.intents import HoldIntent, Intent, ReplaceIntent
 from gcs.cooperation.service import CooperationService
 from protocol import status_binary
+from protocol.actions import Action, GoBy, Goto, Hold, Takeoff, Waypoint, Waypoints
 from protocol.geo import offset_latlon
 from protocol.packets import (
     Battery,
@@ -44,6 +45,27 @@ class Session:
         self.home = GeoPoint(lat=HOME[0], lon=HOME[1])
 
 
+MISSION = "m-1"
+PLAN: list[Action] = [
+    Takeoff(step=0, alt=20.0),
+    Goto(step=1, lat=offset_latlon(*HOME, 200.0, 0.0)[0], lon=HOME[1], alt=20.0, speed=5.0),
+    GoBy(step=2, north=0.0, east=150.0),
+    Hold(step=3, seconds=5.0),
+    Waypoints(
+        step=4,
+        points=[
+            Waypoint(lat=lat, lon=lon, alt=25.0)
+            for lat, lon in (offset_latlon(*HOME, 100.0, 150.0), offset_latlon(*HOME, 100.0, 0.0))
+        ],
+    ),
+    Goto(step=5, sync=True, lat=HOME[0], lon=HOME[1], alt=20.0),
+]
+
+
+def _plan_of(mission: str, ident: str) -> list[Action] | None:
+    return PLAN if mission == MISSION else None
+
+
 class Recording(CooperationService):
     """The service with its intents recorded instead of applied (no daemon around it)."""
 
@@ -57,7 +79,9 @@ class Recording(CooperationService):
             config=SimpleNamespace(
                 agent_parameters=SimpleNamespace(acceptance_radius_m=None), status_period_s=0.1
             ),
-            missions=SimpleNamespace(plan_of=lambda mission, ident: None, active={}),
+            missions=SimpleNamespace(
+                plan_of=lambda mission, ident: PLAN if mission == MISSION else None, active={}
+            ),
             authority=authority,
         )
 
@@ -85,6 +109,10 @@ def _report(k: int, t: float, s: dict[str, Any]) -> StatusReport:
         armed=s["armed"],
         landed=s["landed"],
         step=s["step"],
+        completed_step=max(s["step"] - 1, -1),
+        mission_id=s.get("mission"),
+        waiting_sync=s["step"] if s.get("waiting") else None,
+        paused=s.get("paused", False),
     )
 
 
@@ -106,11 +134,47 @@ change = st.fixed_dictionaries(
 )
 
 
+flight = st.fixed_dictionaries(
+    {
+        "dt": st.sampled_from([0.1, 0.1, 0.1, 0.35, 1.3]),
+        "dn": st.sampled_from([-2.0, 0.0, 1.0, 2.0, 3.0, 40.0, -40.0]),  # now and then a gust's jump
+        "de": st.sampled_from([-2.0, 0.0, 1.0, 2.0, -30.0, 30.0]),
+        "advance": st.sampled_from([False] * 10 + [True]),
+        "waiting": st.sampled_from([False] * 8 + [True]),
+        "paused": st.sampled_from([False] * 12 + [True]),
+        "fix": st.sampled_from([3] * 12 + [2]),
+    }
+)
+
+
+def _fly(c: dict[str, Any], s: dict[str, Any]) -> dict[str, Any]:
+    """A drone in the mission: it creeps along with gusts, steps on now and then, waits, pauses."""
+    step = min(s.get("step", 0) + int(c["advance"]), len(PLAN) - 1)
+    return {
+        "dt": c["dt"],
+        "north": s["north"] + c["dn"],
+        "east": s["east"] + c["de"],
+        "alt": 20.0,
+        "vn": 1.0,
+        "drain": 0.05,
+        "fix": c["fix"],
+        "mode": "GUIDED",
+        "armed": True,
+        "landed": False,
+        "step": max(step, 0),
+        "move": True,
+        "mission": MISSION,
+        "waiting": c["waiting"],
+        "paused": c["paused"],
+    }
+
+
 async def _run(
-    steps: list[list[dict[str, Any]]], fenced: bool
+    steps: list[list[dict[str, Any]]], fenced: bool, mission: bool = False
 ) -> tuple[Recording, Recording, dict[str, StatusReport]]:
     config = CooperationConfig(
-        emergency=EmergencyConfig(gps_grace_s=0.0, battery_window_s=4.0, battery_reserve_pct=40.0)
+        emergency=EmergencyConfig(gps_grace_s=0.0, battery_window_s=4.0, battery_reserve_pct=40.0),
+        divergence=DivergenceConfig(persist_s=0.0, cooldown_s=0.0, lag_event_m=20.0),
     )
     fences = (
         {"drone-0": Geofence(circle=FenceCircle(lat=HOME[0], lon=HOME[1], radius_m=250.0))} if fenced else {}
@@ -128,11 +192,14 @@ async def _run(
     for n, step in enumerate(steps):
         for k, c in enumerate(step):
             s = state[k]
+            if mission:
+                c = _fly(c, s)
             s["t"] += c["dt"]
             s["pct"] = max(0.0, s["pct"] - c["drain"] * max(c["dt"], 0.0))
             if c["move"]:
                 s.update(north=c["north"], east=c["east"], alt=c["alt"], vn=c["vn"])
             s.update({key: c[key] for key in ("fix", "mode", "armed", "landed", "step")})
+            s.update({key: c[key] for key in ("mission", "waiting", "paused") if key in c})
             report = _report(k, s["t"], s)
             table.put(rows[k], status_binary.encode(report), time.time())
             newest[sessions[k].identity] = report
@@ -173,6 +240,51 @@ def test_the_gated_checks_decide_what_checking_every_report_decides(
             other.battery.ground_speed(),
         )
     assert gated.built <= every.built
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    st.integers(1, 2).flatmap(
+        lambda n: st.lists(st.lists(flight, min_size=n, max_size=n), min_size=2, max_size=120)
+    )
+)
+def test_in_a_mission_the_gated_checks_decide_what_checking_every_report_decides(
+    steps: list[list[dict[str, Any]]],
+) -> None:
+    gated, every, newest = asyncio.run(_run(steps, False, mission=True))
+    event("acted" if every.decided else "no action")
+    event("divergence" if any("divergence" in str(i) for _, i in every.decided) else "no divergence")
+    assert gated.decided == every.decided
+    for ident, agent in gated.agents.items():
+        other = every.agents[ident]
+        assert agent.plan is not None and other.plan is not None
+        if gated.fleet.skipped[agent.slot]:  # the last reports were not tracked: as the next report does
+            p = newest[ident].position
+            assert p is not None
+            agent.plan.passed((p.lat, p.lon, p.alt_rel))
+        assert vars_of(agent.plan) == vars_of(other.plan)  # the same plan position, switch points too
+        assert (agent.completed, agent.detour_step, agent.conditions.keys()) == (
+            other.completed,
+            other.detour_step,
+            other.conditions.keys(),
+        )
+        assert agent.status == newest[ident]
+
+
+def test_a_mission_flown_on_its_leg_skips_the_checks_and_a_gust_is_still_corrected() -> None:
+    calm = {"dt": 0.1, "dn": 0.5, "de": 0.0, "waiting": False, "paused": False, "fix": 3}
+    steps = [[{**calm, "advance": n == 0}] for n in range(150)]  # on step 1, north at the planned 5 m/s
+    quiet, every, _ = asyncio.run(_run(steps, False, mission=True))
+    assert not every.decided and quiet.built <= 3  # the first report and the step change
+    gust = [[{**calm, "advance": False, "de": 20.0}]]  # blown 20 m off the leg
+    gated, every, _ = asyncio.run(_run(steps + gust + steps[1:20], False, mission=True))
+    acted = [n for n, i in every.decided if isinstance(i, HoldIntent | ReplaceIntent)]
+    assert acted and acted[0] == 150, "the correction comes at the gust's own report"
+    assert gated.decided == every.decided
+
+
+def vars_of(plan: Any) -> dict[str, Any]:
+    return {k: v for k, v in vars(plan).items() if k != "actions"}
 
 
 def _steady(
