@@ -27,7 +27,7 @@ from gcs.cooperation.geo import distance_m_array, ned_offset_m_array
 from gcs.cooperation.legs import Point
 from gcs.cooperation.tracking import TrackedAgent
 from protocol import status_binary
-from protocol.packets import StatusReport
+from protocol.packets import Geofence, StatusReport
 from protocol.status_binary import ARMED, LANDED
 
 IntArray = NDArray[np.intp]
@@ -41,6 +41,8 @@ for _byte in STATE_BYTES:
 LEG_MARGIN_M = 0.5
 """A drone within this many metres of a divergence limit (cross-track, hover drift, lag) gets the
 exact check; the columns' flat-earth estimate agrees with it to millimetres."""
+FENCE_MARGIN_M = 0.5
+"""A drone within this many metres of its fence's circle or ceiling gets the exact check."""
 BATTERY_MARGIN_PCT = 1.0
 """A battery within this many % of its return-home need gets the exact (scalar) check; the
 vectorised estimate agrees with it to ~1e-9 %, so the margin only guards rounding."""
@@ -243,6 +245,22 @@ class Fleet:
                 expected = np.minimum(np.where(point, 0.0, length), self.leg_speed[s] * elapsed)
                 near |= self.lag_pending[s] & (expected - along > cfg.lag_event_m - margin)
             flag[line] = near
+        return flag
+
+    @staticmethod
+    def fence_gate(cols: np.ndarray[Any, Any], fence: Geofence) -> BoolArray:
+        """Which rows may be outside ``fence`` (``Geofence.violation`` on columns, the same
+        haversine): above its ceiling or off its circle, or within :data:`FENCE_MARGIN_M` of them.
+        A polygon is tested per report (every row flagged)."""
+        if fence.polygon is not None:
+            return np.ones(len(cols), dtype=bool)
+        flag = np.zeros(len(cols), dtype=bool)
+        if fence.max_alt_m is not None:
+            flag |= cols["alt_rel"] > fence.max_alt_m - FENCE_MARGIN_M
+        circle = fence.circle
+        if circle is not None:
+            off = distance_m_array(cols["lat"], cols["lon"], circle.lat, circle.lon)
+            flag |= off > circle.radius_m - FENCE_MARGIN_M
         return flag
 
     def feed_battery(self, slots: IntArray, cols: np.ndarray[Any, Any]) -> None:

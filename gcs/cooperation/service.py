@@ -62,7 +62,7 @@ from gcs.cooperation.recording import FlightRecorder
 from gcs.cooperation.tracking import Kinematics, TrackedAgent, track
 from gcs.events import Severity
 from protocol.actions import Action, Waypoints
-from protocol.packets import AgentParameters, Resume, SetParameters, StatusReport
+from protocol.packets import AgentParameters, Geofence, Resume, SetParameters, StatusReport
 from protocol.status_binary import BUFFERED, HAS_POSITION
 
 log = logging.getLogger("gcs.cooperation")
@@ -365,9 +365,9 @@ class CooperationService:
         if built:
             more = {i for i in built if _carries_more(tick.decoded(i))}
             forced |= np.isin(rows, list(more))
-        fences, remote = self.ctx.geofences, self.remote
-        if fences or remote:
-            forced |= np.array([s.identity in fences or s.identity in remote for s in picked], dtype=bool)
+        remote = self.remote
+        if remote:
+            forced |= np.array([s.identity in remote for s in picked], dtype=bool)
         for k in np.flatnonzero(slots < 0).tolist():
             session = picked[k]
             agent = self.agents.get(session.identity) or self._adopt(session, tick.report(rows[k]), now, True)
@@ -379,6 +379,8 @@ class CooperationService:
         if self.config.emergency.enabled:
             fleet.feed_battery(slots, cols)
             flag |= fleet.gate(slots, cols)
+            if self.ctx.geofences:
+                flag |= self._fence_gate(picked, cols)
         if self.config.energy.record_dir is not None:  # the flight log takes every report
             flag[:] = True
         planned = fleet.planned[slots]
@@ -391,6 +393,20 @@ class CooperationService:
         fleet.skipped[slots] = ~flag
         checked: list[int] = rows[flag].tolist()
         return checked
+
+    def _fence_gate(self, picked: list[AgentSession], cols: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        """The rows of drones with a fence that are outside it or near its edge (``Fleet.fence_gate``,
+        one pass per fence: usually the fleet shares one)."""
+        flag = np.zeros(len(picked), dtype=bool)
+        fences = self.ctx.geofences
+        groups: dict[int, tuple[Geofence, list[int]]] = {}
+        for k, session in enumerate(picked):
+            fence = fences.get(session.identity)
+            if fence is not None:
+                groups.setdefault(id(fence), (fence, []))[1].append(k)
+        for fence, members in groups.values():
+            flag[members] = self.fleet.fence_gate(cols[members], fence)
+        return flag
 
     def _plan_gate(
         self,

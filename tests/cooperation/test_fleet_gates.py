@@ -26,6 +26,7 @@ from protocol.geo import offset_latlon
 from protocol.packets import (
     Battery,
     FenceCircle,
+    FenceVertex,
     Geofence,
     GeoPoint,
     Gps,
@@ -169,16 +170,30 @@ def _fly(c: dict[str, Any], s: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+FENCES = [  # none; a circle with a ceiling (checked on columns); a polygon (checked per report)
+    None,
+    Geofence(circle=FenceCircle(lat=HOME[0], lon=HOME[1], radius_m=250.0), max_alt_m=45.0),
+    Geofence(
+        polygon=[
+            FenceVertex(lat=lat, lon=lon)
+            for lat, lon in (
+                offset_latlon(*HOME, -300, -300),
+                offset_latlon(*HOME, 300, 0),
+                offset_latlon(*HOME, 0, 300),
+            )
+        ]
+    ),
+]
+
+
 async def _run(
-    steps: list[list[dict[str, Any]]], fenced: bool, mission: bool = False
+    steps: list[list[dict[str, Any]]], fenced: int, mission: bool = False
 ) -> tuple[Recording, Recording, dict[str, StatusReport]]:
     config = CooperationConfig(
         emergency=EmergencyConfig(gps_grace_s=0.0, battery_window_s=4.0, battery_reserve_pct=40.0),
         divergence=DivergenceConfig(persist_s=0.0, cooldown_s=0.0, lag_event_m=20.0),
     )
-    fences = (
-        {"drone-0": Geofence(circle=FenceCircle(lat=HOME[0], lon=HOME[1], radius_m=250.0))} if fenced else {}
-    )
+    fences = {"drone-0": FENCES[fenced], "drone-2": FENCES[fenced]} if fenced else {}
     gated, every = Recording(config, fences), EveryReport(config, fences)
     agents = len(steps[0])
     sessions = [Session(k) for k in range(agents)]
@@ -213,18 +228,20 @@ async def _run(
     return gated, every, newest
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=250, deadline=None)
 @given(
     st.integers(1, 3).flatmap(
         lambda n: st.lists(st.lists(change, min_size=n, max_size=n), min_size=2, max_size=60)
     ),
-    st.booleans(),
+    st.integers(0, 2),
 )
 def test_the_gated_checks_decide_what_checking_every_report_decides(
-    steps: list[list[dict[str, Any]]], fenced: bool
+    steps: list[list[dict[str, Any]]], fenced: int
 ) -> None:
     gated, every, newest = asyncio.run(_run(steps, fenced))
     event("acted" if every.decided else "no action")  # (hypothesis statistics: the runs that act)
+    breach = any(getattr(i, "kind", "") == "emergency_fence_breach" for _, i in every.decided)
+    event(f"fence {fenced}: {'breach' if breach else 'none'}")
     assert gated.decided == every.decided
     for ident, agent in gated.agents.items():
         other = every.agents[ident]
@@ -251,7 +268,7 @@ def test_the_gated_checks_decide_what_checking_every_report_decides(
 def test_in_a_mission_the_gated_checks_decide_what_checking_every_report_decides(
     steps: list[list[dict[str, Any]]],
 ) -> None:
-    gated, every, newest = asyncio.run(_run(steps, False, mission=True))
+    gated, every, newest = asyncio.run(_run(steps, 0, mission=True))
     event("acted" if every.decided else "no action")
     event("divergence" if any("divergence" in str(i) for _, i in every.decided) else "no divergence")
     assert gated.decided == every.decided
@@ -274,10 +291,10 @@ def test_in_a_mission_the_gated_checks_decide_what_checking_every_report_decides
 def test_a_mission_flown_on_its_leg_skips_the_checks_and_a_gust_is_still_corrected() -> None:
     calm = {"dt": 0.1, "dn": 0.5, "de": 0.0, "waiting": False, "paused": False, "fix": 3}
     steps = [[{**calm, "advance": n == 0}] for n in range(150)]  # on step 1, north at the planned 5 m/s
-    quiet, every, _ = asyncio.run(_run(steps, False, mission=True))
+    quiet, every, _ = asyncio.run(_run(steps, 0, mission=True))
     assert not every.decided and quiet.built <= 3  # the first report and the step change
     gust = [[{**calm, "advance": False, "de": 20.0}]]  # blown 20 m off the leg
-    gated, every, _ = asyncio.run(_run(steps + gust + steps[1:20], False, mission=True))
+    gated, every, _ = asyncio.run(_run(steps + gust + steps[1:20], 0, mission=True))
     acted = [n for n, i in every.decided if isinstance(i, HoldIntent | ReplaceIntent)]
     assert acted and acted[0] == 150, "the correction comes at the gust's own report"
     assert gated.decided == every.decided
@@ -297,14 +314,14 @@ def _steady(
 
 
 def test_a_steady_flight_skips_the_checks_and_a_draining_battery_still_acts_on_time() -> None:
-    quiet, _, _ = asyncio.run(_run(_steady(0.1, 0.0, 100.0, 200), False))
+    quiet, _, _ = asyncio.run(_run(_steady(0.1, 0.0, 100.0, 200), 0))
     assert quiet.built <= 3  # the first report, and nothing after it changed
     steps = _steady(0.1, 0.5, 285.0, 200)  # draining 0.5 %/s: short of the return after ~10 s
-    gated, every, _ = asyncio.run(_run(steps, False))
+    gated, every, _ = asyncio.run(_run(steps, 0))
     fired = [n for n, i in every.decided if getattr(i, "kind", None) == "emergency_battery"]
     assert fired, "the scenario must make the battery check act"
     assert gated.decided == every.decided
-    before, _, _ = asyncio.run(_run(steps[: fired[0]], False))  # the flight until it acts
+    before, _, _ = asyncio.run(_run(steps[: fired[0]], 0))  # the flight until it acts
     assert before.built < fired[0] / 3  # only the reports near the threshold were checked
 
 
