@@ -100,14 +100,13 @@ class BatteryColumns:
                 self.add(slots[k : k + 1], t[k : k + 1], pct[k : k + 1], lat[k : k + 1], lon[k : k + 1])
             return
         last = self.last[slots]
-        had = ~np.isnan(last[:, 0])
-        dt = t - last[:, 0]
-        back = had & (dt < 0)
-        if back.any():  # the clock went back: start over
+        dt = t - last[:, 0]  # NaN for a row without a report yet: neither back nor forward
+        back = dt < 0
+        went_back = bool(back.any())
+        if went_back:  # the clock went back: start over
             self.reset(slots[back])
-            had &= ~back
         # The fastest leg between reports; a drone that did not move cannot raise it (distance 0).
-        moving = had & (dt > 0) & ((lat != last[:, 1]) | (lon != last[:, 2]))
+        moving = (dt > 0) & ((lat != last[:, 1]) | (lon != last[:, 2]))
         faster = slots[:0]
         if moving.any():
             m = slots[moving]
@@ -115,9 +114,11 @@ class BatteryColumns:
             up = speed > self.max_speed[m]
             faster = m[up]
             self.max_speed[faster] = speed[up]
-        self.last[slots, 0], self.last[slots, 1], self.last[slots, 2] = t, lat, lon
+        self.last[slots] = np.stack((t, lat, lon), axis=1)
         sampled = self._sample(slots, t, pct, lat, lon)
-        self._estimate(np.concatenate([faster, slots[back], sampled]))  # every row whose history changed
+        if went_back or len(faster):  # every row whose history changed
+            sampled = np.concatenate([faster, slots[back], sampled])
+        self._estimate(sampled)
 
     def _estimate(self, slots: IntArray) -> None:
         """Refresh the cached :attr:`rate` and :attr:`speed` of ``slots``."""

@@ -267,7 +267,9 @@ class Fleet:
         """Every armed, flying report with a battery % into its slot's estimator (``cols``: the rows)."""
         flags, pct = cols["flags"], cols["battery_pct"]
         take = ((flags & (ARMED | LANDED)) == ARMED) & ~np.isnan(pct)
-        if take.any():
+        if take.all():  # (the usual case: no subsets to copy)
+            self.battery.add(slots, cols["time"], pct, cols["lat"], cols["lon"])
+        elif take.any():
             self.battery.add(slots[take], cols["time"][take], pct[take], cols["lat"][take], cols["lon"][take])
 
     def gate(self, slots: IntArray, cols: np.ndarray[Any, Any]) -> BoolArray:
