@@ -21,7 +21,7 @@ from gcs.cooperation.intents import (
     ReleaseIntent,
     ReplaceIntent,
 )
-from gcs.cooperation.tracking import Kinematics, TrackedAgent, leg_remaining_m, leg_target_velocity
+from gcs.cooperation.tracking import Kinematics, TrackedAgent, leg_motion
 
 
 class CollisionMonitor:
@@ -56,7 +56,7 @@ class CollisionMonitor:
             kin.vd.tolist(),
             strict=True,
         )
-        escaping = self.avoider.escaping
+        escaping, default_speed = self.avoider.escaping, self.config.default_speed_mps
         for a, (n, e), (lat, lon, alt_rel, alt_amsl, vn, ve, vd) in zip(agents, ne, columns, strict=True):
             s = a.state  # state only: current without building the newest report
             grounded = not a.airborne
@@ -68,24 +68,19 @@ class CollisionMonitor:
                 and not outranked(a.ident)
             )
             tracked[a.ident] = a
-            planned = a.plan is not None and not grounded
-            here = (lat, lon, alt_rel)
+            desired, remaining = (
+                (None, None) if grounded else leg_motion(a, frame, default_speed, (lat, lon, alt_rel))
+            )
             drones.append(
                 DroneState(
                     ident=a.ident,
                     cid=a.cid,
                     position=(n, e, alt_amsl),
                     velocity=(0.0, 0.0, 0.0) if grounded else (vn, ve, -vd),
-                    desired=None
-                    if grounded
-                    else leg_target_velocity(a, frame, self.config.default_speed_mps, here)
-                    if planned
-                    else None,
+                    desired=desired,
                     yieldable=yieldable,
                     grounded=grounded,
-                    remaining_m=None
-                    if grounded or a.ident in escaping or not planned
-                    else leg_remaining_m(a, frame, here),
+                    remaining_m=None if a.ident in escaping else remaining,
                 )
             )
         decision = self.avoider.update(drones, now)

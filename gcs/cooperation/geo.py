@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -22,12 +23,12 @@ class LocalFrame:
     lat0: float
     lon0: float
 
-    @property
+    @cached_property
     def _k_north(self) -> float:
         return math.radians(1.0) * EARTH_RADIUS_M
 
-    @property
-    def _k_east(self) -> float:
+    @cached_property
+    def _k_east(self) -> float:  # (cached: the collision check projects every drone each pass)
         return math.radians(1.0) * EARTH_RADIUS_M * math.cos(math.radians(self.lat0))
 
     def to_ne(self, lat: ArrayLike, lon: ArrayLike) -> FloatArray:

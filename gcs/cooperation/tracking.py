@@ -6,6 +6,7 @@ in), so every monitor reads the same picture.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, NamedTuple, Protocol
 
@@ -206,37 +207,42 @@ def _here(agent: TrackedAgent, here: Here | None) -> Here:
     return (p.lat, p.lon, p.alt_rel)
 
 
+Velocity = tuple[float, float, float]
+
+
+def leg_motion(
+    agent: TrackedAgent, frame: LocalFrame, default_speed: float, here: Here | None = None
+) -> tuple[Velocity | None, float | None]:
+    """Where the drone wants to go and how far it has left: (:func:`leg_target_velocity`,
+    :func:`leg_remaining_m`) from one look at its leg, in plain floats (the collision check asks
+    for both for every drone of the fleet on each pass)."""
+    plan, waiting = agent.plan, agent.state.waiting_sync
+    if plan is None:
+        return None, None
+    leg = plan.leg(waiting)
+    if leg is None:
+        return ((0.0, 0.0, 0.0) if waiting is not None else None), None
+    lat, lon, alt_rel = _here(agent, here)
+    n, e = frame.point(lat, lon)
+    tn, te = frame.point(leg.target[0], leg.target[1])
+    dn, de, du = tn - n, te - e, leg.target[2] - alt_rel
+    norm = math.sqrt(dn * dn + de * de + du * du)
+    if leg.start is None:
+        return ((0.0, 0.0, 0.0) if waiting is not None else None), norm
+    if norm < 0.5:
+        return (0.0, 0.0, 0.0), norm
+    k = (leg.speed or default_speed) / norm
+    return (dn * k, de * k, du * k), norm
+
+
 def leg_remaining_m(agent: TrackedAgent, frame: LocalFrame, here: Here | None = None) -> float | None:
     """Distance (3-D, metres) to the target of the leg the drone flies, where it will stop
     (``here``: the drone's newest position, else read from the agent)."""
-    plan = agent.plan
-    if plan is None:
-        return None
-    leg = plan.leg(agent.state.waiting_sync)
-    if leg is None:
-        return None
-    lat, lon, alt_rel = _here(agent, here)
-    n, e = frame.point(lat, lon)
-    there = frame.point(leg.target[0], leg.target[1])
-    return float(np.linalg.norm([there[0] - n, there[1] - e, leg.target[2] - alt_rel]))
+    return leg_motion(agent, frame, 0.0, here)[1]
 
 
 def leg_target_velocity(
     agent: TrackedAgent, frame: LocalFrame, default_speed: float, here: Here | None = None
-) -> tuple[float, float, float] | None:
+) -> Velocity | None:
     """Where a held drone wants to go: toward its leg target at the planned speed."""
-    plan, status = agent.plan, agent.state
-    if plan is None:
-        return None
-    leg = plan.leg(status.waiting_sync)
-    if leg is None or leg.start is None:
-        return (0.0, 0.0, 0.0) if status.waiting_sync is not None else None
-    lat, lon, alt_rel = _here(agent, here)
-    n, e = frame.point(lat, lon)
-    there = frame.point(leg.target[0], leg.target[1])
-    delta = np.array([there[0] - n, there[1] - e, leg.target[2] - alt_rel])
-    norm = float(np.linalg.norm(delta))
-    if norm < 0.5:
-        return (0.0, 0.0, 0.0)
-    v = delta / norm * (leg.speed or default_speed)
-    return (float(v[0]), float(v[1]), float(v[2]))
+    return leg_motion(agent, frame, default_speed, here)[0]
