@@ -32,12 +32,7 @@ from protocol.status_binary import ARMED, LANDED
 
 IntArray = NDArray[np.intp]
 BoolArray = NDArray[np.bool_]
-_RUNS: list[tuple[int, int]] = []  # STATE_BYTES as runs of consecutive bytes (compared as slices)
-for _byte in STATE_BYTES:
-    if _RUNS and _RUNS[-1][1] == _byte:
-        _RUNS[-1] = (_RUNS[-1][0], _byte + 1)
-    else:
-        _RUNS.append((_byte, _byte + 1))
+STATE_INDEX = np.array(STATE_BYTES, dtype=np.intp)
 LEG_MARGIN_M = 0.5
 """A drone within this many metres of a divergence limit (cross-track, hover drift, lag) gets the
 exact check; the columns' flat-earth estimate agrees with it to millimetres."""
@@ -192,11 +187,10 @@ class Fleet:
     def write(self, slots: IntArray, raw: NDArray[np.uint8], now: float) -> BoolArray:
         """A tick's rows (``raw``, one per slot) become the slots' newest reports; which changed
         state (:data:`STATE_BYTES`) from the row before."""
-        self._keep_previous(slots)
-        old = self.raw[slots]
-        changed = np.zeros(len(slots), dtype=bool)
-        for start, stop in _RUNS:
-            changed |= (old[:, start:stop] != raw[:, start:stop]).any(axis=1)
+        planned = self.planned[slots]
+        if planned.any():  # (only the plan tracking reads where a drone was a report ago)
+            self._keep_previous(slots[planned])
+        changed: BoolArray = (self.raw[slots] != raw)[:, STATE_INDEX].any(axis=1)
         self.raw[slots] = raw
         self.version[slots] += 1
         self.received[slots] = now
@@ -208,7 +202,8 @@ class Fleet:
         self.prev[slots, 2] = cols["alt_rel"][slots]
 
     def previous(self, slot: int) -> Point:
-        """Where the drone was at the report before its newest (lat, lon, alt_rel)."""
+        """Where the drone was at the report before its newest (lat, lon, alt_rel); kept for drones
+        in a plan only (their rows are written with the plan known: :meth:`settle`)."""
         lat, lon, alt_rel = self.prev[slot].tolist()
         return (lat, lon, alt_rel)
 
