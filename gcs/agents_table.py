@@ -337,6 +337,10 @@ class StatusTick:
         """Row ``i``'s report if it exists already (it came decoded, or was built), else None."""
         return self._reports[i]
 
+    def built(self) -> list[int]:
+        """The rows whose report exists already (it came decoded, or a hook built it)."""
+        return [i for i, report in enumerate(self._reports) if report is not None]
+
     def mode_mission(self, i: int) -> tuple[str, str | None]:
         """Mode and mission id of row ``i`` (no report built for a compact row)."""
         report = self._reports[i]

@@ -8,7 +8,7 @@ never waited for. Escapes are detours (climb, then the rest of the plan) at coll
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 
 from gcs.cooperation.collision import CollisionAvoider, Decision, DroneState, Escape
 from gcs.cooperation.config import CollisionConfig
@@ -21,7 +21,7 @@ from gcs.cooperation.intents import (
     ReleaseIntent,
     ReplaceIntent,
 )
-from gcs.cooperation.tracking import TrackedAgent, leg_remaining_m, leg_target_velocity
+from gcs.cooperation.tracking import Kinematics, TrackedAgent, leg_motion
 
 
 class CollisionMonitor:
@@ -35,18 +35,30 @@ class CollisionMonitor:
 
     def check(
         self,
-        agents: Iterable[TrackedAgent],
+        agents: list[TrackedAgent],
+        kin: Kinematics,
         frame: LocalFrame,
         outranked: Callable[[str], bool],
         now: float,
     ) -> list[Intent]:
-        """One fleet-wide pass (``agents``: connected, fresh); returns holds, releases, escapes."""
+        """One fleet-wide pass (``agents``: connected, fresh; ``kin``: their newest positions and
+        velocities, one element each); returns holds, releases, escapes."""
         drones = []
         tracked = {}
-        for a in agents:
-            s = a.status
-            p = a.position
-            n, e = frame.point(p.lat, p.lon)
+        ne = frame.to_ne(kin.lat, kin.lon).tolist()
+        columns = zip(
+            kin.lat.tolist(),
+            kin.lon.tolist(),
+            kin.alt_rel.tolist(),
+            kin.alt_amsl.tolist(),
+            kin.vn.tolist(),
+            kin.ve.tolist(),
+            kin.vd.tolist(),
+            strict=True,
+        )
+        escaping, default_speed = self.avoider.escaping, self.config.default_speed_mps
+        for a, (n, e), (lat, lon, alt_rel, alt_amsl, vn, ve, vd) in zip(agents, ne, columns, strict=True):
+            s = a.state  # state only: current without building the newest report
             grounded = not a.airborne
             yieldable = (
                 not grounded
@@ -56,20 +68,19 @@ class CollisionMonitor:
                 and not outranked(a.ident)
             )
             tracked[a.ident] = a
+            desired, remaining = (
+                (None, None) if grounded else leg_motion(a, frame, default_speed, (lat, lon, alt_rel))
+            )
             drones.append(
                 DroneState(
                     ident=a.ident,
                     cid=a.cid,
-                    position=(n, e, p.alt_amsl),
-                    velocity=(0.0, 0.0, 0.0) if grounded else (s.velocity.vn, s.velocity.ve, -s.velocity.vd),
-                    desired=None
-                    if grounded
-                    else leg_target_velocity(a, frame, self.config.default_speed_mps),
+                    position=(n, e, alt_amsl),
+                    velocity=(0.0, 0.0, 0.0) if grounded else (vn, ve, -vd),
+                    desired=desired,
                     yieldable=yieldable,
                     grounded=grounded,
-                    remaining_m=None
-                    if grounded or a.ident in self.avoider.escaping
-                    else leg_remaining_m(a, frame),
+                    remaining_m=None if a.ident in escaping else remaining,
                 )
             )
         decision = self.avoider.update(drones, now)

@@ -15,7 +15,7 @@ from gcs.cooperation.intents import (
     ReplaceIntent,
     ReturnIntent,
 )
-from gcs.cooperation.tracking import TrackedAgent
+from gcs.cooperation.tracking import Kinematics, TrackedAgent
 from protocol.actions import Goto
 
 
@@ -26,17 +26,19 @@ class ConnectivityMonitor:
     def check(
         self,
         agents: list[TrackedAgent],
+        kin: Kinematics,
         frame: LocalFrame,
         base_latlon: tuple[float, float],
         w: float,
         now: float,
     ) -> list[Intent]:
+        """Who lost its link to the base (``kin``: the agents' newest positions, one each)."""
         cfg = self.config
         if not agents:
             return []
         intents: list[Intent] = []
         base = frame.point(*base_latlon)
-        points = frame.to_ne([a.position.lat for a in agents], [a.position.lon for a in agents])
+        points = frame.to_ne(kin.lat, kin.lon)
         ok = connected_to_base(base, points, w, cfg.multihop)
         for k, agent in enumerate(agents):
             if ok[k] or not agent.airborne:
@@ -72,7 +74,7 @@ class ConnectivityMonitor:
         plan = agent.plan
         if plan is None:
             return []
-        leg = plan.leg(agent.status.waiting_sync)
+        leg = plan.leg(agent.state.waiting_sync)
         if leg is None or leg.start is None or (leg.step, plan.waypoint) in agent.warned:
             return []
         agent.warned.add((leg.step, plan.waypoint))

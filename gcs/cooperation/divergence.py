@@ -134,6 +134,15 @@ class DivergenceJudge:
     _last_action: float = -1e18
     _lag_reported_step: int | None = None
 
+    @property
+    def persisting(self) -> bool:
+        """An error above the correction limit is being timed (every report must be judged)."""
+        return self._since is not None
+
+    def lag_pending(self, leg: Leg) -> bool:
+        """Could a lag event still come on ``leg`` (one per step, on a line with a planned speed)?"""
+        return leg.start is not None and leg.speed is not None and self._lag_reported_step != leg.step
+
     def judge(
         self, leg: Leg, error: LegError, elapsed_vehicle_s: float | None, now: float, replans_left: bool
     ) -> tuple[Verdict, str]:

@@ -7,7 +7,7 @@ for its grace time, re-armed when it clears) and returns intents at ``daemon_eme
 from __future__ import annotations
 
 from gcs.cooperation.config import EmergencyAction, EmergencyConfig
-from gcs.cooperation.emergency import BatteryEstimator, fence_violation, gps_lost, return_home_shortfall
+from gcs.cooperation.emergency import NO_RETURN_MODES, fence_violation, gps_lost, return_home_shortfall
 from gcs.cooperation.intents import EventIntent, HoldIntent, Intent, ReturnIntent
 from gcs.cooperation.tracking import TrackedAgent
 from protocol.packets import Geofence, StatusReport
@@ -34,6 +34,7 @@ class EmergencyMonitor:
     def on_status(
         self, agent: TrackedAgent, status: StatusReport, fence: Geofence | None, now: float
     ) -> list[Intent]:
+        """The checks of one report; ``agent.battery`` must have been fed it (``Fleet.feed_battery``)."""
         cfg = self.config
         intents: list[Intent] = []
         why = fence_violation(status, fence) if status.armed else None
@@ -42,16 +43,20 @@ class EmergencyMonitor:
             chosen = fence.breach_action if cfg.fence_action == "fence" else cfg.fence_action
             action: EmergencyAction = {"hold": "pause", "report": "event"}.get(chosen, chosen)  # type: ignore[assignment]
             intents += self.act(agent, "emergency_fence_breach", f"fence breach: {why}", action)
-        if agent.battery is None:
-            agent.battery = BatteryEstimator(cfg.battery_window_s)
-        agent.battery.add(status)
         home = agent.home
         short = None
-        if home is not None and status.armed and not status.landed and status.mode not in ("RTL", "LAND"):
+        battery = agent.battery  # fed this report already (the service feeds a whole tick at once)
+        if (
+            battery is not None
+            and home is not None
+            and status.armed
+            and not status.landed
+            and status.mode not in NO_RETURN_MODES
+        ):
             short = return_home_shortfall(
                 status,
                 (home.lat, home.lon),
-                agent.battery,
+                battery,
                 cfg.descent_mps,
                 self.vehicle_time_scale,
                 cfg.battery_reserve_pct,

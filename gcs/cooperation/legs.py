@@ -153,6 +153,13 @@ class AgentPlanState:
         # starts from the last waiting report (switch_point with target None keeps ``before``).
         self._last_target = None if status.waiting_sync is not None else self._heading()
 
+    def passed(self, pos: Point) -> None:
+        """A report that changed nothing here was not tracked (gcs/cooperation/fleet.py): the drone
+        was last at ``pos``, where :meth:`update` would have put it (the next switch point is
+        estimated from there). Only valid when the running step, waypoint and barrier wait did
+        not change since the last :meth:`update` (the gates build every report that changes them)."""
+        self._last_pos = pos
+
     def _heading(self) -> Point | None:
         """The target the agent flies to now, as the agent computed it."""
         action = self.current_action

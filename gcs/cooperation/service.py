@@ -7,8 +7,11 @@ publishes their events through a throttle so a persistent condition cannot bury 
 ticker re-asserts holds (seed 000: "for safety reasons ... sent periodically"), runs the
 fleet-wide checks when reports are scarce and catches drones whose status stopped arriving.
 
-Per report only the agent's own picture is updated (tracking, emergency and divergence edges);
-the fleet-wide checks (collision, connectivity: O(fleet) each) run on their own fixed tick of
+Per status tick the reports go into the fleet's arrays (gcs/cooperation/fleet.py) in one
+vectorised pass, with the battery estimators; column compares flag the reports the per-agent
+checks (tracking, emergency and divergence edges) may act on, and only those are built into a
+``StatusReport`` and checked, each agent's intents applied before the next's. The fleet-wide
+checks (collision, connectivity: O(fleet) each) run on their own fixed tick of
 ``collision.min_check_interval_s`` when a report has arrived since the last one, never inside
 the status consumer, so their cost does not grow with the report rate.
 
@@ -31,7 +34,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 
 from gcs.agents import AgentSession
-from gcs.agents_table import StatusTick
+from gcs.agents_table import ROW_BYTES, ROW_DTYPE, StatusTick
 from gcs.authority import PRIORITY
 from gcs.context import ServiceContext
 from gcs.cooperation.collision_monitor import CollisionMonitor
@@ -42,6 +45,7 @@ from gcs.cooperation.divergence_monitor import DivergenceMonitor
 from gcs.cooperation.emergency_monitor import EmergencyMonitor
 from gcs.cooperation.energy import EnergyModel, fallback_model
 from gcs.cooperation.event_throttle import EventThrottle
+from gcs.cooperation.fleet import Fleet
 from gcs.cooperation.geo import LocalFrame
 from gcs.cooperation.intents import (
     EndOrderIntent,
@@ -55,10 +59,10 @@ from gcs.cooperation.intents import (
 from gcs.cooperation.legs import agent_acceptance_radius
 from gcs.cooperation.preflight import PreflightChecks, start_points
 from gcs.cooperation.recording import FlightRecorder
-from gcs.cooperation.tracking import TrackedAgent, track
+from gcs.cooperation.tracking import Kinematics, TrackedAgent, track
 from gcs.events import Severity
-from protocol.actions import Action
-from protocol.packets import AgentParameters, Resume, SetParameters, StatusReport
+from protocol.actions import Action, Waypoints
+from protocol.packets import AgentParameters, Geofence, Resume, SetParameters, StatusReport
 from protocol.status_binary import BUFFERED, HAS_POSITION
 
 log = logging.getLogger("gcs.cooperation")
@@ -70,6 +74,11 @@ LOST_LINK_ACTION = {"event": "continue", "hold": "hold", "return": "rtl", "rtl":
 Airspace = Literal["fleet", "local", "none"]
 """Which drones this daemon's collision check decides for: every drone of the cluster, only its
 own (cut off from the cluster), or none (another daemon decides)."""
+
+
+def _carries_more(report: StatusReport | None) -> bool:
+    """A report that came decoded with fields the columns do not hold (exceptions, a failsafe)."""
+    return report is not None and bool(report.exceptions or report.failsafe or report.failure)
 
 
 class ClusterView(Protocol):
@@ -100,6 +109,8 @@ class CooperationService:
         self.connectivity = ConnectivityMonitor(config.connectivity)
         self.recorder = FlightRecorder(config.energy)
         self.agents: dict[str, TrackedAgent] = {}
+        self.fleet = Fleet(config.emergency, config.divergence, scale)  # the agents' newest reports as arrays
+        self.built = 0  # reports built for the per-agent checks (the rest only went into the arrays)
         self.energy_model: EnergyModel = fallback_model(config.energy.fallback_power_w)
         self.frame: LocalFrame | None = None
         self.base: tuple[float, float] | None = config.connectivity.base
@@ -174,19 +185,22 @@ class CooperationService:
     def _publish(
         self, kind: str, message: str, severity: str, agent: str | None, data: dict[str, Any]
     ) -> None:
-        mission = self.agents[agent].status.mission_id if agent in self.agents else None
+        mission = self.agents[agent].state.mission_id if agent in self.agents else None
         level: Severity = "error" if severity == "error" else "warning" if severity == "warning" else "info"
         self.ctx.events.publish(kind, message, severity=level, agent=agent, mission_id=mission, data=data)
 
     def _mission_id(self, ident: str) -> str:
         agent = self.agents.get(ident)
-        status = agent.status if agent else None
+        status = agent.state if agent else None
         return status.mission_id if status is not None and status.mission_id else EMERGENCY_MISSION
 
     async def apply(self, intents: list[Intent]) -> None:
         """Hand each intent to the authority (which may refuse it) or to the event log."""
         authority = self.ctx.authority
         for intent in intents:
+            target = self.agents.get(getattr(intent, "ident", None) or "")
+            if target is not None:
+                self.fleet.stick(target)
             if isinstance(intent, EventIntent):
                 assert self._throttle is not None
                 self._throttle.publish(
@@ -239,8 +253,10 @@ class CooperationService:
                 return
         self.remote.discard(identity)
         agent = self.agents.pop(identity, None)
-        if agent is not None and agent.recorder is not None:
-            agent.recorder.close()
+        if agent is not None:
+            self.fleet.release(agent)
+            if agent.recorder is not None:
+                agent.recorder.close()
         self.collision.forget(identity)
         self.ctx.authority.drop_holds(identity, ("collision",), "agent lost")
 
@@ -251,7 +267,7 @@ class CooperationService:
             return
         self.remote.add(session.identity)
         try:
-            self._track(session, status, time.monotonic(), local=False)
+            self._track(session, status, time.monotonic(), local=False, row=False)
             self._fleet_due = True
         except Exception:
             log.exception("cooperation: remote status failed for %s", session.identity)
@@ -261,25 +277,40 @@ class CooperationService:
         if identity in self.remote:
             await self._on_lost(identity)
 
-    def _track(
-        self, session: AgentSession, status: StatusReport, now: float, local: bool = True
-    ) -> TrackedAgent:
-        """Update the agent's picture (position, plan position) from a positioned report."""
+    def _adopt(self, session: AgentSession, status: StatusReport, now: float, local: bool) -> TrackedAgent:
+        """The agent's picture, made (with a fleet slot) on its first positioned report."""
         ident = session.identity
+        agent = self.agents.get(ident)
+        if agent is not None:
+            return agent
         position = status.position
         assert position is not None
-        agent = self.agents.get(ident)
-        if agent is None:
-            agent = TrackedAgent(ident, session.cid, session.home, status, position, now)
-            self.agents[ident] = agent
-            if self.frame is None:
-                self.frame = LocalFrame(position.lat, position.lon)
-            if self.base is None and local:  # this base station: where our own agents start
-                home = session.home
-                self.base = (home.lat, home.lon) if home else (position.lat, position.lon)
-        agent.status, agent.position, agent.received = status, position, now
+        agent = TrackedAgent(ident, session.cid, session.home, status, position, now)
+        self.agents[ident] = agent
+        self.fleet.attach(agent, session)
+        if self.frame is None:
+            self.frame = LocalFrame(position.lat, position.lon)
+        if self.base is None and local:  # this base station: where our own agents start
+            home = session.home
+            self.base = (home.lat, home.lon) if home else (position.lat, position.lon)
+        return agent
+
+    def _track(
+        self, session: AgentSession, status: StatusReport, now: float, local: bool = True, row: bool = True
+    ) -> TrackedAgent:
+        """Update the agent's picture (position, plan position) from a positioned report
+        (``row``: the status tick wrote the report's row into the fleet's arrays already)."""
+        agent = self._adopt(session, status, now, local)
+        fleet, slot = self.fleet, agent.slot
+        if not row:
+            fleet.put_report(slot, status, now)
+        fleet.link(slot, session)
+        agent.seen(status, now)
+        ident = session.identity
         agent.connected = session.open
-        agent.home = session.home or agent.home
+        if session.home is not None and agent.home is not session.home:
+            agent.home = session.home
+            fleet.home[slot] = (session.home.lat, session.home.lon)
         track(
             agent,
             status,
@@ -293,25 +324,112 @@ class CooperationService:
         return agent
 
     async def _on_tick(self, tick: StatusTick) -> None:
-        """A status tick: the positioned live rows (picked on the columns) are tracked and checked,
-        each agent's intents applied before the next agent's checks, as per report before."""
+        """A status tick: the positioned live rows (picked on the columns) go into the fleet's
+        arrays; the rows a gate flags (:meth:`_gate`) are built into reports and checked, each
+        agent's intents applied before the next agent's checks, as per report before."""
         flags = tick.cols["flags"]
-        rows = np.flatnonzero(((flags & HAS_POSITION) != 0) & ((flags & BUFFERED) == 0)).tolist()
-        if not rows:
+        rows = np.flatnonzero(((flags & HAS_POSITION) != 0) & ((flags & BUFFERED) == 0))
+        if not len(rows):
             return
+        self._fleet_due = True
+        now = time.monotonic()
+        try:
+            flagged = self._gate(tick, rows, now)
+        except Exception:  # a bug here must not cost the agents their checks: every row is checked
+            log.exception("cooperation: status tick gate failed")
+            flagged = rows.tolist()
         owners = tick.owners  # a slice of a tick (gcs/agents.py TICK_SLICE): no yield needed in here
-        for i in rows:
+        for i in flagged:
             session = owners[i]
-            intents = self._checks(session, tick.report(i))
+            self.built += 1
+            intents = self._checks(session, tick.report(i), now)
             if intents:
                 try:
                     await self.apply(intents)
                 except Exception:  # a bug here must not cost the agent its connection
                     log.exception("cooperation: status handling failed for %s", session.identity)
 
-    def _checks(self, session: AgentSession, status: StatusReport) -> list[Intent]:
+    def _gate(self, tick: StatusTick, rows: np.ndarray[Any, np.dtype[np.intp]], now: float) -> list[int]:
+        """Write the tick's ``rows`` into the fleet's arrays (and battery estimators); the rows whose
+        report the per-agent checks must see: a new or relinked agent, a report that came decoded
+        with exceptions or a failsafe (not in the columns), a fence to check, a changed state, a sticky slot
+        (mission, condition in force), or a column gate (``Fleet.gate``)."""
+        owners, fleet = tick.owners, self.fleet
+        picked = [owners[i] for i in rows.tolist()]
+        known = fleet.by_session.get
+        slots = np.array([known(session, -1) for session in picked], dtype=np.intp)
+        forced = slots < 0  # new agent, or a new session of a known one
+        if not all([session.open for session in picked]):
+            forced |= ~np.array([session.open for session in picked], dtype=bool)
+        built = tick.built()
+        if built:
+            more = {i for i in built if _carries_more(tick.decoded(i))}
+            forced |= np.isin(rows, list(more))
+        remote = self.remote
+        if remote:
+            forced |= np.array([s.identity in remote for s in picked], dtype=bool)
+        for k in np.flatnonzero(slots < 0).tolist():
+            session = picked[k]
+            agent = self.agents.get(session.identity) or self._adopt(session, tick.report(rows[k]), now, True)
+            slots[k] = agent.slot
+        raw = tick.cols.view(np.uint8).reshape(-1, ROW_BYTES)[rows]  # whole rows: mode, mission too
+        cols = raw.view(ROW_DTYPE).reshape(-1)  # (fancy indexing the columns would drop those bytes)
+        flag = fleet.write(slots, raw, now)
+        flag |= forced | fleet.sticky[slots]
+        if self.config.emergency.enabled:
+            fleet.feed_battery(slots, cols)
+            flag |= fleet.gate(slots, cols)
+            if self.ctx.geofences:
+                flag |= self._fence_gate(picked, cols)
+        if self.config.energy.record_dir is not None:  # the flight log takes every report
+            flag[:] = True
+        planned = fleet.planned[slots]
+        if planned.any():
+            flag |= self._plan_gate(slots, cols, planned & ~flag)
+            for k in np.flatnonzero(planned & flag & fleet.skipped[slots]).tolist():
+                agent = fleet.agents[slots[k]]
+                if agent is not None and agent.plan is not None:  # as if the report before was tracked
+                    agent.plan.passed(fleet.previous(agent.slot))
+        fleet.skipped[slots] = ~flag
+        checked: list[int] = rows[flag].tolist()
+        return checked
+
+    def _fence_gate(self, picked: list[AgentSession], cols: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
+        """The rows of drones with a fence that are outside it or near its edge (``Fleet.fence_gate``,
+        one pass per fence: usually the fleet shares one)."""
+        flag = np.zeros(len(picked), dtype=bool)
+        fences = self.ctx.geofences
+        groups: dict[int, tuple[Geofence, list[int]]] = {}
+        for k, session in enumerate(picked):
+            fence = fences.get(session.identity)
+            if fence is not None:
+                groups.setdefault(id(fence), (fence, []))[1].append(k)
+        for fence, members in groups.values():
+            flag[members] = self.fleet.fence_gate(cols[members], fence)
+        return flag
+
+    def _plan_gate(
+        self,
+        slots: np.ndarray[Any, np.dtype[np.intp]],
+        cols: np.ndarray[Any, Any],
+        rows: np.ndarray[Any, Any],
+    ) -> np.ndarray[Any, np.dtype[np.bool_]]:
+        """Of ``rows`` (drones in a plan, not flagged yet): those whose plan is gone (tracking must
+        drop it) or whose position is near a divergence limit (``Fleet.leg_gate``)."""
+        flag = np.zeros(len(slots), dtype=bool)
+        plan_of, agents = self.ctx.missions.plan_of, self.fleet.agents
+        for k in np.flatnonzero(rows).tolist():
+            agent = agents[slots[k]]
+            mission = agent.state.mission_id if agent is not None else None
+            flag[k] = agent is None or mission is None or plan_of(mission, agent.ident) is None
+        if self.config.divergence.enabled:
+            rest = rows & ~flag
+            if rest.any():
+                flag[rest] = self.fleet.leg_gate(slots[rest], cols[rest])
+        return flag
+
+    def _checks(self, session: AgentSession, status: StatusReport, now: float) -> list[Intent]:
         """Track one positioned live report and run the per-report checks; the intents to apply."""
-        now = time.monotonic()
         ident = session.identity
         self.remote.discard(ident)  # linked here (again)
         intents: list[Intent] = []
@@ -323,10 +441,26 @@ class CooperationService:
             if self.config.divergence.enabled:
                 busy = self.ctx.authority.is_held(ident) or self._outranked(ident, "divergence")
                 intents += self.divergence.on_status(agent, status, busy, now)
-            self._fleet_due = True
+            self.fleet.settle(agent, self._sticky(agent, status))
         except Exception:  # a bug here must not cost the agent its connection
             log.exception("cooperation: status handling failed for %s", ident)
         return intents
+
+    @staticmethod
+    def _sticky(agent: TrackedAgent, status: StatusReport) -> bool:
+        """Must every report of the agent go to the per-agent checks? While its mission's plan is
+        not known here yet, it flies a detour or a waypoints action (the plan position follows each
+        report), a divergence error is being timed or a condition is pending or in force (its edge
+        must see it clear), or it is marked disconnected."""
+        plan, judge = agent.plan, agent.judge
+        return (
+            (status.mission_id is not None and plan is None)  # its plan may turn up
+            or not agent.connected
+            or agent.detour_step is not None
+            or (plan is not None and isinstance(plan.current_action, Waypoints))  # (waypoint by position)
+            or (judge is not None and judge.persisting)
+            or any(name in agent.conditions for name in ("fence", "battery", "gps"))
+        )
 
     def _new_judge(self) -> DivergenceJudge:
         return DivergenceJudge(self.config.divergence)
@@ -360,12 +494,18 @@ class CooperationService:
 
     def _fresh(self, now: float) -> list[TrackedAgent]:
         limit = self._stale_limit()
-        return [a for a in self.agents.values() if a.connected and now - a.received <= limit]
+        received = self.fleet.received.tolist()
+        return [a for a in self.agents.values() if a.connected and now - received[a.slot] <= limit]
+
+    def _kinematics(self, agents: list[TrackedAgent]) -> Kinematics:
+        """The agents' newest positions and velocities, read from the fleet's arrays."""
+        return Kinematics.of(self.fleet.cols[[a.slot for a in agents]])
 
     def _collision_pass(self, fresh: list[TrackedAgent], now: float) -> list[Intent]:
         """One fleet-wide collision check; drones under a higher source's control never yield."""
         assert self.frame is not None
-        return self.collision.check(fresh, self.frame, lambda i: self._outranked(i, "collision"), now)
+        outranked = lambda i: self._outranked(i, "collision")  # noqa: E731
+        return self.collision.check(fresh, self._kinematics(fresh), self.frame, outranked, now)
 
     def _collision_scope(self, now: float) -> list[TrackedAgent]:
         """The fresh drones this daemon's collision check decides for (all of them, embedded)."""
@@ -419,7 +559,7 @@ class CooperationService:
         w = self._link_range()
         if self.config.connectivity.enabled and w is not None and self.base is not None:
             own = [a for a in fresh if a.ident not in self.remote]  # links to this base station
-            intents += self.connectivity.check(own, self.frame, self.base, w, now)
+            intents += self.connectivity.check(own, self._kinematics(own), self.frame, self.base, w, now)
         return intents
 
     def _link_range(self) -> float | None:

@@ -6,13 +6,14 @@ in), so every monitor reads the same picture.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
 from gcs.cooperation.divergence import DivergenceJudge
-from gcs.cooperation.emergency import BatteryEstimator
+from gcs.cooperation.emergency import BatteryView
 from gcs.cooperation.flightlog import FlightLogWriter
 from gcs.cooperation.geo import LocalFrame
 from gcs.cooperation.legs import AgentPlanState, Point
@@ -20,33 +21,118 @@ from protocol.actions import Action
 from protocol.packets import GeoPoint, Position, StatusReport
 
 
-@dataclass(slots=True)
-class TrackedAgent:
-    """What the services keep per agent between status reports."""
+class Rows(Protocol):
+    """Where a tracked agent's newest report lives (gcs/cooperation/fleet.py ``Fleet``)."""
 
-    ident: str
-    cid: int
-    home: GeoPoint | None
-    status: StatusReport
-    position: Position  # the last reported position (the service tracks positioned reports only)
-    received: float  # monotonic
-    connected: bool = True
-    plan: AgentPlanState | None = None
-    completed: int = -1
-    detour_step: int | None = None
-    judge: DivergenceJudge | None = None
-    battery: BatteryEstimator | None = None
-    conditions: dict[str, float] = field(default_factory=dict)  # condition -> since (monotonic)
-    acted: set[str] = field(default_factory=set)
-    emergency: str | None = None
-    disconnected_since: float | None = None
-    link_acted: bool = False
-    warned: set[tuple[int, int]] = field(default_factory=set)
-    recorder: FlightLogWriter | None = None
+    version: np.ndarray[Any, np.dtype[np.int64]]
+    received: np.ndarray[Any, np.dtype[np.float64]]
+
+    def report(self, slot: int) -> StatusReport: ...
+
+
+class TrackedAgent:
+    """What the services keep per agent between status reports.
+
+    The newest report's numbers live in the fleet's arrays (``rows``, row ``slot``); most reports
+    only update those (gcs/cooperation/service.py, the status tick). :attr:`status` and
+    :attr:`position` are that newest report, built on first use after such an update;
+    :attr:`state` is the last report built, whose *state* (flags, steps, mode, mission) is always
+    the newest's, because a report whose state changed is always built, so readers of state
+    only (collision eligibility, airborne) never build one.
+    """
+
+    __slots__ = (
+        "_received",
+        "_status",
+        "_version",
+        "acted",
+        "battery",
+        "cid",
+        "completed",
+        "conditions",
+        "connected",
+        "detour_step",
+        "disconnected_since",
+        "emergency",
+        "home",
+        "ident",
+        "judge",
+        "link_acted",
+        "plan",
+        "recorder",
+        "rows",
+        "slot",
+        "warned",
+    )
+
+    def __init__(
+        self,
+        ident: str,
+        cid: int,
+        home: GeoPoint | None,
+        status: StatusReport,
+        position: Position,
+        received: float,  # monotonic
+        connected: bool = True,
+    ) -> None:
+        del position  # the report's own (kept in the signature: the report is positioned)
+        self.ident, self.cid, self.home = ident, cid, home
+        self._status, self._received, self._version = status, received, -1
+        self.rows: Rows | None = None  # set with ``slot`` when the fleet gives the agent a row
+        self.slot = -1
+        self.connected = connected
+        self.plan: AgentPlanState | None = None
+        self.completed = -1
+        self.detour_step: int | None = None
+        self.judge: DivergenceJudge | None = None
+        self.battery: BatteryView | None = None
+        self.conditions: dict[str, float] = {}  # condition -> since (monotonic)
+        self.acted: set[str] = set()
+        self.emergency: str | None = None
+        self.disconnected_since: float | None = None
+        self.link_acted = False
+        self.warned: set[tuple[int, int]] = set()
+        self.recorder: FlightLogWriter | None = None
+
+    def seen(self, status: StatusReport, received: float) -> None:
+        """``status`` is the newest report (its row in ``rows`` written already, if any)."""
+        self._status, self._received = status, received
+        rows = self.rows
+        if rows is not None:
+            self._version = int(rows.version[self.slot])
+            rows.received[self.slot] = received
+
+    @property
+    def status(self) -> StatusReport:
+        """The newest report (built from the fleet's row when only the row was updated)."""
+        rows = self.rows
+        if rows is not None and rows.version[self.slot] != self._version:
+            self._status = rows.report(self.slot)
+            self._version = int(rows.version[self.slot])
+        return self._status
+
+    @property
+    def state(self) -> StatusReport:
+        """The last report built: the newest state, numbers (position, battery...) maybe older."""
+        return self._status
+
+    @property
+    def position(self) -> Position:
+        """The last reported position (the service tracks positioned reports only)."""
+        position = self.status.position
+        assert position is not None
+        return position
+
+    @property
+    def received(self) -> float:
+        """When the newest report arrived (monotonic)."""
+        rows = self.rows
+        return float(rows.received[self.slot]) if rows is not None else self._received
 
     @property
     def airborne(self) -> bool:
-        return self.status.armed and not self.status.landed
+        state = self._status
+        return state.armed and not state.landed
 
 
 def track(
@@ -79,37 +165,84 @@ def track(
     agent.plan.update(status)
 
 
-def leg_remaining_m(agent: TrackedAgent, frame: LocalFrame) -> float | None:
-    """Distance (3-D, metres) to the target of the leg the drone flies, where it will stop."""
-    plan = agent.plan
+Here = tuple[float, float, float]  # lat, lon, alt_rel of the newest report
+
+
+class Kinematics(NamedTuple):
+    """Newest positions and velocities of a list of agents, one array element per agent."""
+
+    lat: np.ndarray[Any, np.dtype[np.float64]]
+    lon: np.ndarray[Any, np.dtype[np.float64]]
+    alt_rel: np.ndarray[Any, np.dtype[np.float64]]
+    alt_amsl: np.ndarray[Any, np.dtype[np.float64]]
+    vn: np.ndarray[Any, np.dtype[np.float64]]
+    ve: np.ndarray[Any, np.dtype[np.float64]]
+    vd: np.ndarray[Any, np.dtype[np.float64]]
+
+    @classmethod
+    def of(cls, cols: np.ndarray[Any, Any]) -> Kinematics:
+        """From status columns (``gcs.agents_table.ROW_DTYPE``)."""
+        return cls(*(np.asarray(cols[name], dtype=np.float64) for name in cls._fields))
+
+    @classmethod
+    def of_agents(cls, agents: list[TrackedAgent]) -> Kinematics:
+        """From the agents' reports (built if need be)."""
+        reports = [a.status for a in agents]
+        positions = [a.position for a in agents]
+        return cls(
+            np.array([p.lat for p in positions]),
+            np.array([p.lon for p in positions]),
+            np.array([p.alt_rel for p in positions]),
+            np.array([p.alt_amsl for p in positions]),
+            np.array([r.velocity.vn for r in reports]),
+            np.array([r.velocity.ve for r in reports]),
+            np.array([r.velocity.vd for r in reports]),
+        )
+
+
+def _here(agent: TrackedAgent, here: Here | None) -> Here:
+    if here is not None:
+        return here
+    p = agent.position
+    return (p.lat, p.lon, p.alt_rel)
+
+
+Velocity = tuple[float, float, float]
+
+
+def leg_motion(
+    agent: TrackedAgent, frame: LocalFrame, default_speed: float, here: Here | None = None
+) -> tuple[Velocity | None, float | None]:
+    """Where the drone wants to go and how far it has left: (:func:`leg_target_velocity`,
+    :func:`leg_remaining_m`) from one look at its leg, in plain floats (the collision check asks
+    for both for every drone of the fleet on each pass)."""
+    plan, waiting = agent.plan, agent.state.waiting_sync
     if plan is None:
-        return None
-    leg = plan.leg(agent.status.waiting_sync)
+        return None, None
+    leg = plan.leg(waiting)
     if leg is None:
-        return None
-    here = frame.point(agent.position.lat, agent.position.lon)
-    there = frame.point(leg.target[0], leg.target[1])
-    return float(
-        np.linalg.norm([there[0] - here[0], there[1] - here[1], leg.target[2] - agent.position.alt_rel])
-    )
+        return ((0.0, 0.0, 0.0) if waiting is not None else None), None
+    lat, lon, alt_rel = _here(agent, here)
+    n, e = frame.point(lat, lon)
+    tn, te = frame.point(leg.target[0], leg.target[1])
+    dn, de, du = tn - n, te - e, leg.target[2] - alt_rel
+    norm = math.sqrt(dn * dn + de * de + du * du)
+    if leg.start is None:
+        return ((0.0, 0.0, 0.0) if waiting is not None else None), norm
+    if norm < 0.5:
+        return (0.0, 0.0, 0.0), norm
+    k = (leg.speed or default_speed) / norm
+    return (dn * k, de * k, du * k), norm
+
+
+def leg_remaining_m(agent: TrackedAgent, frame: LocalFrame, here: Here | None = None) -> float | None:
+    """Distance (3-D, metres) to the target of the leg the drone flies, where it will stop
+    (``here``: the drone's newest position, else read from the agent)."""
+    return leg_motion(agent, frame, 0.0, here)[1]
 
 
 def leg_target_velocity(
-    agent: TrackedAgent, frame: LocalFrame, default_speed: float
-) -> tuple[float, float, float] | None:
+    agent: TrackedAgent, frame: LocalFrame, default_speed: float, here: Here | None = None
+) -> Velocity | None:
     """Where a held drone wants to go: toward its leg target at the planned speed."""
-    plan, status = agent.plan, agent.status
-    if plan is None:
-        return None
-    leg = plan.leg(status.waiting_sync)
-    if leg is None or leg.start is None:
-        return (0.0, 0.0, 0.0) if status.waiting_sync is not None else None
-    position = agent.position
-    here = frame.point(position.lat, position.lon)
-    there = frame.point(leg.target[0], leg.target[1])
-    delta = np.array([there[0] - here[0], there[1] - here[1], leg.target[2] - position.alt_rel])
-    norm = float(np.linalg.norm(delta))
-    if norm < 0.5:
-        return (0.0, 0.0, 0.0)
-    v = delta / norm * (leg.speed or default_speed)
-    return (float(v[0]), float(v[1]), float(v[2]))
+    return leg_motion(agent, frame, default_speed, here)[0]
