@@ -37,9 +37,10 @@ async def drone_count(page: Any) -> int:
 
 
 async def marker_positions(page: Any) -> dict[str, list[float]]:
-    """Screen positions of the drone markers, as the map draws them."""
+    """Screen positions of the drone markers, as the map draws them (drones with a position)."""
     return await page.evaluate(
-        """() => Object.fromEntries([...window.fleetgcs.agents.values()].filter(a => a.status)
+        """() => Object.fromEntries([...window.fleetgcs.agents.values()]
+            .filter(a => a.status && a.status.position)
             .map(a => [a.identity,
                        window.fleetgcs.toScreen(a.status.position.lat, a.status.position.lon)]))"""
     )

@@ -58,8 +58,13 @@ async def test_simulated_drones_fly_a_mission_started_from_the_page(
 
         await wait_until(fleet_ready, 60, "simulated drones to join with a GPS fix")
         page = await open_dashboard(browser, f"http://127.0.0.1:{daemon.http_port}", "sitl-token")
-        before = await marker_positions(page)
-        assert sorted(before) == names
+        before: dict[str, list[float]] = {}
+
+        async def every_marker() -> bool:  # the page's first sample of a drone may predate its fix
+            before.update(await marker_positions(page))
+            return sorted(before) == names
+
+        await wait_until(every_marker, 30, "a marker for every drone")
         home = daemon.agents.sessions["drone-1"].home
         assert home is not None
         mission_id = await plan_and_start(
