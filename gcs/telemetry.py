@@ -3,7 +3,8 @@
 Samples are batched and written every ``flush_s`` by a writer thread on its own SQLite
 connection (transactions of at most ``gcs.store.TELEMETRY_CHUNK`` rows), optionally downsampled
 to one per ``period_s`` per agent, and pruned after ``retention_s`` (in chunks, in the same
-thread). The event loop only appends a row to the writer's bounded buffer: when the thread
+thread). The event loop only appends each status tick's rows, as NumPy columns
+(:class:`TickRows`; the writer thread makes the tuples), to the writer's bounded buffer: when the thread
 falls ``max_queued_rows`` behind, the oldest waiting rows are dropped and counted
 (``dropped``), the loop never waits. A daemon killed with ``kill -9`` loses at most the last
 ``flush_s`` of samples. Steps, sync releases, missions and events are written at once, not
@@ -21,6 +22,7 @@ import collections
 import contextlib
 import csv
 import io
+import itertools
 import json
 import logging
 import sqlite3
@@ -64,29 +66,46 @@ def status_row(agent: str, status: StatusReport, received: float) -> tuple[Any, 
     )  # fmt: skip
 
 
-def tick_rows(tick: StatusTick, received: float) -> list[tuple[Any, ...]]:
-    """The telemetry rows of a status tick, straight from its columns (no report objects; rows
-    that came decoded use theirs): the same rows as :func:`status_row` gives, for the rows with
-    a position."""
-    cols = tick.cols
-    index = np.flatnonzero(cols["flags"] & HAS_POSITION)
-    if not len(index):
-        return []
-    c = cols[index]
-    flags = c["flags"]
-    at = index.tolist()
-    owners = tick.owners
-    modes = [tick.mode_mission(i) for i in at]
+class TickRows:
+    """A status tick's telemetry rows, kept as NumPy columns until the writer thread makes tuples
+    of them (:meth:`rows`): a row waiting for the writer costs ~140 bytes here against ~570 as a
+    tuple of Python floats, and the tuples are made off the event loop, a chunk at a time."""
 
-    def optional(name: str) -> list[Any]:
-        values = c[name]
-        out = values.astype(object)
-        out[np.isnan(values)] = None
-        return out.tolist()
+    __slots__ = ("cols", "decoded", "identities", "modes", "received")
 
-    rows = list(
-        zip(
-            [owners[i].identity for i in at], c["time"].tolist(), [received] * len(at),
+    def __init__(self, tick: StatusTick, received: float) -> None:
+        index = np.flatnonzero(tick.cols["flags"] & HAS_POSITION)
+        at = index.tolist()
+        owners = tick.owners
+        self.cols = tick.cols[index]  # a copy: the tick's buffers are reused
+        self.identities = [owners[i].identity for i in at]
+        self.modes = [tick.mode_mission(i) for i in at]
+        self.received = received
+        # A report that came decoded (JSON) may hold what a column cannot: its own row.
+        self.decoded: dict[int, tuple[Any, ...]] = {}
+        for n, i in enumerate(at):
+            report = tick.decoded(i)
+            if report is not None:
+                self.decoded[n] = status_row(owners[i].identity, report, received)
+
+    def __len__(self) -> int:
+        return len(self.identities)
+
+    def rows(self) -> Iterator[tuple[Any, ...]]:
+        """The rows in ``TELEMETRY_COLUMNS`` order, as :func:`status_row` gives them."""
+        c, modes, count = self.cols, self.modes, len(self.identities)
+        if not count:
+            return iter(())
+        flags = c["flags"]
+
+        def optional(name: str) -> list[Any]:
+            values = c[name]
+            out = values.astype(object)
+            out[np.isnan(values)] = None
+            return out.tolist()
+
+        rows = zip(
+            self.identities, c["time"].tolist(), [self.received] * count,
             c["lat"].tolist(), c["lon"].tolist(), c["alt_rel"].tolist(), c["alt_amsl"].tolist(),
             c["vn"].tolist(), c["ve"].tolist(), c["vd"].tolist(), c["heading_deg"].tolist(),
             optional("battery_pct"), optional("voltage_v"), optional("current_a"), [m[0] for m in modes],
@@ -94,13 +113,26 @@ def tick_rows(tick: StatusTick, received: float) -> list[tuple[Any, ...]]:
             c["fix"].tolist(), c["satellites"].tolist(), c["step"].tolist(), [m[1] for m in modes],
             ((flags & BUFFERED) != 0).astype(int).tolist(),
             strict=True,
-        )
-    )  # fmt: skip
-    for n, i in enumerate(at):  # a report that came decoded (JSON) may hold what a column cannot
-        report = tick.decoded(i)
-        if report is not None:
-            rows[n] = status_row(owners[i].identity, report, received)
-    return rows
+        )  # fmt: skip
+        if not self.decoded:
+            return rows
+        decoded = self.decoded
+        return (decoded.get(n, row) for n, row in enumerate(rows))
+
+
+def tick_rows(tick: StatusTick, received: float) -> list[tuple[Any, ...]]:
+    """The telemetry rows of a status tick, straight from its columns (no report objects; rows
+    that came decoded use theirs): the same rows as :func:`status_row` gives, for the rows with
+    a position."""
+    return list(TickRows(tick, received).rows())
+
+
+RowBlock = TickRows | list[tuple[Any, ...]]
+"""What the writer queues: a tick's rows as columns, or rows already made."""
+
+
+def _rows_of(block: RowBlock) -> Iterable[tuple[Any, ...]]:
+    return block.rows() if isinstance(block, TickRows) else block
 
 
 WRITER_CHUNK = 500
@@ -141,28 +173,35 @@ def write_priority(store: Store) -> Iterator[None]:
         wanted.clear()
 
 
-def _rows_until(
-    rows: list[tuple[Any, ...]], start: int, stop: int, wanted: threading.Event, taken: list[int]
+def _chunk(
+    first: tuple[Any, ...], source: Iterator[tuple[Any, ...]], wanted: threading.Event, counts: list[int]
 ) -> Iterator[tuple[Any, ...]]:
-    """``rows[start:stop]``, ending early (after the first) once ``wanted`` is set; ``taken[0]``
-    is the index after the last row handed out."""
-    for i in range(start, stop):
-        if i > start and wanted.is_set():
+    """``first``, then rows of ``source`` up to :data:`WRITER_CHUNK` in all, ending early (never
+    before ``first``) once ``wanted`` is set. ``counts``: [rows handed out, 1 if ``source`` ended];
+    a row is taken from ``source`` only to be handed out, so a chunk ended early loses none."""
+    counts[0], counts[1] = 1, 0
+    yield first
+    while counts[0] < WRITER_CHUNK and not wanted.is_set():
+        row = next(source, None)
+        if row is None:
+            counts[1] = 1
             return
-        taken[0] = i + 1
-        yield rows[i]
+        counts[0] += 1
+        yield row
 
 
 def insert_rows(
-    db: sqlite3.Connection, rows: list[tuple[Any, ...]], lock: WriteLock, wanted: threading.Event
-) -> None:
+    db: sqlite3.Connection, rows: Iterable[tuple[Any, ...]], lock: WriteLock, wanted: threading.Event
+) -> int:
     """Insert telemetry rows in transactions of at most :data:`WRITER_CHUNK` rows, each ended early
-    (after at least one row) when ``wanted`` is set (:func:`write_priority`)."""
-    taken = [0]
-    for _ in range(len(rows)):  # each pass inserts at least one row
-        done = taken[0]
-        if done >= len(rows):
-            return
+    (after at least one row) when ``wanted`` is set (:func:`write_priority`); how many."""
+    source = iter(rows)
+    written = 0
+    counts = [0, 0]
+    while not counts[1]:
+        first = next(source, None)
+        if first is None:
+            break
         for _ in range(int(YIELD_WAIT_S / 0.0005)):  # the loop asked for the lock: let it take it
             if not wanted.is_set():
                 break
@@ -170,13 +209,13 @@ def insert_rows(
         with lock:
             db.execute("BEGIN")
             try:
-                db.executemany(
-                    _INSERT, _rows_until(rows, done, min(done + WRITER_CHUNK, len(rows)), wanted, taken)
-                )
+                db.executemany(_INSERT, _chunk(first, source, wanted, counts))
             except BaseException:
                 db.execute("ROLLBACK")
                 raise
             db.execute("COMMIT")
+        written += counts[0]
+    return written
 
 
 MAX_QUEUED_ROWS = 500_000
@@ -192,7 +231,8 @@ class TelemetryWriter:
     def __init__(self, store: Store, config: TelemetryConfig, max_rows: int = MAX_QUEUED_ROWS) -> None:
         self._store = store
         self.config = config
-        self._rows: collections.deque[tuple[Any, ...]] = collections.deque()
+        self._blocks: collections.deque[RowBlock] = collections.deque()
+        self._queued = 0  # rows in _blocks
         self._max_rows = max_rows
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -210,29 +250,34 @@ class TelemetryWriter:
 
     def add(self, row: tuple[Any, ...]) -> None:
         """Queue one row; O(1), never blocks on SQLite."""
-        with self._lock:
-            if len(self._rows) >= self._max_rows:
-                self._rows.popleft()
-                self.dropped += 1
-            self._rows.append(row)
+        self.add_block([row])
 
     def add_many(self, rows: list[tuple[Any, ...]]) -> None:
         """Queue rows (one lock); the oldest go when the buffer is full."""
+        self.add_block(rows)
+
+    def add_block(self, block: RowBlock) -> None:
+        """Queue a block of rows (a tick's columns, or tuples); when the buffer is full the oldest
+        blocks go, counted in ``dropped`` (whole blocks: at most one tick's rows more than needed)."""
+        size = len(block)
+        if not size:
+            return
         with self._lock:
-            self._rows.extend(rows)
-            over = len(self._rows) - self._max_rows
-            for _ in range(max(0, over)):
-                self._rows.popleft()
-            self.dropped += max(0, over)
+            self._blocks.append(block)
+            self._queued += size
+            while self._queued > self._max_rows and len(self._blocks) > 1:
+                gone = len(self._blocks.popleft())
+                self._queued -= gone
+                self.dropped += gone
 
     @property
     def pending(self) -> int:
-        return len(self._rows)
+        return self._queued
 
     def flush(self, timeout: float = 30.0) -> bool:
         """Write everything queued so far and wait for it (blocking: tests, shutdown, CLI)."""
         if not self._thread.is_alive():  # not started (in-memory store) or stopped: write here
-            self._write(self._store.add_telemetry)
+            self._write(lambda rows: self._store.add_telemetry(list(rows)))
             return True
         with self._done:
             self._requested += 1
@@ -272,19 +317,21 @@ class TelemetryWriter:
         finally:
             db.close()
 
-    def _write(self, insert: Callable[[list[tuple[Any, ...]]], None]) -> bool:
-        """Write what is queued; True if anything was written."""
+    def _write(self, insert: Callable[[Iterable[tuple[Any, ...]]], object]) -> bool:
+        """Write what is queued (its tuples made here, a block at a time); True if anything was."""
         with self._lock:
-            batch = list(self._rows)
-            self._rows.clear()
-        if not batch:
+            blocks = list(self._blocks)
+            count = self._queued
+            self._blocks.clear()
+            self._queued = 0
+        if not blocks:
             return False
         try:
-            insert(batch)
-            self.written += len(batch)
+            insert(itertools.chain.from_iterable(_rows_of(block) for block in blocks))
+            self.written += count
         except sqlite3.Error:  # a full disk or a locked file costs this batch, not the daemon
             self.failed_batches += 1
-            log.exception("telemetry: could not write %d samples", len(batch))
+            log.exception("telemetry: could not write %d samples", count)
             return False
         return True
 
@@ -336,17 +383,18 @@ class TelemetryRecorder:
         """A status tick's rows, straight from its columns (one lock, no report objects)."""
         if self._writer is None:
             return
-        rows = tick_rows(tick, time.time())
-        if self.config.period_s > 0:
-            kept, period, last_kept = [], self.config.period_s, self._last_kept
-            for row in rows:
-                last = last_kept.get(row[0])
-                if last is not None and 0 <= row[1] - last < period:
-                    continue
-                last_kept[row[0]] = row[1]
-                kept.append(row)
-            rows = kept
-        self._writer.add_many(rows)
+        block = TickRows(tick, time.time())
+        if self.config.period_s <= 0:
+            self._writer.add_block(block)  # tuples are made by the writer thread
+            return
+        kept, period, last_kept = [], self.config.period_s, self._last_kept
+        for row in block.rows():  # downsampled: one row per agent per period_s
+            last = last_kept.get(row[0])
+            if last is not None and 0 <= row[1] - last < period:
+                continue
+            last_kept[row[0]] = row[1]
+            kept.append(row)
+        self._writer.add_many(kept)
 
     def flush(self) -> None:
         """Write every queued sample now (blocks until written: tests and tools, not the loop)."""

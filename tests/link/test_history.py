@@ -149,6 +149,31 @@ def test_telemetry_writer_drops_the_oldest_rows_when_behind(tmp_path: Path) -> N
         store.close()
 
 
+def test_telemetry_writer_drops_whole_blocks_and_writes_the_rest_in_order(tmp_path: Path) -> None:
+    """Ticks are queued as blocks (a tick's rows); when behind, the oldest blocks go, counted."""
+    store = Store(tmp_path / "db.sqlite")
+    writer = TelemetryWriter(store, TelemetryConfig(flush_s=60.0), max_rows=4)
+    writer.start()
+    try:
+        base = telemetry_row("w", 0.0, 0.0)
+        now = time.time()
+
+        def block(*times: float) -> list[tuple[object, ...]]:
+            return [(base[0], t, now, *base[3:]) for t in times]
+
+        writer.add_block(block(1.0, 2.0))
+        writer.add_block(block(3.0, 4.0))
+        writer.add_block([])  # an empty tick queues nothing
+        writer.add_block(block(5.0))
+        assert (writer.pending, writer.dropped) == (3, 2)  # the first block went whole
+        assert writer.flush(timeout=10.0)
+        assert [r["time"] for r in store.telemetry("w")] == [3.0, 4.0, 5.0]
+        assert writer.written == 3 and writer.pending == 0
+    finally:
+        writer.stop()
+        store.close()
+
+
 async def test_live_rings_share_a_fleet_budget_and_older_pages_come_from_the_log(tmp_path: Path) -> None:
     """The rings bound the daemon's memory as the fleet grows (2,000 drones x 3,000 entries would
     be 1.7 GB): each ring is cut to the fleet's share, and a page older than a ring is read from

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gcs.agents_table import StatusTable, StatusTick
-from gcs.telemetry import status_row, tick_rows
+from gcs.telemetry import TickRows, status_row, tick_rows
 from protocol.packets import StatusReport
 from tests.backbone.helpers import new_key, running_daemon, wait_for
 from tests.protocol.test_status_binary import reports
@@ -44,6 +44,10 @@ def test_a_tick_gives_the_reports_and_telemetry_rows_of_its_rows(batch: list[Sta
         assert tick.report(i) == report
         assert tick.mode_mission(i) == (report.mode, report.mission_id)
     got = tick_rows(tick, 5.0)
+    block = TickRows(tick, 5.0)  # what the recorder queues; the writer thread makes its tuples later
+    for row in rows:  # the table moves on before the writer gets to the block
+        _stored(table, row, _report(1.0, armed=True))
+    assert len(block) == len(got) and all(_same(g, w) for g, w in zip(block.rows(), got, strict=True))
     want = [status_row(o.identity, r, 5.0) for o, r in zip(tick.owners, expected, strict=True) if r.position]
     assert len(got) == len(want) and all(_same(g, w) for g, w in zip(got, want, strict=True))
     again = StatusTick.of_reports(list(zip(tick.owners, expected, strict=True)), 5.0)
