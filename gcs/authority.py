@@ -90,13 +90,13 @@ class _Order:
     reason: str
 
 
-@dataclass
+@dataclass(slots=True)
 class _Vehicle:
     holds: dict[str, str] = field(default_factory=dict)  # owner -> reason
     order: _Order | None = None
     failsafe: str | None = None
     mission_id: str | None = None
-    history: deque[Decision] = field(default_factory=lambda: deque(maxlen=HISTORY))
+    history: deque[Decision] | None = None  # made at the first decision (~0.7 KiB even empty)
     held_since: dict[str, float] = field(default_factory=dict)  # owner -> monotonic start
 
 
@@ -194,7 +194,7 @@ class VehicleAuthority:
             order=vehicle.order.kind if vehicle.order else None,
             order_source=vehicle.order.owner if vehicle.order else None,
             failsafe=vehicle.failsafe,
-            decisions=list(vehicle.history),
+            decisions=list(vehicle.history or ()),
         )
 
     # --- commands -------------------------------------------------------------------------------
@@ -408,7 +408,10 @@ class VehicleAuthority:
             accepted=accepted,
             detail=detail,
         )
-        self._vehicle(ident).history.append(decision)
+        vehicle = self._vehicle(ident)
+        if vehicle.history is None:
+            vehicle.history = deque(maxlen=HISTORY)
+        vehicle.history.append(decision)
         message = f"{command} by {owner}: {reason[:160]}" + (f" ({detail})" if detail else "")
         self._on_decision(ident, owner, command, accepted, message)
 
