@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import sqlite3
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -129,12 +131,22 @@ async def test_history_over_a_huge_log_keeps_every_agent_connected(tmp_path: Pat
             await stop_agents(agents)
 
 
-def test_telemetry_writer_drops_the_oldest_rows_when_behind(tmp_path: Path) -> None:
-    """The loop only appends; a writer that falls behind loses the oldest rows, counted."""
+@contextlib.contextmanager
+def sleeping_writer(tmp_path: Path, max_rows: int) -> Iterator[tuple[Store, TelemetryWriter]]:
+    """A started writer whose thread sleeps for a minute between writes (until ``flush``)."""
     store = Store(tmp_path / "db.sqlite")
-    writer = TelemetryWriter(store, TelemetryConfig(flush_s=60.0), max_rows=5)
+    writer = TelemetryWriter(store, TelemetryConfig(flush_s=60.0), max_rows=max_rows)
     writer.start()
     try:
+        yield store, writer
+    finally:
+        writer.stop()
+        store.close()
+
+
+def test_telemetry_writer_drops_the_oldest_rows_when_behind(tmp_path: Path) -> None:
+    """The loop only appends; a writer that falls behind loses the oldest rows, counted."""
+    with sleeping_writer(tmp_path, max_rows=5) as (store, writer):
         row = telemetry_row("w", 0.0, 0.0)
         for n in range(8):  # the thread sleeps for flush_s: nothing is written meanwhile
             writer.add((row[0], float(n), time.time(), *row[3:]))  # recent: retention keeps it
@@ -144,17 +156,11 @@ def test_telemetry_writer_drops_the_oldest_rows_when_behind(tmp_path: Path) -> N
         assert writer.written == 5 and writer.pending == 0
         page = store.telemetry_page("w", limit=2, every=2)  # the newest, every second one
         assert [r["time"] for r in page] == [5.0, 7.0]
-    finally:
-        writer.stop()
-        store.close()
 
 
 def test_telemetry_writer_drops_whole_blocks_and_writes_the_rest_in_order(tmp_path: Path) -> None:
     """Ticks are queued as blocks (a tick's rows); when behind, the oldest blocks go, counted."""
-    store = Store(tmp_path / "db.sqlite")
-    writer = TelemetryWriter(store, TelemetryConfig(flush_s=60.0), max_rows=4)
-    writer.start()
-    try:
+    with sleeping_writer(tmp_path, max_rows=4) as (store, writer):
         base = telemetry_row("w", 0.0, 0.0)
         now = time.time()
 
@@ -169,9 +175,6 @@ def test_telemetry_writer_drops_whole_blocks_and_writes_the_rest_in_order(tmp_pa
         assert writer.flush(timeout=10.0)
         assert [r["time"] for r in store.telemetry("w")] == [3.0, 4.0, 5.0]
         assert writer.written == 3 and writer.pending == 0
-    finally:
-        writer.stop()
-        store.close()
 
 
 async def test_live_rings_share_a_fleet_budget_and_older_pages_come_from_the_log(tmp_path: Path) -> None:

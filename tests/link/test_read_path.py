@@ -4,8 +4,9 @@ buffer, a partial frame is kept per connection, and no task runs for an idle ses
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import ssl
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 from gcs.daemon import Daemon
@@ -115,7 +116,9 @@ async def test_mutual_tls_sessions_are_served_by_the_shared_buffer(tmp_path: Pat
             client.close()
 
 
-async def test_an_idle_session_runs_no_task_and_a_stuck_peer_is_still_cut_off(tmp_path: Path) -> None:
+@contextlib.asynccontextmanager
+async def deaf_peer(tmp_path: Path) -> AsyncIterator[tuple[Daemon, RawClient]]:
+    """A daemon with a 1 s send timeout and a joined raw peer "deaf" that never reads."""
     key = new_key()
     # The raw peer sends no status: a long liveness limit keeps a loaded machine from losing it.
     async with running_daemon(tmp_path, key, send_timeout_s=1.0, lost_after_periods=400.0) as daemon:
@@ -123,44 +126,42 @@ async def test_an_idle_session_runs_no_task_and_a_stuck_peer_is_still_cut_off(tm
         try:
             await deaf.handshake("deaf", key)
             await wait_for(lambda: daemon.agents.session("deaf") is not None, 5.0, "deaf joins")
-            session = daemon.agents.session("deaf")
-            assert session is not None
-            # Served and idle: the handshake task has ended and the outbox has no writer task.
-            await wait_for(lambda: not daemon.agents._tasks, 5.0, "the handshake task ends")
-            await wait_for(lambda: session.outbox._task is None, 5.0, "the writer task ends once idle")
-            await stall_outbox(daemon, "deaf")  # it does not read: frames back up in its outbox
-            assert session.outbox._task is not None, "a writer task while frames wait"
-            stuck = asyncio.create_task(
-                daemon.agents.send("deaf", PerformActions(mission_id="m", mode="pause", reason="x"))
-            )
-            assert await asyncio.wait_for(stuck, 10.0) is False
-            await wait_for(lambda: daemon.agents.session("deaf") is None, 10.0, "the stuck peer is cut off")
-            assert [e.agent for e in daemon.events.history(kind="agent_cut_off")] == ["deaf"]
-            await wait_for(lambda: session.outbox._task is None, 5.0, "no writer task after the cut")
-            await wait_for(lambda: not daemon.agents._tasks, 5.0, "the session's end has run")
-            assert session.table is None, "its status row is free"
+            yield daemon, deaf
         finally:
             deaf.close()
+
+
+async def test_an_idle_session_runs_no_task_and_a_stuck_peer_is_still_cut_off(tmp_path: Path) -> None:
+    async with deaf_peer(tmp_path) as (daemon, _):
+        session = daemon.agents.session("deaf")
+        assert session is not None
+        # Served and idle: the handshake task has ended and the outbox has no writer task.
+        await wait_for(lambda: not daemon.agents._tasks, 5.0, "the handshake task ends")
+        await wait_for(lambda: session.outbox._task is None, 5.0, "the writer task ends once idle")
+        await stall_outbox(daemon, "deaf")  # it does not read: frames back up in its outbox
+        assert session.outbox._task is not None, "a writer task while frames wait"
+        stuck = asyncio.create_task(
+            daemon.agents.send("deaf", PerformActions(mission_id="m", mode="pause", reason="x"))
+        )
+        assert await asyncio.wait_for(stuck, 10.0) is False
+        await wait_for(lambda: daemon.agents.session("deaf") is None, 10.0, "the stuck peer is cut off")
+        assert [e.agent for e in daemon.events.history(kind="agent_cut_off")] == ["deaf"]
+        await wait_for(lambda: session.outbox._task is None, 5.0, "no writer task after the cut")
+        await wait_for(lambda: not daemon.agents._tasks, 5.0, "the session's end has run")
+        assert session.table is None, "its status row is free"
 
 
 async def test_a_stuck_peer_that_only_gets_bursts_is_cut_off(tmp_path: Path) -> None:
     """Burst frames (barrier releases) are written past the queue; a peer that never drains them is
     cut off by the byte bound or the drain timeout, with no writer task while it was idle."""
-    key = new_key()
-    async with running_daemon(tmp_path, key, send_timeout_s=1.0, lost_after_periods=400.0) as daemon:
-        deaf = await RawClient.connect(daemon.listen_port)
-        try:
-            await deaf.handshake("deaf", key)
-            await wait_for(lambda: daemon.agents.session("deaf") is not None, 5.0, "deaf joins")
-            for _ in range(2000):  # bounded: socket buffers fill long before
-                if daemon.agents.session("deaf") is None:
-                    break
-                daemon.agents.burst(["deaf"], BIG_FENCE)
-                await asyncio.sleep(0.005)
-            await wait_for(lambda: daemon.agents.session("deaf") is None, 10.0, "the stuck peer is cut off")
-            assert [e.agent for e in daemon.events.history(kind="agent_cut_off")] == ["deaf"]
-        finally:
-            deaf.close()
+    async with deaf_peer(tmp_path) as (daemon, _):
+        for _ in range(2000):  # bounded: socket buffers fill long before
+            if daemon.agents.session("deaf") is None:
+                break
+            daemon.agents.burst(["deaf"], BIG_FENCE)
+            await asyncio.sleep(0.005)
+        await wait_for(lambda: daemon.agents.session("deaf") is None, 10.0, "the stuck peer is cut off")
+        assert [e.agent for e in daemon.events.history(kind="agent_cut_off")] == ["deaf"]
 
 
 async def test_frames_pipelined_behind_the_proof_are_all_served(tmp_path: Path) -> None:
