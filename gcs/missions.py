@@ -28,7 +28,6 @@ from gcs.cooperation.returns import RETURN_PREFIX, Returner, assign_layers
 from gcs.events import EventBus
 from gcs.store import Store
 from gcs.sync import BarrierSet
-from gcs.telemetry import write_priority
 from protocol.actions import Action, ReturnToLaunch
 from protocol.packets import ActionFailure, Resume, StatusReport, SyncSignal
 from protocol.taskfile import TaskFile
@@ -588,7 +587,7 @@ class MissionRunner:
 
         The release row and its event are one transaction (a kill -9 between the two lost the
         event once), committed before anyone hears of it. The store's write lock is taken ahead
-        of the telemetry writer (``write_priority``: its chunk in progress commits after the next
+        of the telemetry writer (``Store.write_priority``: its chunk in progress commits after the next
         row) and held through the burst, so the writer thread waits blocked instead of competing
         with this thread for the GIL while the sockets are written (each ``send`` lets another
         thread run, which may then keep the GIL for up to the switch interval). The garbage
@@ -600,7 +599,7 @@ class MissionRunner:
         collecting = gc.isenabled()
         gc.disable()
         try:
-            with write_priority(self._store):
+            with self._store.write_priority():
                 with self._store.atomic():
                     self._store.record_release(mission.id, step)
                     self._events.publish(

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import contextlib
 import csv
 import io
 import itertools
@@ -28,7 +27,6 @@ import logging
 import sqlite3
 import threading
 import time
-import weakref
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
@@ -137,40 +135,11 @@ def _rows_of(block: RowBlock) -> Iterable[tuple[Any, ...]]:
 
 WRITER_CHUNK = 500
 """Rows per write transaction of the writer thread (at most: it commits early when the event loop
-asks for the write lock, see :func:`write_priority`)."""
+asks for the write lock, see :meth:`gcs.store.Store.write_priority`)."""
 _INSERT = (
     f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) VALUES ({','.join('?' * len(TELEMETRY_COLUMNS))})"
 )
-_WANTED: weakref.WeakKeyDictionary[Store, threading.Event] = weakref.WeakKeyDictionary()
 YIELD_WAIT_S = 0.05  # the longest the writer waits for a lock the loop asked for before trying again
-
-
-def _wanted(store: Store) -> threading.Event:
-    event = _WANTED.get(store)
-    if event is None:
-        event = _WANTED[store] = threading.Event()
-    return event
-
-
-@contextlib.contextmanager
-def write_priority(store: Store) -> Iterator[None]:
-    """Hold ``store``'s write lock, the telemetry writer giving it up within one row.
-
-    Why: the writer thread binds each row with the GIL held and releases it around each
-    ``sqlite3_step``, so next to a busy event loop it waits for the GIL at every row, holding
-    SQLite's write lock all the while: measured at 1,000 agents, a 128-row chunk held it ~9 ms
-    (1.7 ms of CPU), up to 90 ms, and a barrier release waiting to persist waited as long. With
-    this the writer's row source stops at the next row and the chunk commits at once: the wait is
-    one row and a commit. Held, the lock also keeps the writer blocked (off the GIL).
-    """
-    wanted = _wanted(store)
-    wanted.set()
-    try:
-        with store.write_lock:
-            wanted.clear()  # the writer's next chunk now waits on the lock itself
-            yield
-    finally:
-        wanted.clear()
 
 
 def _chunk(
@@ -194,7 +163,7 @@ def insert_rows(
     db: sqlite3.Connection, rows: Iterable[tuple[Any, ...]], lock: WriteLock, wanted: threading.Event
 ) -> int:
     """Insert telemetry rows in transactions of at most :data:`WRITER_CHUNK` rows, each ended early
-    (after at least one row) when ``wanted`` is set (:func:`write_priority`); how many."""
+    (after at least one row) when ``wanted`` is set (:meth:`gcs.store.Store.write_priority`); how many."""
     source = iter(rows)
     written = 0
     counts = [0, 0]
@@ -295,7 +264,7 @@ class TelemetryWriter:
 
     def _run(self) -> None:
         db = self._store.writer()
-        wanted = _wanted(self._store)
+        wanted = self._store.write_wanted
         last_prune = 0.0
         try:
             while True:

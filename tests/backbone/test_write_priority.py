@@ -20,8 +20,9 @@ from tests.backbone.helpers import telemetry_row
 ROWS = 50_000
 
 
+@pytest.mark.parametrize("explicit", [True, False], ids=["write_priority", "plain-state-write"])
 def test_the_loop_gets_the_write_lock_within_the_writers_chunk(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, explicit: bool
 ) -> None:
     monkeypatch.setattr(telemetry, "WRITER_CHUNK", ROWS)  # one chunk: without yielding, all or nothing
     store = Store(tmp_path / "fleet.db")
@@ -32,15 +33,19 @@ def test_the_loop_gets_the_write_lock_within_the_writers_chunk(
 
     def write() -> None:
         started.set()
-        telemetry.insert_rows(db, rows, store.write_lock, telemetry._wanted(store))
+        telemetry.insert_rows(db, rows, store.write_lock, store.write_wanted)
 
     writer = threading.Thread(target=write, daemon=True)
     writer.start()
     assert started.wait(10)
     time.sleep(0.02)  # the writer is inside its chunk (50,000 rows take far longer)
-    with telemetry.write_priority(store):
+    if explicit:  # the barrier's way: the lock held through persist and burst
+        with store.write_priority():
+            seen = store._db.execute("SELECT COUNT(*) FROM telemetry").fetchone()[0]
+            store.record_release("m-1", 0)  # the loop's own write goes through while it holds the lock
+    else:  # any state write of the store (an event, a completed step) gets the same priority
+        store.record_release("m-1", 0)
         seen = store._db.execute("SELECT COUNT(*) FROM telemetry").fetchone()[0]
-        store.record_release("m-1", 0)  # the loop's own write goes through while it holds the lock
     writer.join(60)
     assert not writer.is_alive()
     assert 0 < seen < ROWS, f"the loop waited for the whole chunk ({seen} rows committed first)"
