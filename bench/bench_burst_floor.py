@@ -110,7 +110,10 @@ def main() -> None:
     print("bare sock.send burst, first send -> last kernel receive (two draining processes):")
     for n in args.agents:
         row = floor(n, args.rounds)
-        print(f"  {n:>6} sockets  p50 {row['p50_ms']:6.2f} ms  p99 {row['p99_ms']:6.2f} ms  ({row['rounds']} bursts)")
+        print(
+            f"  {n:>6} sockets  p50 {row['p50_ms']:6.2f} ms  p99 {row['p99_ms']:6.2f} ms"
+            f"  ({row['rounds']} bursts)"
+        )
 
 
 if __name__ == "__main__":
