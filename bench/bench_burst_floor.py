@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
+import resource
 import selectors
 import socket
 import struct
@@ -107,6 +108,10 @@ def main() -> None:
     parser.add_argument("--agents", type=int, nargs="+", default=[100, 1000])
     parser.add_argument("--rounds", type=int, default=40)
     args = parser.parse_args()
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)  # one descriptor per near-end socket
+    wanted = max(args.agents) + 64
+    if soft < wanted and (hard == resource.RLIM_INFINITY or hard >= wanted):
+        resource.setrlimit(resource.RLIMIT_NOFILE, (wanted, hard))
     print("bare sock.send burst, first send -> last kernel receive (two draining processes):")
     for n in args.agents:
         row = floor(n, args.rounds)
