@@ -17,7 +17,7 @@ import os
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -190,7 +190,7 @@ class Store:
         # done, where SQLite's own busy handler would sleep in growing steps (up to 100 ms).
         self.write_lock = threading.RLock()  # re-entrant: single writes inside an atomic() block
         # Set while a state write waits for the lock: the telemetry writer ends its chunk at the
-        # next row (gcs/telemetry.py insert_rows), so the event loop waits one row, not a chunk.
+        # next row (insert_telemetry), so the event loop waits one row, not a chunk.
         self.write_wanted = threading.Event()
         try:
             self._db.execute("PRAGMA journal_mode=WAL")
@@ -403,9 +403,9 @@ class Store:
         self._db.execute("PRAGMA wal_autocheckpoint=0")
         return db
 
-    def add_telemetry(self, rows: list[tuple[Any, ...]]) -> None:
+    def add_telemetry(self, rows: Iterable[tuple[Any, ...]]) -> None:
         """Insert rows in ``TELEMETRY_COLUMNS`` order (chunked transactions)."""
-        insert_telemetry(self._db, rows, self.write_lock)
+        insert_telemetry(self._db, rows, self.write_lock, self.write_wanted)
 
     def telemetry(
         self,
@@ -477,13 +477,51 @@ TELEMETRY_CHUNK = 500
 (a few milliseconds), so the event loop's small state writes never wait long for it."""
 
 
-def insert_telemetry(db: sqlite3.Connection, rows: list[tuple[Any, ...]], lock: WriteLock) -> None:
-    """Insert rows in ``TELEMETRY_COLUMNS`` order, ``TELEMETRY_CHUNK`` rows per transaction."""
-    placeholders = ",".join("?" * len(TELEMETRY_COLUMNS))
-    sql = f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) VALUES ({placeholders})"
-    for start in range(0, len(rows), TELEMETRY_CHUNK):
+_INSERT_TELEMETRY = (
+    f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) VALUES ({','.join('?' * len(TELEMETRY_COLUMNS))})"
+)
+YIELD_WAIT_S = 0.05
+"""The longest a bulk insert waits for a lock a state write asked for before it goes on."""
+
+
+def _chunk(
+    first: tuple[Any, ...], source: Iterator[tuple[Any, ...]], wanted: threading.Event, counts: list[int]
+) -> Iterator[tuple[Any, ...]]:
+    """``first``, then rows of ``source`` up to :data:`TELEMETRY_CHUNK` in all, ending early (never
+    before ``first``) once ``wanted`` is set. ``counts``: [rows handed out, 1 if ``source`` ended];
+    a row is taken from ``source`` only to be handed out, so a chunk ended early loses none."""
+    counts[0], counts[1] = 1, 0
+    yield first
+    while counts[0] < TELEMETRY_CHUNK and not wanted.is_set():
+        row = next(source, None)
+        if row is None:
+            counts[1] = 1
+            return
+        counts[0] += 1
+        yield row
+
+
+def insert_telemetry(
+    db: sqlite3.Connection, rows: Iterable[tuple[Any, ...]], lock: WriteLock, wanted: threading.Event
+) -> int:
+    """Insert rows in ``TELEMETRY_COLUMNS`` order in transactions of at most
+    :data:`TELEMETRY_CHUNK` rows, each ended early (after at least one row) when ``wanted`` is set
+    (:meth:`Store.write_priority`); how many. ``rows`` is read lazily, a chunk at a time."""
+    source = iter(rows)
+    written = 0
+    counts = [0, 0]
+    while not counts[1]:
+        first = next(source, None)
+        if first is None:
+            break
+        for _ in range(int(YIELD_WAIT_S / 0.0005)):  # a state write asked for the lock: let it take it
+            if not wanted.is_set():
+                break
+            time.sleep(0.0005)
         with _Transaction(db, lock):
-            db.executemany(sql, rows[start : start + TELEMETRY_CHUNK])
+            db.executemany(_INSERT_TELEMETRY, _chunk(first, source, wanted, counts))
+        written += counts[0]
+    return written
 
 
 def prune_telemetry(

@@ -34,7 +34,7 @@ import numpy as np
 
 from gcs.agents_table import StatusTick
 from gcs.config import TelemetryConfig
-from gcs.store import TELEMETRY_COLUMNS, Store, WriteLock, checkpoint, prune_telemetry, telemetry_page_json
+from gcs.store import Store, checkpoint, insert_telemetry, prune_telemetry, telemetry_page_json
 from protocol.packets import StatusReport
 from protocol.status_binary import ARMED, BUFFERED, HAS_POSITION, LANDED
 
@@ -133,60 +133,6 @@ def _rows_of(block: RowBlock) -> Iterable[tuple[Any, ...]]:
     return block.rows() if isinstance(block, TickRows) else block
 
 
-WRITER_CHUNK = 500
-"""Rows per write transaction of the writer thread (at most: it commits early when the event loop
-asks for the write lock, see :meth:`gcs.store.Store.write_priority`)."""
-_INSERT = (
-    f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) VALUES ({','.join('?' * len(TELEMETRY_COLUMNS))})"
-)
-YIELD_WAIT_S = 0.05  # the longest the writer waits for a lock the loop asked for before trying again
-
-
-def _chunk(
-    first: tuple[Any, ...], source: Iterator[tuple[Any, ...]], wanted: threading.Event, counts: list[int]
-) -> Iterator[tuple[Any, ...]]:
-    """``first``, then rows of ``source`` up to :data:`WRITER_CHUNK` in all, ending early (never
-    before ``first``) once ``wanted`` is set. ``counts``: [rows handed out, 1 if ``source`` ended];
-    a row is taken from ``source`` only to be handed out, so a chunk ended early loses none."""
-    counts[0], counts[1] = 1, 0
-    yield first
-    while counts[0] < WRITER_CHUNK and not wanted.is_set():
-        row = next(source, None)
-        if row is None:
-            counts[1] = 1
-            return
-        counts[0] += 1
-        yield row
-
-
-def insert_rows(
-    db: sqlite3.Connection, rows: Iterable[tuple[Any, ...]], lock: WriteLock, wanted: threading.Event
-) -> int:
-    """Insert telemetry rows in transactions of at most :data:`WRITER_CHUNK` rows, each ended early
-    (after at least one row) when ``wanted`` is set (:meth:`gcs.store.Store.write_priority`); how many."""
-    source = iter(rows)
-    written = 0
-    counts = [0, 0]
-    while not counts[1]:
-        first = next(source, None)
-        if first is None:
-            break
-        for _ in range(int(YIELD_WAIT_S / 0.0005)):  # the loop asked for the lock: let it take it
-            if not wanted.is_set():
-                break
-            time.sleep(0.0005)
-        with lock:
-            db.execute("BEGIN")
-            try:
-                db.executemany(_INSERT, _chunk(first, source, wanted, counts))
-            except BaseException:
-                db.execute("ROLLBACK")
-                raise
-            db.execute("COMMIT")
-        written += counts[0]
-    return written
-
-
 MAX_QUEUED_ROWS = 500_000
 """Rows waiting for the writer thread before the oldest are dropped (about 100 s at 500 agents x 10 Hz)."""
 HISTORY_QUERIES = 1
@@ -221,10 +167,6 @@ class TelemetryWriter:
         """Queue one row; O(1), never blocks on SQLite."""
         self.add_block([row])
 
-    def add_many(self, rows: list[tuple[Any, ...]]) -> None:
-        """Queue rows (one lock); the oldest go when the buffer is full."""
-        self.add_block(rows)
-
     def add_block(self, block: RowBlock) -> None:
         """Queue a block of rows (a tick's columns, or tuples); when the buffer is full the oldest
         blocks go, counted in ``dropped`` (whole blocks: at most one tick's rows more than needed)."""
@@ -246,7 +188,7 @@ class TelemetryWriter:
     def flush(self, timeout: float = 30.0) -> bool:
         """Write everything queued so far and wait for it (blocking: tests, shutdown, CLI)."""
         if not self._thread.is_alive():  # not started (in-memory store) or stopped: write here
-            self._write(lambda rows: self._store.add_telemetry(list(rows)))
+            self._write(self._store.add_telemetry)
             return True
         with self._done:
             self._requested += 1
@@ -272,7 +214,7 @@ class TelemetryWriter:
                 self._wake.clear()
                 with self._done:
                     target = self._requested
-                if self._write(lambda rows: insert_rows(db, rows, self._store.write_lock, wanted)):
+                if self._write(lambda rows: insert_telemetry(db, rows, self._store.write_lock, wanted)):
                     checkpoint(db)
                 with self._done:
                     self._completed = max(self._completed, target)
@@ -363,7 +305,7 @@ class TelemetryRecorder:
                 continue
             last_kept[row[0]] = row[1]
             kept.append(row)
-        self._writer.add_many(kept)
+        self._writer.add_block(kept)
 
     def flush(self) -> None:
         """Write every queued sample now (blocks until written: tests and tools, not the loop)."""

@@ -1,4 +1,4 @@
-"""The event loop takes the store's write lock ahead of the telemetry writer (gcs/telemetry.py).
+"""The event loop takes the store's write lock ahead of the telemetry writer (gcs/store.py insert_telemetry).
 
 A barrier release is persisted before it is sent; it must not wait for the writer's whole
 chunk. Here the chunk is 50,000 rows (about a quarter of a second of inserts or more): the
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from gcs import telemetry
+from gcs import store as store_module
 from gcs.store import Store
 from tests.backbone.helpers import telemetry_row
 
@@ -24,7 +24,7 @@ ROWS = 50_000
 def test_the_loop_gets_the_write_lock_within_the_writers_chunk(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, explicit: bool
 ) -> None:
-    monkeypatch.setattr(telemetry, "WRITER_CHUNK", ROWS)  # one chunk: without yielding, all or nothing
+    monkeypatch.setattr(store_module, "TELEMETRY_CHUNK", ROWS)  # one chunk: without yielding, all or nothing
     store = Store(tmp_path / "fleet.db")
     store.add_mission("m-1", "barrier", "{}", ["drone-1"])
     db = store.writer()
@@ -33,7 +33,7 @@ def test_the_loop_gets_the_write_lock_within_the_writers_chunk(
 
     def write() -> None:
         started.set()
-        telemetry.insert_rows(db, rows, store.write_lock, store.write_wanted)
+        store_module.insert_telemetry(db, rows, store.write_lock, store.write_wanted)
 
     writer = threading.Thread(target=write, daemon=True)
     writer.start()
