@@ -238,7 +238,7 @@ class AgentManager:
         self.on_status_tick: HookList[TickHook] = HookList()  # each tick's reports as columns (StatusTick)
         self.on_sync: HookList[SyncHook] = HookList()
         # The barrier's direct path (gcs/missions.py): a 'finished' is handed to it from the frame's
-        # data_received, before the on_sync hooks get it, unless its owner's consumer still holds
+        # buffer_updated, before the on_sync hooks get it, unless its owner's consumer still holds
         # a join, sync or lost of that agent (_finished).
         self.on_finished: FinishedHook | None = None
         self.on_lost: HookList[LostHook] = HookList()
@@ -690,7 +690,7 @@ class AgentManager:
     def _finished(self, session: AgentSession, signal: SyncSignal) -> None:
         """A 'finished' sync signal: to the barrier at once, then to every ``on_sync`` hook.
 
-        The last arrival of a barrier releases it from here, in this ``data_received`` call (no
+        The last arrival of a barrier releases it from here, in this ``buffer_updated`` call (no
         hook queue and no task switch in between): ``on_finished`` records the arrival and, when
         it completes the barrier, persists and bursts the release. Not while the consumer of its
         owner still holds a join or lost of the agent (``on_finished`` itself declines while the
