@@ -15,6 +15,7 @@ from agent.config import AgentConfig, AgentSettings
 from agent.runtime import Agent
 from gcs.config import DaemonConfig
 from gcs.daemon import Daemon
+from gcs.store import StoredMission
 from protocol.actions import GoBy, Goto, Land, Takeoff
 from protocol.geo import offset_latlon
 from protocol.taskfile import AgentPlan, TaskFile
@@ -83,6 +84,19 @@ async def wait_for(predicate: Callable[[], object], timeout: float, what: str, p
             return
         await asyncio.sleep(poll)
     raise AssertionError(f"timed out after {timeout:.1f} s waiting for {what}")
+
+
+async def mission_ended(daemon: Daemon, mission_id: str, timeout: float, what: str) -> StoredMission:
+    """Wait until the store no longer has ``mission_id`` running; its stored record."""
+    await wait_for(
+        lambda: (m := daemon.store.mission(mission_id)) is not None and m.state != "running",
+        timeout,
+        what,
+        poll=0.1,
+    )
+    stored = daemon.store.mission(mission_id)
+    assert stored is not None
+    return stored
 
 
 def survey_mission(

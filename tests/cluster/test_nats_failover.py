@@ -12,7 +12,7 @@ import httpx
 import pytest
 
 from gcs.cluster.natsrun import NatsCluster
-from tests.backbone.helpers import new_key, start_agent, stop_agents, survey_mission, wait_for
+from tests.backbone.helpers import mission_ended, new_key, start_agent, stop_agents, survey_mission, wait_for
 from tests.cluster.simrig import two_daemons
 
 pytestmark = pytest.mark.slow
@@ -36,14 +36,8 @@ async def test_nats_node_killed_mid_mission(tmp_path: Path, nats_cluster: NatsCl
             mission_id = await a.missions.submit(task)
             await wait_for(lambda: 1 in a.store.released_steps(mission_id), 30, "first releases")
             nats_cluster.servers[0].kill()
-            await wait_for(
-                lambda: (m := a.store.mission(mission_id)) is not None and m.state != "running",
-                60,
-                "mission end after the NATS node died",
-                poll=0.1,
-            )
-            stored = a.store.mission(mission_id)
-            assert stored is not None and stored.state == "completed", stored
+            stored = await mission_ended(a, mission_id, 60, "mission end after the NATS node died")
+            assert stored.state == "completed", stored
             steps = set(task.plans[0].sync_steps())
             await wait_for(lambda: b.store.released_steps(mission_id) == steps, 30, "b's mirror to follow")
             for daemon in (a, b):

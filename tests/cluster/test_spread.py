@@ -10,7 +10,7 @@ import pytest
 from gcs.cluster.natsrun import NatsServer
 from gcs.daemon import Daemon
 from gcs.live import LiveHub
-from tests.backbone.helpers import survey_mission
+from tests.backbone.helpers import mission_ended, survey_mission
 from tests.cluster.simrig import spread_rig
 from tests.cooperation.rig import wait_for
 
@@ -49,14 +49,8 @@ async def test_mission_spread_over_two_daemons(tmp_path: Path, nats_server: Nats
         task = survey_mission(names, sync_legs=2)
         mission_id = await a.missions.submit(task)
         await wait_for(lambda: b.missions.led_elsewhere(mission_id), 20, "b to see a's mission")
-        await wait_for(
-            lambda: (m := a.store.mission(mission_id)) is not None and m.state != "running",
-            90,
-            "mission end",
-            poll=0.1,
-        )
-        stored = a.store.mission(mission_id)
-        assert stored is not None and stored.state == "completed", stored
+        stored = await mission_ended(a, mission_id, 90, "mission end")
+        assert stored.state == "completed", stored
         sync_steps = task.plans[0].sync_steps()
         assert _released((a, b), mission_id) == sync_steps, "every barrier released exactly once"
         assert a.store.released_steps(mission_id) == set(sync_steps)

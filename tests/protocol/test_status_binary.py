@@ -103,13 +103,17 @@ FIELDS = ("time", "vehicle_time", "lat", "lon", "alt_rel", "alt_amsl", "vn", "ve
 FIELDS += ("pct", "volts", "amps")
 
 
+RAW_BODY = {
+    "floats": st.lists(any_float, min_size=13, max_size=13),
+    "fix": st.integers(0, 255),
+    "ints": st.tuples(st.integers(-3, 3), st.integers(-3, 3), st.integers(-3, 3)),
+    "position": st.booleans(),
+}
+"""A fixed part's values, in and out of range (FIELDS order), for the acceptance tests."""
+
+
 @settings(max_examples=500, deadline=None)
-@given(
-    floats=st.lists(any_float, min_size=13, max_size=13),
-    fix=st.integers(0, 255),
-    ints=st.tuples(st.integers(-3, 3), st.integers(-3, 3), st.integers(-3, 3)),
-    position=st.booleans(),
-)
+@given(**RAW_BODY)
 def test_binary_accepts_exactly_what_pydantic_accepts(
     floats: list[float], fix: int, ints: tuple[int, int, int], position: bool
 ) -> None:

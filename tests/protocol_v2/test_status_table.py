@@ -18,7 +18,7 @@ from protocol.session import ClientHandshake
 from protocol.stream import FramedStream, open_client
 from protocol.wire import STATUS_COMPACT, decode_body
 from tests.backbone.helpers import new_key, running_daemon, wait_for
-from tests.protocol.test_status_binary import FIELDS, any_float, reports
+from tests.protocol.test_status_binary import FIELDS, RAW_BODY, reports
 
 
 def _stored(table: StatusTable, row: int, report: StatusReport) -> None:
@@ -52,10 +52,7 @@ def test_table_rows_give_the_report_that_json_and_binary_bodies_give(batch: list
 
 @settings(max_examples=400, deadline=None)
 @given(
-    floats=st.lists(any_float, min_size=13, max_size=13),
-    fix=st.integers(0, 255),
-    ints=st.tuples(st.integers(-3, 3), st.integers(-3, 3), st.integers(-3, 3)),
-    position=st.booleans(),
+    **RAW_BODY,
     layout=st.sampled_from([1, 1, 1, 2]),
     mode=st.binary(max_size=40),
 )
