@@ -26,6 +26,7 @@ SUPPORTED_VERSIONS: tuple[int, ...] = (1, 2)
 
 Identity = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$")]
 HexNonce = Annotated[str, Field(min_length=32, max_length=128, pattern=r"^[0-9a-f]+$")]
+HexAnchor = Annotated[str, Field(min_length=32, max_length=32, pattern=r"^[0-9a-f]+$")]
 HexMac = Annotated[str, Field(min_length=64, max_length=64, pattern=r"^[0-9a-f]+$")]
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 MissionId = Annotated[str, Field(min_length=1, max_length=64)]
@@ -102,6 +103,10 @@ class RequestCid(_Body):
     ``compact_status`` (optional, v2 only, in the request with ``proof``) offers the compact binary
     status body (protocol/status_binary.py, frame type byte 0x82); the agent uses it only once
     the accepting type 1 says so.
+
+    ``release_beacon`` (optional, v2 only) says the agent listens for barrier releases as UDP
+    datagrams (protocol/beacon.py); the daemon then sends it each mission's chain anchor with the
+    mission's actions (``PerformActions.release_anchor``).
     """
 
     identity: Identity
@@ -119,6 +124,9 @@ class RequestCid(_Body):
     resume: Resume | None = None
     probe: bool = False
     compact_status: bool | None = Field(default=None, description="v2: offers the compact status body (0x82)")
+    release_beacon: bool | None = Field(
+        default=None, description="v2: the agent listens for release beacons (protocol/beacon.py)"
+    )
 
 
 # --- type 1: response with connection ID -------------------------------------------------------
@@ -317,6 +325,8 @@ class PerformActions(_Body):
     daemon authority level sent it: an agent in its own failsafe obeys only ``operator``.
     ``await_release`` makes the agent wait at that (already finished) sync step until the
     daemon releases it before it runs ``actions``: a rejoining agent never runs ahead.
+    ``release_anchor`` (v2, only to an agent that offered ``release_beacon``): hex anchor of the
+    mission's release chain, with which the agent checks release beacons (protocol/beacon.py).
     """
 
     mission_id: MissionId
@@ -325,6 +335,9 @@ class PerformActions(_Body):
     reason: str | None = Field(default=None, max_length=200)
     source: CommandSource | None = None
     await_release: int | None = Field(default=None, ge=0)
+    release_anchor: HexAnchor | None = Field(
+        default=None, description="v2: the mission's release-beacon chain anchor (protocol/beacon.py)"
+    )
 
     @model_validator(mode="after")
     def _no_actions_with_pause(self) -> PerformActions:
@@ -377,7 +390,8 @@ Body = RequestCid | ResponseCid | StatusReport | SetParameters | PerformActions 
 
 
 V2_FIELDS: dict[type[_Body], frozenset[str]] = {
-    RequestCid: frozenset({"versions", "compact_status"}),
+    RequestCid: frozenset({"versions", "compact_status", "release_beacon"}),
+    PerformActions: frozenset({"release_anchor"}),
     ResponseCid: frozenset({"protocol_version", "code", "retry_after_s", "lost", "compact_status"}),
     Close: frozenset({"code"}),
 }

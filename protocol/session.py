@@ -24,7 +24,10 @@ Server::
 Capabilities (version 2 only): ``compact_status`` (the binary status body, type byte 0x82) is
 offered by ``ClientHandshake(compact_status=True)`` in the packet with the proof, granted by a
 ``ServerHandshake(compact_status=True)`` in ``accepted``, and in force when ``Accepted.compact_status``
-(client) / ``ServerHandshake.compact_status`` (server) is true.
+(client) / ``ServerHandshake.compact_status`` (server) is true. ``release_beacon`` (the agent
+listens for barrier releases as UDP datagrams, protocol/beacon.py) is offered by
+``ClientHandshake(release_beacon=True)`` the same way and needs no grant: the daemon reads it
+from ``Authenticated.request`` and sends the chain anchor with each mission's actions.
 """
 
 from __future__ import annotations
@@ -181,9 +184,11 @@ class ClientHandshake:
         probe: bool = False,
         nonce: str | None = None,
         compact_status: bool = False,
+        release_beacon: bool = False,
     ) -> None:
         self.identity = identity
         self.compact_status = compact_status
+        self.release_beacon = release_beacon
         self.versions = sorted(set(versions))
         self.capabilities = capabilities or Capabilities()
         self.probe = probe
@@ -230,6 +235,7 @@ class ClientHandshake:
             home=home,
             resume=resume,
             compact_status=True if self.compact_status and (body.protocol_version or 1) >= 2 else None,
+            release_beacon=True if self.release_beacon and (body.protocol_version or 1) >= 2 else None,
             proof=auth.agent_proof(self._key, self.identity, body.server_nonce, self.client_nonce),
         )
 
