@@ -38,6 +38,7 @@ import os
 import platform
 import random
 import secrets
+import socket
 import struct
 import subprocess
 import sys
@@ -154,6 +155,8 @@ async def _server(
     released: dict[int, float] = {}  # step -> when the daemon's release burst was written
     burst_started: dict[int, float] = {}  # step -> when the release burst began
     completed: dict[int, float] = {}  # step -> when the mission runner found the barrier complete
+    beacon_sent: dict[int, tuple[float, float, bool]] = {}  # step -> (sendto began, returned, sent)
+    beacon_sender: Any = None  # the daemon's gcs.beacon.BeaconSender (release_beacon configured)
     # Arrays of doubles, not lists of floats: this process's RSS is the daemon's memory figure, and a
     # list costs 32 B per report (2-3 KiB per agent over a trial), an array 8.
     latencies = array("d")  # agent timestamp -> written into the daemon's status table
@@ -169,6 +172,8 @@ async def _server(
         if "max_frames_per_s" in DaemonConfig.model_fields:  # the flood trial must not be rate limited
             overrides.update(max_frames_per_s=1e9, frame_burst=1_000_000_000)
         overrides.update(extra)  # --daemon-config, e.g. to switch a service off and see what it costs
+        if "release_beacon" not in DaemonConfig.model_fields:  # a tree before the beacon: TCP only
+            overrides.pop("release_beacon", None)
         settings: dict[str, Any] = dict(
             listen_port=0,
             http_host=None,  # {"http_host": "127.0.0.1", "http_port": 0} turns the API (and live hub) on
@@ -235,6 +240,17 @@ async def _server(
         daemon.agents.on_status_tick.append(on_tick)
         await daemon.start()
         port = daemon.listen_port
+        beacon_sender = getattr(daemon.missions, "beacon", None)
+        if beacon_sender is not None:
+            send_beacon = beacon_sender.send
+
+            def send_beacon_and_stamp(mission_id: str, step: int, value: bytes) -> bool:
+                started = time.time()
+                sent = bool(send_beacon(mission_id, step, value))
+                beacon_sent[step] = (started, time.time(), sent)  # returned: the loopback fan-out done
+                return sent
+
+            beacon_sender.send = send_beacon_and_stamp
     else:
 
         async def sink(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -384,10 +400,19 @@ async def _server(
                 if begin is not None and end is not None
                 else 0.0
             )
-            conn.send((begin, completed.get(step), burst_started.get(step), end, in_release))
+            conn.send(
+                (begin, completed.get(step), burst_started.get(step), end, in_release, beacon_sent.get(step))
+            )
+        elif command == "beacon":  # (on): the release beacon for the next releases, or TCP only
+            if daemon is not None and beacon_sender is not None:
+                # None is the runner's own "not configured" path; the mission keeps its chain.
+                daemon.missions.beacon = beacon_sender if args[0] else None
+            conn.send(beacon_sender is not None)
         elif command == "stop":
             break
     stop_note = "clean"
+    if daemon is not None and beacon_sender is not None:
+        daemon.missions.beacon = beacon_sender  # switched off for a TCP-only step: the daemon closes it
     if daemon is not None:
         try:  # bounded: a stuck service must not hang the benchmark (see docs/performance.md)
             await asyncio.wait_for(daemon.stop(), 10.0)
@@ -519,9 +544,16 @@ _TIME = struct.Struct("<d")
 
 
 class Client:
-    """One synthetic agent: a socket, a sequence counter and the releases it received."""
+    """One synthetic agent: a socket, a sequence counter and the releases it received.
 
-    def __init__(self, identity: str, index: int, compact: bool) -> None:
+    With ``beacon_port`` it also listens for release beacons (protocol/beacon.py) on its own UDP
+    socket bound to the loopback broadcast address, as an agent does on its LAN, and offers
+    ``release_beacon`` in the handshake; it accepts a beacon only when the mission's
+    :class:`~protocol.beacon.ReleaseVerifier` (from the anchor in the mission's type-4 frames)
+    proves it.
+    """
+
+    def __init__(self, identity: str, index: int, compact: bool, beacon_port: int | None = None) -> None:
         self.identity = identity
         self.template = StatusTemplate(index, compact)
         self.reader: asyncio.StreamReader | None = None
@@ -530,9 +562,13 @@ class Client:
         self.seq = 0
         self.sent = 0
         self.closed = False
-        self.releases: dict[int, float] = {}  # step -> kernel receive time of its release
-        self.read_at: dict[int, float] = {}  # step -> when this process read it
+        self.releases: dict[int, float] = {}  # step -> kernel receive time of its TCP release
+        self.beacons: dict[int, float] = {}  # step -> kernel receive time of its verified beacon
+        self.read_at: dict[int, float] = {}  # step -> when this process first read either
         self.release_event = asyncio.Event()
+        self.verifiers: dict[str, Any] = {}  # mission id -> protocol.beacon.ReleaseVerifier
+        self.rejected = 0  # datagrams on the beacon port that were not a verified, new release
+        self.udp = _beacon_socket(beacon_port) if beacon_port is not None else None
 
     def write(self, frame: bytes) -> None:
         assert self.writer is not None
@@ -541,9 +577,15 @@ class Client:
 
 
 def worker_main(
-    conn: Connection, port: int, key_hex: str, identities: list[str], authenticate: bool, compact: bool
+    conn: Connection,
+    port: int,
+    key_hex: str,
+    identities: list[str],
+    authenticate: bool,
+    compact: bool,
+    beacon_port: int | None = None,
 ) -> None:
-    asyncio.run(_worker(conn, port, key_hex, identities, authenticate, compact))
+    asyncio.run(_worker(conn, port, key_hex, identities, authenticate, compact, beacon_port))
 
 
 async def _handshake(client: Client, key: bytes) -> None:
@@ -552,14 +594,83 @@ async def _handshake(client: Client, key: bytes) -> None:
     from protocol.stream import client_handshake
 
     stream = client.stream
-    accepted = await client_handshake(
-        stream, ClientHandshake(client.identity, key, compact_status=client.template.compact), timeout=60.0
+    hello = ClientHandshake(
+        client.identity, key, compact_status=client.template.compact, release_beacon=client.udp is not None
     )
+    accepted = await client_handshake(stream, hello, timeout=60.0)
     assert accepted.compact_status == client.template.compact, accepted
     client.seq = stream.seq
 
 
 SO_TIMESTAMPNS = 35  # Linux SO_TIMESTAMPNS(_OLD): the kernel stamps each received segment (CLOCK_REALTIME)
+CMSG_SPACE_16 = socket.CMSG_SPACE(16)  # room for one timespec
+BEACON_HOST = "127.255.255.255"  # loopback broadcast: one datagram reaches every socket bound to it
+
+
+def _kernel_stamp(ancillary: list[tuple[int, int, bytes]], default: float) -> float:
+    """The ``SO_TIMESTAMPNS`` receive time in a ``recvmsg`` answer (CLOCK_REALTIME), else ``default``."""
+    for level, kind, value in ancillary:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= 16:
+            seconds, nanos = struct.unpack_from("qq", value)
+            return float(seconds + nanos * 1e-9)
+    return default
+
+
+def free_udp_port() -> int:
+    """A UDP port number free on loopback now, for one run's beacons."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def _beacon_socket(port: int) -> socket.socket:
+    """A non-blocking UDP socket on the loopback broadcast address: every agent of the host hears a beacon.
+
+    ``SO_REUSEADDR`` lets every agent bind the same address and port (each gets its own copy of
+    a broadcast); ``SO_TIMESTAMPNS`` stamps arrivals as the TCP path does.
+    """
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        sock.bind((BEACON_HOST, port))
+    except OSError as exc:
+        sock.close()
+        raise RuntimeError(f"cannot listen for beacons on {BEACON_HOST}:{port}: {exc}") from None
+    sock.setblocking(False)
+    return sock
+
+
+def read_beacons(client: Client) -> None:
+    """Read what waits on the client's beacon socket; a release counts only when its chain proves it.
+
+    Non-blocking and bounded (64 datagrams a call). The stamp kept is the kernel's receive time;
+    see :func:`barrier_trial` for why the orchestrator also takes the daemon's ``sendto`` return.
+    """
+    from protocol.beacon import MAX_BEACON_BYTES, BeaconError, decode_beacon
+
+    sock = client.udp
+    if sock is None:
+        return
+    space = CMSG_SPACE_16
+    for _ in range(64):
+        try:
+            data, ancillary, _flags, _addr = sock.recvmsg(MAX_BEACON_BYTES + 1, space)
+        except OSError:  # nothing more waiting (BlockingIOError), or the socket is closed
+            return
+        read = time.time()
+        try:
+            beacon = decode_beacon(data)
+        except BeaconError:
+            client.rejected += 1
+            continue
+        verifier = client.verifiers.get(beacon.mission_id)
+        if verifier is None or not verifier.accept(beacon.step, beacon.value):
+            client.rejected += 1  # a forgery, a replay, or a mission this agent has no anchor of
+            continue
+        client.beacons.setdefault(beacon.step, _kernel_stamp(ancillary, read))
+        client.read_at.setdefault(beacon.step, read)
+        client.release_event.set()
 
 
 async def _client_reader(client: Client) -> None:
@@ -572,9 +683,8 @@ async def _client_reader(client: Client) -> None:
     agent per machine); the first is when the release reached the agent. Reading goes through
     ``recvmsg`` on a duplicate of the socket (the transport's own reading is paused).
     """
-    import socket
-
-    from protocol.packets import Close, SyncSignal
+    from protocol.beacon import ReleaseVerifier
+    from protocol.packets import Close, PerformActions, SyncSignal
     from protocol.wire import ProtocolError
 
     stream = client.stream
@@ -585,11 +695,18 @@ async def _client_reader(client: Client) -> None:
 
     def note(frames: Any, kernel: float, read: float) -> None:
         for frame in frames:
-            if isinstance(frame.body, SyncSignal) and frame.body.kind == "release":
-                client.releases.setdefault(frame.body.step, kernel)
-                client.read_at.setdefault(frame.body.step, read)
+            body = frame.body
+            if isinstance(body, SyncSignal) and body.kind == "release":
+                client.releases.setdefault(body.step, kernel)
+                client.read_at.setdefault(body.step, read)
                 client.release_event.set()
-            elif isinstance(frame.body, Close):
+            elif (
+                isinstance(body, PerformActions)
+                and body.release_anchor
+                and body.mission_id not in client.verifiers
+            ):
+                client.verifiers[body.mission_id] = ReleaseVerifier(bytes.fromhex(body.release_anchor))
+            elif isinstance(body, Close):
                 client.closed = True
 
     now = time.time()
@@ -604,7 +721,7 @@ async def _client_reader(client: Client) -> None:
     raw = socket.socket(fileno=os.dup(transport.get_extra_info("socket").fileno()))
     raw.setblocking(False)
     raw.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-    space = socket.CMSG_SPACE(16)
+    space = CMSG_SPACE_16
 
     def readable() -> None:
         try:
@@ -618,13 +735,8 @@ async def _client_reader(client: Client) -> None:
             if not ended.done():
                 ended.set_result(None)
             return
-        kernel = read
-        for level, kind, value in ancillary:
-            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= 16:
-                seconds, nanos = struct.unpack_from("qq", value)
-                kernel = seconds + nanos * 1e-9
         try:
-            note(list(stream.decoder.feed(data)), kernel, read)
+            note(list(stream.decoder.feed(data)), _kernel_stamp(ancillary, read), read)
         except ProtocolError:
             if not ended.done():
                 ended.set_result(None)
@@ -639,15 +751,24 @@ async def _client_reader(client: Client) -> None:
 
 
 async def _worker(
-    conn: Connection, port: int, key_hex: str, identities: list[str], authenticate: bool, compact: bool
+    conn: Connection,
+    port: int,
+    key_hex: str,
+    identities: list[str],
+    authenticate: bool,
+    compact: bool,
+    beacon_port: int | None = None,
 ) -> None:
     from protocol.packets import SyncSignal
     from protocol.stream import FramedStream
     from protocol.wire import encode
 
     key = bytes.fromhex(key_hex)
-    clients = [Client(name, int(name.rsplit("-", 1)[1]), compact) for name in identities]
+    clients = [Client(name, int(name.rsplit("-", 1)[1]), compact, beacon_port) for name in identities]
     loop = asyncio.get_running_loop()
+    for c in clients:  # beacons are read as they come, in this loop, like the TCP releases
+        if c.udp is not None:
+            loop.add_reader(c.udp.fileno(), read_beacons, c)
     status_task: asyncio.Future[Any] | None = None
     cpu_mark = time.process_time()
     readers: list[asyncio.Task[None]] = []
@@ -733,12 +854,16 @@ async def _worker(
             for c in clients:
                 c.write(encode(SyncSignal(mission_id=mission_id, step=step, kind="finished"), c.seq + 1))
             deadline = time.monotonic() + timeout
-            for c in clients:
+            for c in clients:  # the TCP release always comes (a beacon only ever comes first)
                 while step not in c.releases and time.monotonic() < deadline and not c.closed:
                     c.release_event.clear()
                     with contextlib.suppress(TimeoutError):
                         await asyncio.wait_for(c.release_event.wait(), max(0.01, deadline - time.monotonic()))
-            conn.send([(c.releases.get(step), c.read_at.get(step)) for c in clients])
+            for c in clients:  # a beacon in a socket not yet read still counts at its kernel stamp
+                read_beacons(c)
+            conn.send([(c.releases.get(step), c.read_at.get(step), c.beacons.get(step)) for c in clients])
+        elif command == "rejected":  # datagrams on the beacon port not taken as a release
+            conn.send(sum(c.rejected for c in clients))
         elif command == "close":
             if status_task is not None:
                 for c in clients:
@@ -748,6 +873,9 @@ async def _worker(
             for c in clients:
                 if c.writer is not None:
                     c.writer.transport.abort()  # RST: a flood backlog in the server's buffers is discarded
+                if c.udp is not None:
+                    loop.remove_reader(c.udp.fileno())
+                    c.udp.close()
             for task in readers:
                 task.cancel()
             conn.send("closed")
@@ -758,16 +886,30 @@ async def _worker(
 
 
 class Harness:
-    """One server process and ``workers`` client processes hosting ``agents`` clients between them."""
+    """One server process and ``workers`` client processes hosting ``agents`` clients between them.
 
-    def __init__(self, kind: str, agents: int, workers: int = 2, authenticate: bool = True) -> None:
+    ``beacon_port``: the daemon sends release beacons to the loopback broadcast address on this
+    UDP port, and every client listens there and offers ``release_beacon``.
+    """
+
+    def __init__(
+        self,
+        kind: str,
+        agents: int,
+        workers: int = 2,
+        authenticate: bool = True,
+        beacon_port: int | None = None,
+    ) -> None:
         self.ctx = mp.get_context("spawn")
         self.key_hex = secrets.token_hex(32)
         self.kind, self.agents = kind, agents
         self.server_conn, child = self.ctx.Pipe()
+        extra = dict(DAEMON_OVERRIDES)
+        if beacon_port is not None:
+            extra["release_beacon"] = f"{BEACON_HOST}:{beacon_port}"
         self.server = self.ctx.Process(
             target=server_main,
-            args=(kind, child, self.key_hex, DAEMON_OVERRIDES, PROFILE["path"]),
+            args=(kind, child, self.key_hex, extra, PROFILE["path"]),
             daemon=True,
         )
         self.server.start()
@@ -787,7 +929,7 @@ class Harness:
             parent, child = self.ctx.Pipe()
             proc = self.ctx.Process(
                 target=worker_main,
-                args=(child, self.port, self.key_hex, share, authenticate, CLIENT["compact"]),
+                args=(child, self.port, self.key_hex, share, authenticate, CLIENT["compact"], beacon_port),
                 daemon=True,
             )
             proc.start()
@@ -916,25 +1058,125 @@ def _print_fleet(row: dict[str, Any]) -> None:
     )
 
 
-def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
-    """Release latency of ``steps`` barriers with ``agents`` members streaming status at 10 Hz."""
+class _BarrierStats:
+    """One release mode's samples over a barrier trial (all in seconds)."""
+
+    def __init__(self, mode: str) -> None:
+        self.mode = mode
+        self.per_step: list[float] = []  # last arrival -> the last member released (see barrier_trial)
+        self.per_agent: list[float] = []
+        self.read_step: list[float] = []  # last arrival -> the last member's process read a release
+        self.to_barrier: list[float] = []  # last arrival -> the mission runner found the barrier complete
+        self.in_daemon: list[float] = []  # last arrival -> the burst written to every member's socket
+        self.writing: list[float] = []  # the burst itself (every member's socket written)
+        self.gc_in_release: list[
+            float
+        ] = []  # garbage collection between the last arrival and the burst's end
+        self.sendto: list[float] = []  # the daemon's beacon sendto (on loopback: the whole fan-out)
+        self.to_beacon: list[float] = []  # last arrival -> the beacon's sendto returned
+        self.stamp_early: list[float] = []  # sendto returned - the latest kernel stamp of the beacon
+        self.members = 0
+        self.heard = 0  # members that got a verified beacon
+        self.beacon_first = 0  # members released by the beacon before their TCP release
+
+    def add(self, stamps: list[tuple[Any, Any, Any]], daemon: tuple[Any, ...]) -> str:
+        """One barrier's stamps (per member: TCP kernel, first read, beacon kernel); '' or why it failed."""
+        last_arrival, complete, started, written, gc_s, beacon = daemon
+        self.gc_in_release.append(gc_s)
+        if last_arrival is None or any(tcp is None for tcp, _, _ in stamps):
+            return f"{sum(tcp is None for tcp, _, _ in stamps)} not released"
+        released = []
+        for tcp, _, heard in stamps:
+            at = tcp
+            if heard is not None and beacon is not None:
+                # The kernel stamps a broadcast once, before it is cloned to every socket; on
+                # loopback the clones are made inside the daemon's sendto, so a member's copy is
+                # there no later than sendto's return: the later of the two is its arrival.
+                arrival = max(heard, beacon[1])
+                self.heard += 1
+                if arrival < tcp:
+                    self.beacon_first += 1
+                    at = arrival
+            released.append(at)
+        self.members += len(stamps)
+        self.per_step.append(max(released) - last_arrival)
+        self.per_agent += [t - last_arrival for t in released]
+        self.read_step.append(max(read for _, read, _ in stamps) - last_arrival)
+        if complete is not None:
+            self.to_barrier.append(complete - last_arrival)
+        if written is not None:
+            self.in_daemon.append(written - last_arrival)
+            self.writing.append(written - started)
+        if beacon is not None:
+            self.sendto.append(beacon[1] - beacon[0])
+            self.to_beacon.append(beacon[1] - last_arrival)
+            heard_at = [h for _, _, h in stamps if h is not None]
+            if heard_at:
+                self.stamp_early.append(beacon[1] - max(heard_at))
+        return ""
+
+    def row(self, agents: int, failed: str) -> dict[str, Any]:
+        ms = {
+            name: (percentile(values, 0.5) * 1000, percentile(values, 0.99) * 1000)
+            for name, values in (
+                ("last_release", self.per_step),
+                ("per_agent_release", self.per_agent),
+                ("last_read", self.read_step),
+                ("to_barrier", self.to_barrier),
+                ("daemon_release", self.in_daemon),
+                ("burst_write", self.writing),
+                ("beacon_sendto", self.sendto),
+                ("to_beacon", self.to_beacon),
+                ("beacon_stamp_before_return", self.stamp_early),
+            )
+        }
+        return {
+            "mode": self.mode,
+            "agents": agents,
+            "steps": len(self.gc_in_release),
+            **{f"{name}_p{p}_ms": v[i] for name, v in ms.items() for i, p in ((0, 50), (1, 99))},
+            "last_release_max_ms": max(self.per_step, default=float("nan")) * 1000,
+            "gc_in_release_ms": {
+                "releases with a collection": sum(1 for g in self.gc_in_release if g > 0),
+                "max": max(self.gc_in_release, default=0.0) * 1000,
+            },
+            "released_steps": len(self.per_step),
+            "beacon_heard_share": self.heard / self.members if self.members else 0.0,
+            "released_by_beacon_share": self.beacon_first / self.members if self.members else 0.0,
+            "failed": failed,
+        }
+
+
+def barrier_trial(agents: int, steps: int, beacon: bool = True) -> list[dict[str, Any]]:
+    """Release latency of barriers with ``agents`` members streaming status at 10 Hz.
+
+    ``beacon``: the daemon sends release beacons (``release_beacon`` to the loopback broadcast
+    address on a port free for this run) and every member listens, and the barriers alternate
+    between the two modes in the same fleet: even steps are released with the beacon (then the
+    TCP burst), odd steps by the TCP burst only (the runner's sender set to None for them, the
+    daemon's own path when no beacon is configured). ``steps`` barriers per mode; the two rows
+    are paired barrier by barrier, so machine load hits both alike. Without ``beacon``: TCP only,
+    no UDP sockets, as before the beacon (one row).
+
+    A member's release is the earlier of its TCP release (the kernel's receive stamp) and its
+    verified beacon. For a beacon the kernel's stamp is taken once, before the datagram is cloned
+    to every listening socket, so it under-reports the fan-out; on loopback the fan-out is done
+    inside the daemon's ``sendto``, so a beacon's arrival is the later of its stamp and the moment
+    that ``sendto`` returned (the bench wraps the daemon's ``BeaconSender.send``).
+    """
     from protocol.actions import Goto, Land, Takeoff
     from protocol.taskfile import AgentPlan, TaskFile
 
-    harness = Harness("daemon", agents)
-    per_step: list[float] = []  # last arrival -> the last member's kernel received its release
-    per_agent: list[float] = []
-    read_step: list[float] = []  # last arrival -> the last member's process read it (client queueing too)
-    to_barrier: list[float] = []  # last arrival -> the mission runner found the barrier complete
-    in_daemon: list[float] = []  # last arrival -> the burst written to every member's socket
-    writing: list[float] = []  # the burst itself (every member's socket written)
-    gc_in_release: list[float] = []  # garbage collection between the last arrival and the burst's end
+    modes = [_BarrierStats("beacon"), _BarrierStats("tcp")] if beacon else [_BarrierStats("tcp")]
+    harness = Harness("daemon", agents, beacon_port=free_udp_port() if beacon else None)
     failed = ""
+    rejected = 0
     try:
         assert harness.connect() == agents
+        total = steps * len(modes)
         actions: list[Any] = [Takeoff(step=0, alt=5.0, sync=True)]
-        actions += [Goto(step=k, lat=47.3978, lon=8.5456, alt=5.0, sync=True) for k in range(1, steps)]
-        actions.append(Land(step=steps))
+        actions += [Goto(step=k, lat=47.3978, lon=8.5456, alt=5.0, sync=True) for k in range(1, total)]
+        actions.append(Land(step=total))
         task = TaskFile(
             name="bench-barrier",
             sync_timeout_s=600,
@@ -944,56 +1186,42 @@ def barrier_trial(agents: int, steps: int) -> dict[str, Any]:
         time.sleep(0.5)
         mission_id = harness.server_call("submit", task.model_dump_json())
         time.sleep(0.5 + agents / 2000)  # the type-4 batches reach everyone
-        for step in range(steps):
+        for step in range(total):
+            stats = modes[step % len(modes)]
+            if beacon and not harness.server_call("beacon", stats.mode == "beacon"):
+                failed = "the daemon has no beacon sender (release_beacon not configured?)"
+                break
             stamps = [t for row in harness.workers_call("finish", mission_id, step, 30.0) for t in row]
-            received = [kernel for kernel, _ in stamps]
-            last_arrival, complete, started, written, gc_s = harness.server_call("arrival", step)
-            gc_in_release.append(gc_s)
-            if last_arrival is None or any(t is None for t in received):
+            why = stats.add(stamps, harness.server_call("arrival", step))
+            if why:
                 # Overloaded (the cooperation service then treats late reports as stale and
                 # takes the drones over): count it and stop, the numbers so far stand.
-                failed = f"step {step}: {sum(t is None for t in received)} not released"
-                failed += f"; daemon events {harness.server_call('events')}"
+                failed = f"step {step} ({stats.mode}): {why}; daemon events {harness.server_call('events')}"
                 break
-            per_step.append(max(received) - last_arrival)
-            read_step.append(max(read for _, read in stamps) - last_arrival)
-            if complete is not None:
-                to_barrier.append(complete - last_arrival)
-            if written is not None:
-                in_daemon.append(written - last_arrival)
-                writing.append(written - started)
-            per_agent += [t - last_arrival for t in received]
             time.sleep(0.05)
+        rejected = sum(harness.workers_call("rejected"))
     finally:
         harness.close()
-    ms = {
-        name: (percentile(values, 0.5) * 1000, percentile(values, 0.99) * 1000)
-        for name, values in (
-            ("last_release", per_step),
-            ("per_agent_release", per_agent),
-            ("last_read", read_step),
-            ("to_barrier", to_barrier),
-            ("daemon_release", in_daemon),
-            ("burst_write", writing),
-        )
-    }
-    return {
-        "agents": agents,
-        "steps": steps,
-        **{f"{name}_p{p}_ms": v[i] for name, v in ms.items() for i, p in ((0, 50), (1, 99))},
-        "last_release_max_ms": max(per_step, default=float("nan")) * 1000,
-        "gc_in_release_ms": {
-            "releases with a collection": sum(1 for g in gc_in_release if g > 0),
-            "max": max(gc_in_release, default=0.0) * 1000,
-        },
-        "released_steps": len(per_step),
-        "failed": failed,
-    }
+    rows = [stats.row(agents, failed) for stats in modes]
+    for row in rows:
+        row["beacon_datagrams_rejected"] = rejected  # by the members' verifiers: 0 unless forged or replayed
+    return rows
 
 
 def _print_barrier(row: dict[str, Any]) -> None:
+    beacon = ""
+    if row["mode"] == "beacon":
+        beacon = (
+            f"; released by the beacon first: {row['released_by_beacon_share']:.1%} of members "
+            f"(heard it: {row['beacon_heard_share']:.1%}, "
+            f"datagrams rejected: {row['beacon_datagrams_rejected']}); "
+            f"the daemon's beacon sendto p50 {row['beacon_sendto_p50_ms']:.3f} ms "
+            f"p99 {row['beacon_sendto_p99_ms']:.3f} ms, arrival -> sendto returned "
+            f"p50 {row['to_beacon_p50_ms']:.3f} ms p99 {row['to_beacon_p99_ms']:.3f} ms "
+            f"(the kernel's stamp p50 {row['beacon_stamp_before_return_p50_ms']:.3f} ms before that return)"
+        )
     print(
-        f"  {row['agents']:>6} agents  last arrival -> last release "
+        f"  {row['mode']:>6} {row['agents']:>6} agents  last arrival -> last release "
         f"p50 {row['last_release_p50_ms']:7.2f} ms  "
         f"p99 {row['last_release_p99_ms']:7.2f} ms  (max {row['last_release_max_ms']:.2f} ms; "
         f"per agent p50 {row['per_agent_release_p50_ms']:.2f} ms; in the daemon, arrival -> barrier "
@@ -1002,10 +1230,27 @@ def _print_barrier(row: dict[str, Any]) -> None:
         f"of which the burst p50 {row['burst_write_p50_ms']:.2f} ms p99 {row['burst_write_p99_ms']:.2f} ms; "
         f"read by the clients' processes p50 {row['last_read_p50_ms']:.2f} ms "
         f"p99 {row['last_read_p99_ms']:.2f} ms; {row['released_steps']} barriers; "
-        f"gc in releases {row['gc_in_release_ms']})"
+        f"gc in releases {row['gc_in_release_ms']}{beacon})"
         + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
         flush=True,
     )
+
+
+def _print_barrier_rows(rows: list[dict[str, Any]]) -> None:
+    """Each mode's line, then the paired ratio when both modes ran."""
+    for row in rows:
+        _print_barrier(row)
+    by_mode = {row["mode"]: row for row in rows}
+    if "beacon" in by_mode and "tcp" in by_mode:
+        b, t = by_mode["beacon"], by_mode["tcp"]
+        print(
+            f"  {b['agents']:>13} agents  beacon / TCP only (paired barriers): "
+            f"p50 {b['last_release_p50_ms']:.2f} / {t['last_release_p50_ms']:.2f} ms "
+            f"= {b['last_release_p50_ms'] / t['last_release_p50_ms']:.2f}, "
+            f"p99 {b['last_release_p99_ms']:.2f} / {t['last_release_p99_ms']:.2f} ms "
+            f"= {b['last_release_p99_ms'] / t['last_release_p99_ms']:.2f}",
+            flush=True,
+        )
 
 
 def throughput_trial(kind: str, clients: int, seconds: float) -> dict[str, Any]:
@@ -1134,7 +1379,12 @@ def main() -> int:
     parser.add_argument("--only-fleet", type=int, help="just one fleet trial of this size (diagnosis)")
     parser.add_argument("--only-barrier", type=int, help="just the barrier trial with this many agents")
     parser.add_argument(
-        "--barrier-steps", type=int, default=40, help="barriers per barrier trial (p99 over them)"
+        "--barrier-steps", type=int, default=40, help="barriers per barrier trial and mode (p99 over them)"
+    )
+    parser.add_argument(
+        "--no-beacon",
+        action="store_true",
+        help="barrier trials over TCP only (no release beacon, no paired beacon barriers)",
     )
     parser.add_argument("--json", action="store_true", help="clients send JSON status bodies (v1 agents)")
     parser.add_argument("--profile", help="with --only-fleet: write the daemon's cProfile stats here")
@@ -1150,9 +1400,9 @@ def main() -> int:
         print(f"  gc pauses: {row['gc_pauses']}")
         return 0
     if args.only_barrier:
-        row = barrier_trial(args.only_barrier, args.barrier_steps)
-        _print_barrier(row)
-        print(json.dumps(row, indent=1))
+        rows = barrier_trial(args.only_barrier, args.barrier_steps, beacon=not args.no_beacon)
+        _print_barrier_rows(rows)
+        print(json.dumps(rows, indent=1))
         return 0
     began = time.monotonic()
     seconds = 2.0 if args.quick else args.seconds
@@ -1168,9 +1418,9 @@ def main() -> int:
     print("\nsync barrier release latency (agents streaming status at 10 Hz):", flush=True)
     barriers = []
     for n in (10, 100) if args.quick else (10, 100, 1000):
-        row = barrier_trial(n, 10 if args.quick else args.barrier_steps)
-        barriers.append(row)
-        _print_barrier(row)
+        rows = barrier_trial(n, 10 if args.quick else args.barrier_steps, beacon=not args.no_beacon)
+        barriers += rows
+        _print_barrier_rows(rows)
 
     print("\nthroughput, the same status frames flooded by 20 clients:", flush=True)
     flood_s = 2.0 if args.quick else 4.0
@@ -1219,8 +1469,9 @@ def main() -> int:
         )
     for row in barriers:
         print(
-            f"barrier release at {row['agents']} agents: p50 {row['last_release_p50_ms']:.2f} ms, "
-            f"p99 {row['last_release_p99_ms']:.2f} ms"
+            f"barrier release at {row['agents']} agents ({row['mode']}): "
+            f"p50 {row['last_release_p50_ms']:.2f} ms, p99 {row['last_release_p99_ms']:.2f} ms"
+            + (f", {row['released_by_beacon_share']:.0%} by the beacon" if row["mode"] == "beacon" else "")
         )
     print(f"daemon / bare asyncio flood ratio: {ratio:.3f}")
     RESULTS.mkdir(exist_ok=True)
