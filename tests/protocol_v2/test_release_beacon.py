@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from gcs.config import DaemonConfig
+from gcs.metrics import DaemonMetrics
 from tests.backbone.helpers import new_key, running_daemon, survey_mission, wait_for
 from tests.protocol_v2.stdlib_agent import StdlibAgent
 
@@ -142,6 +143,8 @@ async def test_a_release_is_announced_by_one_stored_verifiable_beacon_then_sent_
                 for agent in agents:  # the TCP release follows, for everyone
                     await asyncio.to_thread(_release_of, agent, mission_id, step)
             assert daemon.missions.beacon is not None and daemon.missions.beacon.sent == 2
+            scrape = DaemonMetrics(daemon).render().decode()
+            assert 'fleetgcs_release_beacons_total{outcome="sent"} 2.0' in scrape
             # A repeated 'finished' at a released step is answered over TCP, with no second beacon.
             listening[0].send(5, {"mission_id": mission_id, "step": 1, "kind": "finished"})
             await asyncio.to_thread(_release_of, listening[0], mission_id, 1)
