@@ -155,7 +155,8 @@ async def _server(
     released: dict[int, float] = {}  # step -> when the daemon's release burst was written
     burst_started: dict[int, float] = {}  # step -> when the release burst began
     completed: dict[int, float] = {}  # step -> when the mission runner found the barrier complete
-    beacon_sent: dict[int, tuple[float, float, bool]] = {}  # step -> (sendto began, returned, sent)
+    # step -> (sendto began, returned, sent, the thread's CPU seconds in it: the rest it was off the CPU)
+    beacon_sent: dict[int, tuple[float, float, bool, float]] = {}
     beacon_sender: Any = None  # the daemon's gcs.beacon.BeaconSender (release_beacon configured)
     # Arrays of doubles, not lists of floats: this process's RSS is the daemon's memory figure, and a
     # list costs 32 B per report (2-3 KiB per agent over a trial), an array 8.
@@ -245,9 +246,10 @@ async def _server(
             send_beacon = beacon_sender.send
 
             def send_beacon_and_stamp(mission_id: str, step: int, value: bytes) -> bool:
-                started = time.time()
+                started, cpu = time.time(), time.thread_time()
                 sent = bool(send_beacon(mission_id, step, value))
-                beacon_sent[step] = (started, time.time(), sent)  # returned: the loopback fan-out done
+                # Returned: the loopback fan-out is done (and the readers it woke may have run).
+                beacon_sent[step] = (started, time.time(), sent, time.thread_time() - cpu)
                 return sent
 
             beacon_sender.send = send_beacon_and_stamp
@@ -1073,6 +1075,7 @@ class _BarrierStats:
             float
         ] = []  # garbage collection between the last arrival and the burst's end
         self.sendto: list[float] = []  # the daemon's beacon sendto (on loopback: the whole fan-out)
+        self.sendto_cpu: list[float] = []  # of which the daemon's thread was on the CPU
         self.to_beacon: list[float] = []  # last arrival -> the beacon's sendto returned
         self.stamp_early: list[float] = []  # sendto returned - the latest kernel stamp of the beacon
         self.members = 0
@@ -1109,6 +1112,7 @@ class _BarrierStats:
             self.writing.append(written - started)
         if beacon is not None:
             self.sendto.append(beacon[1] - beacon[0])
+            self.sendto_cpu.append(beacon[3])
             self.to_beacon.append(beacon[1] - last_arrival)
             heard_at = [h for _, _, h in stamps if h is not None]
             if heard_at:
@@ -1126,6 +1130,7 @@ class _BarrierStats:
                 ("daemon_release", self.in_daemon),
                 ("burst_write", self.writing),
                 ("beacon_sendto", self.sendto),
+                ("beacon_sendto_cpu", self.sendto_cpu),
                 ("to_beacon", self.to_beacon),
                 ("beacon_stamp_before_return", self.stamp_early),
             )
@@ -1216,7 +1221,9 @@ def _print_barrier(row: dict[str, Any]) -> None:
             f"(heard it: {row['beacon_heard_share']:.1%}, "
             f"datagrams rejected: {row['beacon_datagrams_rejected']}); "
             f"the daemon's beacon sendto p50 {row['beacon_sendto_p50_ms']:.3f} ms "
-            f"p99 {row['beacon_sendto_p99_ms']:.3f} ms, arrival -> sendto returned "
+            f"p99 {row['beacon_sendto_p99_ms']:.3f} ms "
+            f"(on the CPU p50 {row['beacon_sendto_cpu_p50_ms']:.3f} ms "
+            f"p99 {row['beacon_sendto_cpu_p99_ms']:.3f} ms), arrival -> sendto returned "
             f"p50 {row['to_beacon_p50_ms']:.3f} ms p99 {row['to_beacon_p99_ms']:.3f} ms "
             f"(the kernel's stamp p50 {row['beacon_stamp_before_return_p50_ms']:.3f} ms before that return)"
         )
