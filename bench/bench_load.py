@@ -1087,6 +1087,8 @@ class _BarrierStats:
         """One barrier's stamps (per member: TCP kernel, first read, beacon kernel); '' or why it failed."""
         last_arrival, complete, started, written, gc_s, beacon = daemon
         self.gc_in_release.append(gc_s)
+        if self.mode == "tcp" and beacon is not None:  # the runner must read its sender at each release
+            return "a beacon went out on a TCP-only barrier (the bench's switch did not hold)"
         if last_arrival is None or any(tcp is None for tcp, _, _ in stamps):
             return f"{sum(tcp is None for tcp, _, _ in stamps)} not released"
         released = []
