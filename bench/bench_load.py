@@ -16,7 +16,14 @@ Measured:
   (behind the status tick and the hook queues) is printed beside it. Doubling, then bisection.
 * **sync barrier**: N agents (streaming status at 10 Hz) all send ``finished`` for a step; latency
   from the daemon receiving the last arrival to the last agent receiving its release (and the part
-  inside the daemon: to the release burst written to every socket).
+  inside the daemon: to the release burst written to every socket). Two modes, paired barrier by
+  barrier in one fleet: with the release beacon (protocol/beacon.py: one UDP broadcast on the
+  loopback broadcast address, then the TCP burst; each agent listens on its own UDP socket, acts
+  on a beacon only when the mission's hash chain proves it, and is released by whichever comes
+  first) and TCP only (``--no-beacon``: TCP only, without the beacon barriers). A beacon's
+  arrival is the later of its kernel receive stamp and the return of the daemon's ``sendto``:
+  the kernel stamps a broadcast once, before cloning it to every socket, and on loopback the
+  clones are made inside that ``sendto`` (see ``barrier_trial``).
 * **memory per agent**: daemon RSS delta over the fleet trial divided by N.
 * **throughput vs bare asyncio**: the same pre-encoded status frames flooded by the same clients
   into (a) a bare asyncio sink that only splits frames by header, (b) asyncio plus the full
