@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 from pathlib import Path
 from typing import Literal
 
@@ -62,6 +63,19 @@ def _host_port(text: str, default_port: int) -> tuple[str, int]:
     return host.strip("[]") or "127.0.0.1", int(port)
 
 
+def beacon_address(text: str) -> tuple[str, int]:
+    """``IPV4:PORT`` where the agent listens for release beacons; ValueError says what is wrong."""
+    host, sep, port = text.rpartition(":")
+    example = "e.g. 127.255.255.255:14650 or a LAN's broadcast address such as 192.168.1.255:14650"
+    if not sep or not port.isdigit() or not 0 < int(port) < 65_536:
+        raise ValueError(f"{text!r} is not IPV4:PORT with a port 1..65535 ({example})")
+    try:
+        address = ipaddress.IPv4Address(host)
+    except ValueError:
+        raise ValueError(f"{host!r} in {text!r} is not an IPv4 address ({example})") from None
+    return str(address), int(port)
+
+
 class AgentConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -103,6 +117,18 @@ class AgentConfig(BaseModel):
     takeoff_tolerance: float = Field(default=0.95, gt=0.5, le=1.0, description="fraction of target altitude")
     resend_target_s: float = Field(default=3.0, gt=0.0, description="re-send unacknowledged position targets")
     monitor_period_s: float = Field(default=0.25, gt=0.0)
+    release_beacon: str | None = Field(
+        default=None,
+        description="IPV4:PORT to listen on for release beacons (UDP broadcast, protocol/beacon.py), "
+        "e.g. 127.255.255.255:14650 on one host or 192.168.1.255:14650 on a LAN; None: TCP releases only",
+    )
+
+    @field_validator("release_beacon")
+    @classmethod
+    def _check_release_beacon(cls, value: str | None) -> str | None:
+        if value is not None:
+            beacon_address(value)
+        return value
 
     @field_validator("daemons")
     @classmethod

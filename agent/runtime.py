@@ -15,8 +15,9 @@ from agent.autopilot.base import (
     FenceSpec,
     Telemetry,
 )
+from agent.beacon import BeaconListener
 from agent.command_queue import CommandQueue, sanity_violation
-from agent.config import AgentConfig
+from agent.config import AgentConfig, beacon_address
 from agent.executor import ActionExecutor
 from agent.link import DaemonLink
 from agent.monitor import ExceptionMonitor, finite_or_zero
@@ -119,6 +120,10 @@ class Agent:
             resume=self._resume,
             current_status=self._build_status,
         )
+        self.beacon: BeaconListener | None = None  # release beacons: only when configured
+        if config.release_beacon is not None:
+            self.beacon = BeaconListener(beacon_address(config.release_beacon), self.queue, self._release)
+            self.link.offer_release_beacon = True
         self.monitor = ExceptionMonitor(
             autopilot,
             self.settings,
@@ -151,6 +156,8 @@ class Agent:
         await cancel_and_wait(self._tasks)
         self._tasks = []
         await self.link.stop()
+        if self.beacon is not None:
+            await self.beacon.close()
         await self.queue.stop()
         await self.autopilot.close()
 
@@ -204,6 +211,8 @@ class Agent:
     # --- handlers -------------------------------------------------------------------------------
 
     async def _on_actions(self, packet: PerformActions) -> None:
+        if packet.release_anchor is not None and self.beacon is not None:
+            await self.beacon.arm(packet.mission_id, packet.release_anchor)
         failsafe = self.monitor.failsafe
         if failsafe is not None:
             if packet.source != "operator":
@@ -265,7 +274,11 @@ class Agent:
         return True
 
     async def _on_release(self, signal: SyncSignal) -> None:
-        self.queue.release(signal.mission_id, signal.step)
+        self._release(signal.mission_id, signal.step)
+
+    def _release(self, mission_id: str, step: int) -> None:
+        """A barrier release, by TCP (type 5) or by a release beacon: whichever comes first counts."""
+        self.queue.release(mission_id, step)
 
     async def _on_parameters(self, packet: SetParameters) -> None:
         if packet.parameters is not None:
