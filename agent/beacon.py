@@ -93,10 +93,10 @@ class BeaconListener:
     def listening(self) -> bool:
         return self._transport is not None
 
-    def anchor(self, mission_id: str) -> bytes | None:
-        """The anchor held for ``mission_id``, if any."""
+    def verifier(self, mission_id: str) -> ReleaseVerifier | None:
+        """The verifier held for ``mission_id``, if any."""
         held = self._verifiers.get(mission_id)
-        return held[0] if held is not None else None
+        return held[1] if held is not None else None
 
     async def arm(self, mission_id: str, anchor_hex: str) -> None:
         """Hold ``mission_id``'s anchor (a new verifier only for a new anchor) and listen."""
