@@ -41,6 +41,19 @@ NOTE_EVERY_S = 10.0
 _MAX_REJECT_KEYS = 256
 
 
+def beacon_socket(address: tuple[str, int]) -> socket.socket:
+    """A non-blocking UDP socket bound to ``address`` beside other agents' (``SO_REUSEADDR``)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.setblocking(False)
+        sock.bind(address)
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
 @dataclass
 class BeaconStats:
     """What the listener did with the datagrams it received (``Agent.beacon.stats``)."""
@@ -115,21 +128,18 @@ class BeaconListener:
         async with self._open_lock:
             if self._transport is not None:
                 return True
-            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             try:
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-                sock.setblocking(False)
-                sock.bind(self.address)
-                endpoint = _Endpoint(self)
-                transport, _ = await asyncio.get_running_loop().create_datagram_endpoint(
-                    lambda: endpoint, sock=sock
-                )
+                sock = beacon_socket(self.address)
             except OSError as exc:
-                sock.close()
                 why = exc.strerror or str(exc)
                 self.last_error = f"cannot listen for release beacons on {self._where()}: {why}"
                 self._note("bind", logging.WARNING, "%s; barriers wait for TCP releases", self.last_error)
                 return False
+            endpoint = _Endpoint(self)
+            try:
+                transport, _ = await asyncio.get_running_loop().create_datagram_endpoint(
+                    lambda: endpoint, sock=sock
+                )
             except BaseException:
                 sock.close()
                 raise

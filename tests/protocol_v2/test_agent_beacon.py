@@ -314,3 +314,21 @@ async def test_no_option_no_listener(tmp_path: Path) -> None:
             await until(lambda: queue.waiting_sync is None and queue.completed_step == 1, "released by TCP")
         finally:
             await running.kill()
+
+
+def test_doctor_says_whether_the_beacon_address_can_be_bound() -> None:
+    from agent.beacon import beacon_socket
+    from agent.doctor import Report, check_release_beacon
+
+    config = AgentConfig(identity="a", key_hex=new_key())
+    unset = Report()
+    check_release_beacon(unset, config)
+    assert unset.checks == []
+    port = free_udp_port()
+    with beacon_socket((BROADCAST, port)):  # a running agent holds it: the doctor's check still binds
+        good = Report()
+        check_release_beacon(good, config.model_copy(update={"release_beacon": f"{BROADCAST}:{port}"}))
+    assert [(c.name, c.verdict) for c in good.checks] == [("release beacon", "ok")]
+    bad = Report()
+    check_release_beacon(bad, config.model_copy(update={"release_beacon": "192.0.2.1:14650"}))
+    assert bad.ok and "[WARN] release beacon: cannot listen on 192.0.2.1:14650" in bad.render()
