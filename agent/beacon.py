@@ -153,6 +153,8 @@ class BeaconListener:
         self._transport = self._endpoint = None
         if transport is None or endpoint is None:
             return
+        if self.stats.received:
+            log.info("release beacons: %s", self.stats.as_dict())
         transport.close()
         try:
             async with asyncio.timeout(1.0):
