@@ -8,9 +8,10 @@ on whichever comes first and a lost or refused datagram only costs the TCP burst
 What a datagram must pass, cheapest first, so a flood of forged ones costs no hashing beyond
 the agent's real progress: it decodes as a beacon; the agent holds an anchor for its mission
 (``PerformActions.release_anchor``, kept for the newest ``MAX_MISSIONS`` missions); the command
-queue would act on its release (the queue's mission, a step reached and not yet released); that
-step has not had ``MAX_REJECTS_PER_STEP`` forgeries already; and its value hashes back to the
-chain (:class:`protocol.beacon.ReleaseVerifier`). Only then does it take the TCP release's path.
+queue waits for that release (its mission; the barrier it waits at, or the step it completed
+last, not released yet: at most two steps at a time); the step has not had
+``MAX_REJECTS_PER_STEP`` forgeries already; and its value hashes back to the chain
+(:class:`protocol.beacon.ReleaseVerifier`). Only then does it take the TCP release's path.
 
 The socket opens with the first anchor (no anchor, e.g. a version-1 daemon or one without
 beacons: no socket), with ``SO_REUSEADDR`` so every agent of one machine receives the broadcast,
@@ -38,7 +39,7 @@ MAX_REJECTS_PER_STEP = 4
 """Forged beacons checked per step; after that the step waits for its TCP release."""
 NOTE_EVERY_S = 10.0
 """At most one log line per kind of bad datagram in this time (a flood must not flood the log)."""
-_MAX_REJECT_KEYS = 256
+_MAX_REJECT_KEYS = 16
 
 
 def beacon_socket(address: tuple[str, int]) -> socket.socket:
@@ -186,8 +187,8 @@ class BeaconListener:
             return
         if not held[1].accept(step, beacon.value):
             stats.rejected += 1
-            if len(self._rejects) >= _MAX_REJECT_KEYS:
-                self._rejects.clear()
+            if len(self._rejects) >= _MAX_REJECT_KEYS:  # budgets of steps no longer awaited are moot
+                self._rejects = {k: n for k, n in self._rejects.items() if self._queue.awaits_release(*k)}
             self._rejects[key] = self._rejects.get(key, 0) + 1
             self._note("rejected", logging.WARNING, "beacon %s step %d: bad chain value", mission_id, step)
             return

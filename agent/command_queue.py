@@ -193,14 +193,16 @@ class CommandQueue:
         self._release_event.set()
 
     def awaits_release(self, mission_id: str, step: int) -> bool:
-        """True when :meth:`release` of ``step`` would count: this mission, reached, not released yet.
+        """True when the queue waits for the release of ``step``, which it has not had yet.
 
-        The release beacon (agent/beacon.py) checks this before it spends any hashing on a datagram.
+        That is the barrier it waits at, or the last step it completed (a rejoin's barrier before
+        its wait starts): at most two steps at any time. The release beacon (agent/beacon.py)
+        checks this before it spends any hashing on a datagram.
         """
         return (
             mission_id == self.mission_id
             and step not in self._releases
-            and (step == self.waiting_sync or step <= self.completed_step)
+            and (step == self.waiting_sync or step == self.completed_step)
         )
 
     def released(self, mission_id: str, step: int) -> bool:

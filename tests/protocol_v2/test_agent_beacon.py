@@ -151,6 +151,31 @@ async def test_forgeries_use_up_a_steps_budget_and_the_tcp_release_still_counts(
             await running.kill()
 
 
+async def test_a_rejoining_agents_barrier_is_released_by_a_beacon(tmp_path: Path) -> None:
+    """A rejoin (``await_release``) waits at a barrier finished before; the beacon for it counts."""
+    key, port = new_key(), free_udp_port()
+    chain = ReleaseChain(4)
+    async with running_daemon(tmp_path, key) as daemon:
+        running = start_agent("rejoiner", daemon.listen_port, key, release_beacon=f"{BROADCAST}:{port}")
+        try:
+            await until(lambda: daemon.agents.session("rejoiner") is not None, "joined")
+            queue, listener = running.agent.queue, listener_of(running)
+            rest = PerformActions(
+                mission_id="m",
+                mode="replace",
+                actions=[Hold(step=3, seconds=0.2)],
+                await_release=2,
+                release_anchor=chain.anchor.hex(),
+            )
+            daemon.agents.post("rejoiner", rest)
+            await until(lambda: queue.waiting_sync == 2, "waiting at the rejoin barrier")
+            broadcast(port, beacon(chain, 1), beacon(chain, 2))  # step 1 was released long ago
+            await until(lambda: queue.completed_step == 3, "released by the beacon, step 3 flown")
+            assert (listener.stats.accepted, listener.stats.ignored) == (1, 1)
+        finally:
+            await running.kill()
+
+
 async def test_two_agents_of_one_machine_hear_one_broadcast(tmp_path: Path) -> None:
     key, port = new_key(), free_udp_port()
     chain = ReleaseChain(2)
