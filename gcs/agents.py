@@ -146,6 +146,7 @@ class AgentSession:
     exception_budget: TokenBucket | None = None
     exceptions_suppressed: int = 0
     compact_status: bool = False  # negotiated: status may come as the compact binary body
+    release_beacon: bool = False  # v2 offer: the agent listens for release beacons (protocol/beacon.py)
     row: int = -1  # its row in the manager's status table while the session is served
     table: StatusTable | None = field(default=None, repr=False)
 
@@ -502,6 +503,7 @@ class AgentManager:
             outbox=outbox,
             version=stream.version,
             compact_status=handshake.compact_status,
+            release_beacon=stream.version >= 2 and request.release_beacon is True,
         )
         conn.session = session
         was_lost = request.identity in self.lost

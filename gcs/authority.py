@@ -250,6 +250,7 @@ class VehicleAuthority:
         order: str | None = None,
         await_release: int | None = None,
         keep_holds: bool = False,
+        release_anchor: str | None = None,
     ) -> Verdict:
         """Give the drone a new action list on behalf of ``owner``.
 
@@ -257,7 +258,8 @@ class VehicleAuthority:
         mission: it stays in force, refusing lower sources, until the vehicle is down or a source
         of at least the same priority replaces it. Holds of lower priority are superseded (the
         agent's replace ends its pause) unless ``keep_holds`` (a mission re-sent to a rejoining
-        agent under a hold): then the pause is re-sent right behind the plan.
+        agent under a hold): then the pause is re-sent right behind the plan. ``release_anchor``
+        travels with the plan (a mission's release-beacon chain, protocol/beacon.py).
         """
         blocker = self._blocker(ident, owner, ignore_holds=keep_holds)
         if blocker is not None:
@@ -284,6 +286,7 @@ class VehicleAuthority:
             reason=reason[:200],
             source=owner,
             await_release=await_release,
+            release_anchor=release_anchor,
         )
         urgent = rank > PRIORITY["mission"] or bool(vehicle.holds)
         self._link.post(ident, body, urgent=urgent)

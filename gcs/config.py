@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gcs.cooperation.config import CooperationConfig
+from protocol.beacon import parse_beacon_address
 from protocol.packets import AgentParameters
 from protocol.wire import DEFAULT_MAX_BODY
 
@@ -98,6 +99,11 @@ class DaemonConfig(BaseModel):
         description="send an empty type 3 to an agent we have not sent to for this long",
     )
     default_sync_timeout_s: float = Field(default=120.0, gt=0.0)
+    release_beacon: str | None = Field(
+        default=None,
+        description="IPv4:PORT to broadcast barrier releases to ahead of the TCP release "
+        "(protocol/beacon.py), e.g. 127.255.255.255:14650 on one host; default: TCP only",
+    )
     lost_agent_policy: Literal["abort", "continue"] = "abort"
     agent_parameters: AgentParameters = AgentParameters()
     cooperation: CooperationConfig = Field(default_factory=CooperationConfig)
@@ -146,6 +152,13 @@ class DaemonConfig(BaseModel):
         for url in value or []:
             if not isinstance(url, str) or not url.startswith(("nats://", "tls://")) or ":" not in url[7:]:
                 raise ValueError(f"cluster server {url!r} is not nats://HOST:PORT")
+        return value
+
+    @field_validator("release_beacon")
+    @classmethod
+    def _beacon_address(cls, value: str | None) -> str | None:
+        if value is not None:
+            parse_beacon_address(value)  # its ValueError says what is wrong
         return value
 
     @property

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Protocol
 from gcs.agents import AgentManager, AgentSession
 from gcs.agents_table import StatusTick
 from gcs.authority import Owner, VehicleAuthority
+from gcs.beacon import BeaconSender
 from gcs.config import DaemonConfig
 from gcs.context import ServiceContext
 from gcs.cooperation import cooperation_services
@@ -246,6 +247,8 @@ class Daemon:
             await self.cluster.start(self)  # shared state loaded; takes over leaderless missions
         else:
             self.missions.restore()
+        if self.config.release_beacon is not None:  # a send-only UDP socket: nothing listens
+            self.missions.beacon = BeaconSender(self.config.release_beacon)
         for agent, owner, reason in self.store.holds():
             self.authority.restore_hold(agent, owner, reason)
         tls = server_tls_context(self.config)
@@ -322,6 +325,8 @@ class Daemon:
                 await asyncio.wait_for(self._server.wait_closed(), 2)
         if self.cluster is not None:
             await self.cluster.stop()
+        if self.missions.beacon is not None:
+            self.missions.beacon.close()
         self.store.close()
 
     async def set_geofence(self, geofence: Geofence | None, agents: list[str] | None = None) -> list[str]:

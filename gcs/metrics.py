@@ -15,7 +15,9 @@ benchmarks) never share counters. Fed from the agent manager's hooks and the eve
 * ``fleetgcs_hook_events_total`` (per consumer and outcome: delivered, coalesced, dropped,
   overflow, failed) and ``fleetgcs_hook_queue_depth`` (per consumer): the hook consumers of
   gcs/dispatch.py, so a slow or failing service shows;
-* ``fleetgcs_outbox_frames_queued``: frames waiting in all agents' outbound queues.
+* ``fleetgcs_outbox_frames_queued``: frames waiting in all agents' outbound queues;
+* ``fleetgcs_release_beacons_total`` (outcome: sent, failed): barrier releases announced by UDP
+  beacon (protocol/beacon.py), when ``release_beacon`` is configured.
 """
 
 from __future__ import annotations
@@ -87,6 +89,7 @@ class DaemonMetrics:
         )
         self.outbox.set_function(lambda: sum(s.outbox.queued for s in daemon.agents.connected()))
         r.register(_HookCollector(daemon))
+        r.register(_BeaconCollector(daemon))
         self._recent: collections.deque[float] = collections.deque(maxlen=200_000)
         self._arrivals: dict[tuple[str, int, str], float] = {}
         self._paused: dict[str, bool] = {}
@@ -156,3 +159,24 @@ class _HookCollector:
                 events.add_metric([s.name, outcome], getattr(s, outcome))
             depth.add_metric([s.name], s.queued)
         return [events, depth]
+
+
+class _BeaconCollector:
+    """Reads the release-beacon sender's counters at scrape time (none when beacons are off)."""
+
+    def __init__(self, daemon: Daemon) -> None:
+        self._daemon = daemon
+
+    def describe(self) -> list[Metric]:
+        return []
+
+    def collect(self) -> list[Metric]:
+        sender = self._daemon.missions.beacon
+        if sender is None:
+            return []
+        beacons = CounterMetricFamily(
+            "fleetgcs_release_beacons", "barrier releases announced by UDP beacon", labels=["outcome"]
+        )
+        beacons.add_metric(["sent"], sender.sent)
+        beacons.add_metric(["failed"], sender.failed)
+        return [beacons]

@@ -23,12 +23,14 @@ from pydantic import BaseModel
 
 from gcs.agents import AgentManager, AgentSession
 from gcs.authority import Owner, VehicleAuthority
+from gcs.beacon import BeaconSender
 from gcs.cooperation.geo import LocalFrame
 from gcs.cooperation.returns import RETURN_PREFIX, Returner, assign_layers
 from gcs.events import EventBus
 from gcs.store import Store
 from gcs.sync import BarrierSet
 from protocol.actions import Action, ReturnToLaunch
+from protocol.beacon import MAX_CHAIN_STEPS, ReleaseChain
 from protocol.packets import ActionFailure, Resume, StatusReport, SyncSignal
 from protocol.taskfile import TaskFile
 
@@ -88,6 +90,7 @@ class ActiveMission:
     timers: dict[int, asyncio.TimerHandle] = field(default_factory=dict)
     failures: dict[str, tuple[int, float]] = field(default_factory=dict)  # agent -> last (step, time) seen
     retries: dict[tuple[str, int], int] = field(default_factory=dict)  # (agent, step) -> retries sent
+    chain: ReleaseChain | None = None  # release-beacon chain (protocol/beacon.py); None: TCP releases only
 
     def last_step(self, agent: str) -> int:
         return self.plans[agent][-1].step
@@ -107,6 +110,7 @@ class MissionRunner:
         self.preflight_checks: list[PreflightCheck] = []
         self.paused: set[str] = set()
         self.return_home: ReturnHome | None = None  # set by the daemon once the coordinator exists
+        self.beacon: BeaconSender | None = None  # set by the daemon when release_beacon is configured
         self._watchdogs: dict[str, asyncio.TimerHandle] = {}  # mission id -> next barrier's watchdog
         # Cluster mode (gcs/cluster): a release is claimed in shared state first (exactly once),
         # and missions another daemon leads are not ours to judge.
@@ -195,6 +199,7 @@ class MissionRunner:
         task, plans = self._layered_returns(task, plans)
         mission_id = f"m-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(3)}"
         mission = self._build(mission_id, task, plans)
+        mission.chain = self._release_chain(mission)
         self._store.add_mission(mission_id, task.name, task.model_dump_json(), list(plans))
         self.active[mission_id] = mission
         self._events.publish(
@@ -203,9 +208,52 @@ class MissionRunner:
             mission_id=mission_id,
         )
         for identity, actions in plans.items():
-            self._authority.replace(identity, "mission", mission_id, actions, f"mission {task.name}")
+            self._send_plan(mission, identity, actions, f"mission {task.name}")
         self._arm_watchdog(mission)
         return mission_id
+
+    def _release_chain(self, mission: ActiveMission) -> ReleaseChain | None:
+        """A release-beacon chain for a new mission, when beacons are configured and a member listens.
+
+        Not in a cluster (a release is claimed in shared state and may be sent by another daemon,
+        which does not hold the chain) nor for a mission restored after a restart (the seed is not
+        persisted): those release over TCP only, and the agents' beacon listeners stay idle.
+        """
+        steps = mission.barriers.sync_steps
+        if self.beacon is None or self.claim_release is not None or not steps:
+            return None
+        if max(steps) >= MAX_CHAIN_STEPS:
+            return None
+        listening = (self._agents.session(identity) for identity in mission.plans)
+        if not any(session is not None and session.release_beacon for session in listening):
+            return None
+        return ReleaseChain(max(steps) + 1)
+
+    def _send_plan(
+        self,
+        mission: ActiveMission,
+        identity: str,
+        actions: list[Action],
+        reason: str,
+        *,
+        await_release: int | None = None,
+        keep_holds: bool = False,
+    ) -> None:
+        """Give a member (part of) its plan, through the authority, with the release anchor if it listens."""
+        session = self._agents.session(identity)
+        anchor = None
+        if mission.chain is not None and session is not None and session.release_beacon:
+            anchor = mission.chain.anchor.hex()
+        self._authority.replace(
+            identity,
+            "mission",
+            mission.id,
+            actions,
+            reason,
+            await_release=await_release,
+            keep_holds=keep_holds,
+            release_anchor=anchor,
+        )
 
     def _layered_returns(
         self, task: TaskFile, plans: dict[str, list[Action]]
@@ -473,14 +521,8 @@ class MissionRunner:
             mission_id=mission.id,
         )
         if remaining or wait is not None:
-            self._authority.replace(
-                identity,
-                "mission",
-                mission.id,
-                remaining,
-                "re-sent after rejoin",
-                await_release=wait,
-                keep_holds=True,
+            self._send_plan(
+                mission, identity, remaining, "re-sent after rejoin", await_release=wait, keep_holds=True
             )
 
     async def _on_status(self, session: AgentSession, status: StatusReport) -> None:
@@ -608,6 +650,7 @@ class MissionRunner:
                         mission_id=mission.id,
                         data={"step": step, "agents": members},
                     )
+                self._announce(mission, step)  # one datagram for every listening member first
                 # One burst: encoded once, written to every member's socket in this pass.
                 self._agents.burst(members, release)
         finally:
@@ -617,6 +660,14 @@ class MissionRunner:
         if timer is not None:
             timer.cancel()
         self._arm_watchdog(mission)
+
+    def _announce(self, mission: ActiveMission, step: int) -> None:
+        """The release beacon of ``step`` (protocol/beacon.py), when the mission has a chain."""
+        if self.beacon is None or mission.chain is None:
+            return
+        value = mission.chain.value(step)
+        if value is not None:
+            self.beacon.send(mission.id, step, value)
 
     async def _barrier_timeout(self, mission: ActiveMission, step: int) -> None:
         if mission.state != "running" or step in mission.barriers.released:
@@ -758,7 +809,7 @@ class MissionRunner:
                     agent=identity,
                     mission_id=mission.id,
                 )
-                self._authority.replace(identity, "mission", mission.id, again, f"retry step {failure.step}")
+                self._send_plan(mission, identity, again, f"retry step {failure.step}")
                 return
         elif policy == "skip":
             await self._skip_step(mission, identity, failure)
@@ -780,7 +831,7 @@ class MissionRunner:
             mission.completed[identity] = failure.step
             self._store.set_completed_step(mission.id, identity, failure.step)
         if rest:
-            self._authority.replace(identity, "mission", mission.id, rest, f"step {failure.step} skipped")
+            self._send_plan(mission, identity, rest, f"step {failure.step} skipped")
         barriers = mission.barriers
         if (
             failure.step in barriers.sync_steps

@@ -33,6 +33,7 @@ Pure: no sockets, no asyncio.
 from __future__ import annotations
 
 import hashlib
+import ipaddress
 import secrets
 import struct
 from dataclasses import dataclass
@@ -125,6 +126,24 @@ def encode_beacon(mission_id: str, step: int, value: bytes) -> bytes:
     if len(value) != VALUE_BYTES:
         raise ValueError(f"a chain value is {VALUE_BYTES} bytes, not {len(value)}")
     return MAGIC + bytes((LAYOUT_VERSION, len(name))) + name + _STEP.pack(step) + value
+
+
+def parse_beacon_address(text: str) -> tuple[str, int]:
+    """``"IPv4:port"`` of a beacon listener or target, as ``(host, port)``; ValueError says what is wrong.
+
+    An IPv4 address, not a name: a beacon goes to a broadcast address (127.255.255.255 on one
+    host, the LAN's x.y.z.255), and an agent binding to one receives broadcasts only.
+    """
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit():
+        raise ValueError(f"release beacon address {text!r}: expected IPv4:PORT, e.g. 127.255.255.255:14650")
+    try:
+        ipaddress.IPv4Address(host)
+    except ValueError:
+        raise ValueError(f"release beacon address {text!r}: {host!r} is not an IPv4 address") from None
+    if not 1 <= int(port) <= 65_535:
+        raise ValueError(f"release beacon address {text!r}: port {port} is not in 1..65535")
+    return host, int(port)
 
 
 def decode_beacon(data: bytes) -> Beacon:

@@ -16,6 +16,7 @@ from protocol.beacon import (
     chain_hash,
     decode_beacon,
     encode_beacon,
+    parse_beacon_address,
 )
 from protocol.packets import PerformActions, RequestCid
 from protocol.session import ClientHandshake, ServerHandshake
@@ -110,3 +111,14 @@ def test_the_offer_and_the_anchor_are_v2_fields() -> None:
     body = PerformActions(mission_id="m", release_anchor="ab" * 16)
     assert b"release_anchor" in encode(body, 1, 2)
     assert b"release_anchor" not in encode(body, 1, 1)
+
+
+def test_beacon_addresses_are_ipv4_and_port() -> None:
+    assert parse_beacon_address("127.255.255.255:14650") == ("127.255.255.255", 14650)
+    for bad, why in (
+        ("localhost:1", "not an IPv4"),
+        ("1.2.3.4", "expected IPv4:PORT"),
+        ("1.2.3.4:0", "1..65535"),
+    ):
+        with pytest.raises(ValueError, match=why):
+            parse_beacon_address(bad)

@@ -25,8 +25,11 @@ V1_FIELDS = {  # type 1 and type 6 fields of protocol version 1 (docs/protocol.m
 
 
 class StdlibAgent:
-    def __init__(self, port: int, identity: str, key_hex: str, version: int = 2) -> None:
+    def __init__(
+        self, port: int, identity: str, key_hex: str, version: int = 2, release_beacon: bool = False
+    ) -> None:
         self.identity, self.key, self.version = identity, bytes.fromhex(key_hex), version
+        self.release_beacon = release_beacon  # v2: offer to listen for release beacons
         self.sock = socket.create_connection(("127.0.0.1", port), timeout=10)
         self.seq = 0
         self.buffer = b""
@@ -73,7 +76,10 @@ class StdlibAgent:
         _, challenge = self.receive()
         assert challenge["outcome"] == "challenge", challenge
         server_nonce = challenge["server_nonce"]
-        self.send(0, {**hello, "proof": self.mac("fleetgcs-agent-v1", server_nonce, nonce)})
+        proof = {**hello, "proof": self.mac("fleetgcs-agent-v1", server_nonce, nonce)}
+        if self.release_beacon and self.version >= 2:
+            proof["release_beacon"] = True
+        self.send(0, proof)
         _, accepted = self.receive()
         assert accepted["outcome"] == "accepted", accepted
         assert accepted["server_proof"] == self.mac("fleetgcs-daemon-v1", nonce, server_nonce)
