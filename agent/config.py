@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import ipaddress
 from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from protocol.beacon import parse_beacon_address
 from protocol.packets import AgentParameters, Capabilities
 
 Reaction = Literal["report", "rtl", "land", "hold"]
@@ -63,19 +63,6 @@ def _host_port(text: str, default_port: int) -> tuple[str, int]:
     return host.strip("[]") or "127.0.0.1", int(port)
 
 
-def beacon_address(text: str) -> tuple[str, int]:
-    """``IPV4:PORT`` where the agent listens for release beacons; ValueError says what is wrong."""
-    host, sep, port = text.rpartition(":")
-    example = "e.g. 127.255.255.255:14650 or a LAN's broadcast address such as 192.168.1.255:14650"
-    if not sep or not port.isdigit() or not 0 < int(port) < 65_536:
-        raise ValueError(f"{text!r} is not IPV4:PORT with a port 1..65535 ({example})")
-    try:
-        address = ipaddress.IPv4Address(host)
-    except ValueError:
-        raise ValueError(f"{host!r} in {text!r} is not an IPv4 address ({example})") from None
-    return str(address), int(port)
-
-
 class AgentConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -127,7 +114,7 @@ class AgentConfig(BaseModel):
     @classmethod
     def _check_release_beacon(cls, value: str | None) -> str | None:
         if value is not None:
-            beacon_address(value)
+            parse_beacon_address(value)
         return value
 
     @field_validator("daemons")

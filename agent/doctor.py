@@ -26,9 +26,10 @@ from typing import Literal
 
 from agent.autopilot.base import Autopilot
 from agent.beacon import beacon_socket
-from agent.config import AgentConfig, beacon_address
+from agent.config import AgentConfig
 from agent.link import client_tls_context
 from protocol import auth
+from protocol.beacon import parse_beacon_address
 from protocol.packets import SUPPORTED_VERSIONS, Close, CloseReason
 from protocol.session import V1_DAEMON, ClientHandshake, Refused
 from protocol.stream import FramedStream
@@ -331,7 +332,7 @@ def check_release_beacon(report: Report, config: AgentConfig) -> None:
     if config.release_beacon is None:
         return
     try:
-        beacon_socket(beacon_address(config.release_beacon)).close()
+        beacon_socket(parse_beacon_address(config.release_beacon)).close()
     except OSError as exc:
         report.add(
             "release beacon",

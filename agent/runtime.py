@@ -17,13 +17,14 @@ from agent.autopilot.base import (
 )
 from agent.beacon import BeaconListener
 from agent.command_queue import CommandQueue, sanity_violation
-from agent.config import AgentConfig, beacon_address
+from agent.config import AgentConfig
 from agent.executor import ActionExecutor
 from agent.link import DaemonLink
 from agent.monitor import ExceptionMonitor, finite_or_zero
 from agent.tasks import cancel_and_wait
 from protocol.actions import Action
 from protocol.auth import parse_key
+from protocol.beacon import parse_beacon_address
 from protocol.packets import (
     ActionFailure,
     Battery,
@@ -122,7 +123,8 @@ class Agent:
         )
         self.beacon: BeaconListener | None = None  # release beacons: only when configured
         if config.release_beacon is not None:
-            self.beacon = BeaconListener(beacon_address(config.release_beacon), self.queue, self._release)
+            address = parse_beacon_address(config.release_beacon)
+            self.beacon = BeaconListener(address, self.queue, self._release)
             self.link.offer_release_beacon = True
         self.monitor = ExceptionMonitor(
             autopilot,

@@ -307,7 +307,7 @@ def test_release_beacon_from_file_environment_and_flag(tmp_path: Path) -> None:
     assert agent_from_args(build_parser().parse_args(flags))[0].release_beacon is None
     for bad, why in (
         ("nohost:1", "not an IPv4 address"),
-        ("10.0.0.255", "IPV4:PORT"),
+        ("10.0.0.255", "IPv4:PORT"),
         ("1.2.3.4:0", "1..65535"),
     ):
         with pytest.raises(SystemExit, match=why) as exc:
