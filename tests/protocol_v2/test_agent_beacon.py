@@ -23,7 +23,15 @@ from protocol.actions import Action, Hold
 from protocol.beacon import VALUE_BYTES, ReleaseChain, encode_beacon
 from protocol.packets import PerformActions, RequestCid, SyncSignal
 from protocol.session import ServerHandshake
-from tests.backbone.helpers import RunningAgent, new_key, running_daemon, start_agent, wait_for
+from tests.backbone.helpers import (
+    RunningAgent,
+    new_key,
+    running_daemon,
+    start_agent,
+    stop_agents,
+    survey_mission,
+    wait_for,
+)
 
 BROADCAST = "127.255.255.255"
 
@@ -174,6 +182,33 @@ async def test_a_rejoining_agents_barrier_is_released_by_a_beacon(tmp_path: Path
             assert (listener.stats.accepted, listener.stats.ignored) == (1, 1)
         finally:
             await running.kill()
+
+
+async def test_a_mission_flown_with_a_beacon_daemon(tmp_path: Path) -> None:
+    """The daemon's beacons (gcs/beacon.py) and the agents' listeners agree: every barrier is
+    announced once, each beacon verifies (or comes after its TCP release), the mission completes."""
+    key, port = new_key(), free_udp_port()
+    names = ["lead-a", "lead-b"]
+    address = f"{BROADCAST}:{port}"
+    async with running_daemon(tmp_path, key, release_beacon=address) as daemon:
+        agents = [
+            start_agent(name, daemon.listen_port, key, index=i, release_beacon=address)
+            for i, name in enumerate(names)
+        ]
+        try:
+            await until(lambda: len(daemon.agents.connected()) == 2, "both joined")
+            mission_id = await daemon.missions.submit(survey_mission(names, sync_legs=2))
+            await wait_for(lambda: mission_id not in daemon.missions.active, 60, "mission completion")
+            progress = daemon.missions.progress(mission_id)
+            assert progress is not None and progress.state == "completed", progress
+            assert progress.released_steps == [0, 1, 2]
+            for running in agents:
+                stats = listener_of(running).stats
+                await wait_for(lambda s=stats: s.received == 3, 5, "three beacons")
+                assert stats.accepted + stats.late == 3, stats
+                assert (stats.rejected, stats.ignored, stats.malformed) == (0, 0, 0), stats
+        finally:
+            await stop_agents(agents)
 
 
 async def test_two_agents_of_one_machine_hear_one_broadcast(tmp_path: Path) -> None:
