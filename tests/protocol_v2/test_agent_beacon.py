@@ -8,9 +8,10 @@ The daemon here sends no beacons (the test sends them), so every release seen is
 
 from __future__ import annotations
 
+import contextlib
 import secrets
 import socket
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import pytest
@@ -19,6 +20,7 @@ from agent.beacon import MAX_MISSIONS, MAX_REJECTS_PER_STEP, BeaconListener
 from agent.cli import agent_from_args, build_parser
 from agent.config import AgentConfig
 from agent.config_file import load_agent_config
+from gcs.daemon import Daemon
 from protocol.actions import Action, Hold
 from protocol.beacon import VALUE_BYTES, ReleaseChain, encode_beacon
 from protocol.packets import PerformActions, RequestCid, SyncSignal
@@ -74,114 +76,103 @@ async def until(predicate: Callable[[], object], what: str) -> None:
     await wait_for(predicate, 10, what)
 
 
-async def test_a_beacon_releases_a_barrier_and_nothing_else_does(tmp_path: Path) -> None:
+def plan(chain: ReleaseChain, actions: list[Action], **fields: object) -> PerformActions:
+    """Mission "m" with ``chain``'s anchor, as the daemon sends it to a listening agent."""
+    values: dict[str, object] = {"mode": "replace", **fields}
+    return PerformActions(mission_id="m", actions=actions, release_anchor=chain.anchor.hex(), **values)
+
+
+@contextlib.asynccontextmanager
+async def one_listener(
+    tmp_path: Path, name: str, versions: list[int] | None = None
+) -> AsyncIterator[tuple[Daemon, RunningAgent, int]]:
+    """A daemon (sending no beacons) and one joined agent listening on a free port; stopped after."""
     key, port = new_key(), free_udp_port()
-    chain, other = ReleaseChain(4), ReleaseChain(4)
     async with running_daemon(tmp_path, key) as daemon:
-        running = start_agent("listener", daemon.listen_port, key, release_beacon=f"{BROADCAST}:{port}")
+        running = start_agent(name, daemon.listen_port, key, release_beacon=f"{BROADCAST}:{port}")
+        if versions is not None:
+            running.agent.link.versions = versions  # before its first connection (its task has not run)
         try:
-            await until(lambda: daemon.agents.session("listener") is not None, "joined")
-            queue, listener = running.agent.queue, listener_of(running)
-            assert not listener.listening  # no anchor yet: no socket
-            daemon.agents.post(
-                "listener",
-                PerformActions(
-                    mission_id="m", mode="replace", actions=barriers(3), release_anchor=chain.anchor.hex()
-                ),
-            )
-            await until(lambda: queue.waiting_sync == 0, "waiting at barrier 0")
-            assert listener.listening
-            held = listener.verifier("m")
-            broadcast(
-                port,
-                b"not a beacon",
-                encode_beacon("m", 0, secrets.token_bytes(VALUE_BYTES)),  # forged value
-                beacon(other, 0),  # another chain's valid value
-                beacon(chain, 0, mission_id="other"),  # a mission without an anchor here
-                beacon(chain, 1),  # the right value, for a barrier not reached
-            )
-            await processed(listener, 5)
-            stats = listener.stats
-            assert (stats.malformed, stats.rejected, stats.ignored, stats.accepted) == (1, 2, 2, 0)
-            assert queue.awaits_release("m", 0) and queue.waiting_sync == 0  # still held at barrier 0
-
-            broadcast(port, beacon(chain, 0))
-            await until(lambda: queue.waiting_sync == 1, "released by the beacon, waiting at barrier 1")
-            assert stats.accepted == 1
-            broadcast(port, beacon(chain, 0))  # a replay: that step is released already
-            await processed(listener, 7)
-            assert stats.late == 1 and stats.accepted == 1
-
-            # The same mission re-sent, with its anchor or without: the verifier (and what it
-            # accepted) stays; a new anchor is a new chain.
-            daemon.agents.post("listener", PerformActions(mission_id="m", actions=[], release_anchor=None))
-            daemon.agents.post(
-                "listener", PerformActions(mission_id="m", actions=[], release_anchor=chain.anchor.hex())
-            )
-            broadcast(port, beacon(chain, 1))
-            await until(lambda: queue.waiting_sync == 2, "released by the second beacon")
-            assert listener.verifier("m") is held and stats.accepted == 2
-            assert daemon.agents.session("listener") is not None  # the daemon saw nothing amiss
+            await until(lambda: daemon.agents.session(name) is not None, "joined")
+            yield daemon, running, port
         finally:
             await running.kill()
-        # The agent stopped: its socket is closed (a socket without SO_REUSEADDR can take the address).
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-            probe.bind((BROADCAST, port))
-        assert not listener.listening
+
+
+async def test_a_beacon_releases_a_barrier_and_nothing_else_does(tmp_path: Path) -> None:
+    chain, other = ReleaseChain(6), ReleaseChain(6)
+    async with one_listener(tmp_path, "listener") as (daemon, running, port):
+        queue, listener = running.agent.queue, listener_of(running)
+        assert not listener.listening  # no anchor yet: no socket
+        daemon.agents.post("listener", plan(chain, barriers(3)))
+        await until(lambda: queue.waiting_sync == 0, "waiting at barrier 0")
+        assert listener.listening
+        held = listener.verifier("m")
+        broadcast(
+            port,
+            b"not a beacon",
+            encode_beacon("m", 0, secrets.token_bytes(VALUE_BYTES)),  # forged value
+            beacon(other, 0),  # another chain's valid value
+            beacon(chain, 0, mission_id="other"),  # a mission without an anchor here
+            beacon(chain, 1),  # the right value, for a barrier not reached
+        )
+        await processed(listener, 5)
+        stats = listener.stats
+        assert (stats.malformed, stats.rejected, stats.ignored, stats.accepted) == (1, 2, 2, 0)
+        assert queue.awaits_release("m", 0) and queue.waiting_sync == 0  # still held at barrier 0
+
+        broadcast(port, beacon(chain, 0))
+        await until(lambda: queue.waiting_sync == 1, "released by the beacon, waiting at barrier 1")
+        assert stats.accepted == 1
+        broadcast(port, beacon(chain, 0))  # a replay: that step is released already
+        await processed(listener, 7)
+        assert stats.late == 1 and stats.accepted == 1
+
+        # More of the mission, without its anchor and with it: the verifier (and what it
+        # accepted) stays.
+        daemon.agents.post("listener", PerformActions(mission_id="m", actions=[Hold(step=4, seconds=0.2)]))
+        more = [Hold(step=5, seconds=0.2)]
+        daemon.agents.post("listener", plan(chain, more, mode="append"))
+        await until(lambda: queue.depth == 4, "steps 4 and 5 queued behind 2 and 3")
+        assert listener.verifier("m") is held
+        broadcast(port, beacon(chain, 1))
+        await until(lambda: queue.waiting_sync == 2, "released by the second beacon")
+        assert stats.accepted == 2
+        assert daemon.agents.session("listener") is not None  # the daemon saw nothing amiss
+    # The agent stopped: its socket is closed (a socket without SO_REUSEADDR can take the address).
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind((BROADCAST, port))
+    assert not listener.listening
 
 
 async def test_forgeries_use_up_a_steps_budget_and_the_tcp_release_still_counts(tmp_path: Path) -> None:
-    key, port = new_key(), free_udp_port()
     chain = ReleaseChain(2)
-    async with running_daemon(tmp_path, key) as daemon:
-        running = start_agent("flooded", daemon.listen_port, key, release_beacon=f"{BROADCAST}:{port}")
-        try:
-            await until(lambda: daemon.agents.session("flooded") is not None, "joined")
-            queue, listener = running.agent.queue, listener_of(running)
-            daemon.agents.post(
-                "flooded",
-                PerformActions(
-                    mission_id="m", mode="replace", actions=barriers(1), release_anchor=chain.anchor.hex()
-                ),
-            )
-            await until(lambda: queue.waiting_sync == 0, "waiting at barrier 0")
-            forged = [encode_beacon("m", 0, secrets.token_bytes(VALUE_BYTES)) for _ in range(20)]
-            broadcast(port, *forged, beacon(chain, 0))
-            await processed(listener, 21)
-            # Only MAX_REJECTS_PER_STEP forgeries were hashed; then the step stopped listening,
-            # the true beacon included, and waits for its TCP release.
-            assert listener.stats.rejected == MAX_REJECTS_PER_STEP
-            assert listener.stats.ignored == 21 - MAX_REJECTS_PER_STEP
-            assert listener.stats.accepted == 0 and queue.waiting_sync == 0
-            daemon.agents.post("flooded", SyncSignal(mission_id="m", step=0, kind="release"))
-            await until(lambda: queue.waiting_sync is None and queue.completed_step == 1, "released by TCP")
-        finally:
-            await running.kill()
+    async with one_listener(tmp_path, "flooded") as (daemon, running, port):
+        queue, listener = running.agent.queue, listener_of(running)
+        daemon.agents.post("flooded", plan(chain, barriers(1)))
+        await until(lambda: queue.waiting_sync == 0, "waiting at barrier 0")
+        forged = [encode_beacon("m", 0, secrets.token_bytes(VALUE_BYTES)) for _ in range(20)]
+        broadcast(port, *forged, beacon(chain, 0))
+        await processed(listener, 21)
+        # Only MAX_REJECTS_PER_STEP forgeries were hashed; then the step stopped listening,
+        # the true beacon included, and waits for its TCP release.
+        assert listener.stats.rejected == MAX_REJECTS_PER_STEP
+        assert listener.stats.ignored == 21 - MAX_REJECTS_PER_STEP
+        assert listener.stats.accepted == 0 and queue.waiting_sync == 0
+        daemon.agents.post("flooded", SyncSignal(mission_id="m", step=0, kind="release"))
+        await until(lambda: queue.waiting_sync is None and queue.completed_step == 1, "released by TCP")
 
 
 async def test_a_rejoining_agents_barrier_is_released_by_a_beacon(tmp_path: Path) -> None:
     """A rejoin (``await_release``) waits at a barrier finished before; the beacon for it counts."""
-    key, port = new_key(), free_udp_port()
     chain = ReleaseChain(4)
-    async with running_daemon(tmp_path, key) as daemon:
-        running = start_agent("rejoiner", daemon.listen_port, key, release_beacon=f"{BROADCAST}:{port}")
-        try:
-            await until(lambda: daemon.agents.session("rejoiner") is not None, "joined")
-            queue, listener = running.agent.queue, listener_of(running)
-            rest = PerformActions(
-                mission_id="m",
-                mode="replace",
-                actions=[Hold(step=3, seconds=0.2)],
-                await_release=2,
-                release_anchor=chain.anchor.hex(),
-            )
-            daemon.agents.post("rejoiner", rest)
-            await until(lambda: queue.waiting_sync == 2, "waiting at the rejoin barrier")
-            broadcast(port, beacon(chain, 1), beacon(chain, 2))  # step 1 was released long ago
-            await until(lambda: queue.completed_step == 3, "released by the beacon, step 3 flown")
-            assert (listener.stats.accepted, listener.stats.ignored) == (1, 1)
-        finally:
-            await running.kill()
+    async with one_listener(tmp_path, "rejoiner") as (daemon, running, port):
+        queue, listener = running.agent.queue, listener_of(running)
+        daemon.agents.post("rejoiner", plan(chain, [Hold(step=3, seconds=0.2)], await_release=2))
+        await until(lambda: queue.waiting_sync == 2, "waiting at the rejoin barrier")
+        broadcast(port, beacon(chain, 1), beacon(chain, 2))  # step 1 was released long ago
+        await until(lambda: queue.completed_step == 3, "released by the beacon, step 3 flown")
+        assert (listener.stats.accepted, listener.stats.ignored) == (1, 1)
 
 
 async def test_a_mission_flown_with_a_beacon_daemon(tmp_path: Path) -> None:
@@ -244,25 +235,12 @@ async def test_two_agents_of_one_machine_hear_one_broadcast(tmp_path: Path) -> N
 
 
 async def test_a_version_1_session_never_gets_an_anchor_so_nothing_listens(tmp_path: Path) -> None:
-    key, port = new_key(), free_udp_port()
-    chain = ReleaseChain(2)
-    async with running_daemon(tmp_path, key) as daemon:
-        running = start_agent("old-school", daemon.listen_port, key, release_beacon=f"{BROADCAST}:{port}")
-        running.agent.link.versions = [1]  # before its first connection (the task has not run yet)
-        try:
-            await until(lambda: daemon.agents.session("old-school") is not None, "joined")
-            assert running.agent.link.version == 1
-            daemon.agents.post(
-                "old-school",
-                PerformActions(
-                    mission_id="m", mode="replace", actions=barriers(1), release_anchor=chain.anchor.hex()
-                ),
-            )
-            await until(lambda: running.agent.queue.waiting_sync == 0, "waiting at barrier 0")
-            listener = listener_of(running)
-            assert listener.verifier("m") is None and not listener.listening  # v1 drops the v2 field
-        finally:
-            await running.kill()
+    async with one_listener(tmp_path, "old-school", versions=[1]) as (daemon, running, _port):
+        assert running.agent.link.version == 1
+        daemon.agents.post("old-school", plan(ReleaseChain(2), barriers(1)))
+        await until(lambda: running.agent.queue.waiting_sync == 0, "waiting at barrier 0")
+        listener = listener_of(running)
+        assert listener.verifier("m") is None and not listener.listening  # v1 drops the v2 field
 
 
 def _offer(config: AgentConfig, versions: list[int] | None = None) -> RequestCid:
