@@ -12,11 +12,13 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from agent.autopilot.base import Autopilot, LinkLost
 from agent.config import AgentConfig, AgentSettings
 from agent.runtime import Agent
 from protocol.packets import Capabilities
-from protocol.settings_file import LoggingConfig, configure_logging, package_version
+from protocol.settings_file import LoggingConfig, configure_logging, first_error, package_version
 
 
 def split_host_port(text: str, default_port: int) -> tuple[str, int]:
@@ -75,6 +77,8 @@ def config_from_file(args: argparse.Namespace) -> tuple[AgentConfig, Autopilot, 
         agent["gcs_host"], agent["gcs_port"] = split_host_port(args.gcs, 4396)
     if args.key or args.key_file:
         agent["key_hex"] = read_key(args)
+    if args.release_beacon:
+        agent["release_beacon"] = args.release_beacon
     autopilot: dict[str, object] = {}
     if args.autopilot != defaults.autopilot:
         autopilot["connection"] = args.autopilot
@@ -102,22 +106,26 @@ def agent_from_args(args: argparse.Namespace) -> tuple[AgentConfig, Autopilot, L
     if not args.id:
         raise SystemExit(f"agent {args.command}: give --id (or --config FILE with [agent] identity)")
     host, port = split_host_port(args.gcs, 4396)
-    config = AgentConfig(
-        identity=args.id,
-        gcs_host=host,
-        gcs_port=port,
-        key_hex=read_key(args),
-        capabilities=Capabilities(
-            max_speed_mps=args.max_speed, endurance_s=args.endurance, autopilot=args.autopilot_backend
-        ),
-        tls_ca=args.tls_ca,
-        tls_cert=args.tls_cert,
-        tls_key=args.tls_key,
-        tls_server_name=args.tls_server_name,
-        settings=AgentSettings(
-            lost_link_timeout_s=args.lost_link_timeout, lost_link_action=args.lost_link_action
-        ),
-    )
+    try:
+        config = AgentConfig(
+            identity=args.id,
+            gcs_host=host,
+            gcs_port=port,
+            key_hex=read_key(args),
+            capabilities=Capabilities(
+                max_speed_mps=args.max_speed, endurance_s=args.endurance, autopilot=args.autopilot_backend
+            ),
+            tls_ca=args.tls_ca,
+            tls_cert=args.tls_cert,
+            tls_key=args.tls_key,
+            tls_server_name=args.tls_server_name,
+            settings=AgentSettings(
+                lost_link_timeout_s=args.lost_link_timeout, lost_link_action=args.lost_link_action
+            ),
+            release_beacon=args.release_beacon,
+        )
+    except ValidationError as exc:
+        raise SystemExit(f"agent {args.command}: {first_error(exc, 'agent')}") from None
     autopilot = make_autopilot(
         args.autopilot_backend, args.autopilot, args.speedup, args.tlog, args.mavlink_signing_key_file
     )
@@ -164,6 +172,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tls-cert", type=Path, help="PEM client certificate (mutual TLS)")
     p.add_argument("--tls-key", type=Path, help="PEM private key of --tls-cert")
     p.add_argument("--tls-server-name", help="name in the daemon's certificate (default: the --gcs host)")
+    p.add_argument(
+        "--release-beacon",
+        metavar="IPV4:PORT",
+        help="listen for barrier releases broadcast by the daemon (e.g. 127.255.255.255:14650 on one "
+        "host, the LAN's broadcast address on a field network); the TCP release still counts",
+    )
     p.add_argument("--config", type=Path, help="TOML configuration file (docs/configuration.md)")
     p.set_defaults(run=run)
     p.set_defaults(parser_defaults=argparse.Namespace(**{a.dest: a.default for a in p._actions}))
@@ -201,6 +215,7 @@ def _shared(run_parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
         "--tls-server-name",
         "--tlog",
         "--mavlink-signing-key-file",
+        "--release-beacon",
     )
     for action in run_parser._actions:
         if action.option_strings and action.option_strings[0] in names:

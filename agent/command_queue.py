@@ -192,6 +192,23 @@ class CommandQueue:
         self._releases.add(step)
         self._release_event.set()
 
+    def awaits_release(self, mission_id: str, step: int) -> bool:
+        """True when the queue waits for the release of ``step``, which it has not had yet.
+
+        That is the barrier it waits at, or the last step it completed (a rejoin's barrier before
+        its wait starts): at most two steps at any time. The release beacon (agent/beacon.py)
+        checks this before it spends any hashing on a datagram.
+        """
+        return (
+            mission_id == self.mission_id
+            and step not in self._releases
+            and (step == self.waiting_sync or step == self.completed_step)
+        )
+
+    def released(self, mission_id: str, step: int) -> bool:
+        """True when ``step`` of the current mission was released already (by TCP or a beacon)."""
+        return mission_id == self.mission_id and step in self._releases
+
     async def _run(self) -> None:
         while True:
             while not self._pending or self.paused:

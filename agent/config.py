@@ -7,6 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from protocol.beacon import parse_beacon_address
 from protocol.packets import AgentParameters, Capabilities
 
 Reaction = Literal["report", "rtl", "land", "hold"]
@@ -103,6 +104,18 @@ class AgentConfig(BaseModel):
     takeoff_tolerance: float = Field(default=0.95, gt=0.5, le=1.0, description="fraction of target altitude")
     resend_target_s: float = Field(default=3.0, gt=0.0, description="re-send unacknowledged position targets")
     monitor_period_s: float = Field(default=0.25, gt=0.0)
+    release_beacon: str | None = Field(
+        default=None,
+        description="IPV4:PORT to listen on for release beacons (UDP broadcast, protocol/beacon.py), "
+        "e.g. 127.255.255.255:14650 on one host or 192.168.1.255:14650 on a LAN; None: TCP releases only",
+    )
+
+    @field_validator("release_beacon")
+    @classmethod
+    def _check_release_beacon(cls, value: str | None) -> str | None:
+        if value is not None:
+            parse_beacon_address(value)
+        return value
 
     @field_validator("daemons")
     @classmethod

@@ -4,7 +4,8 @@ Checks, in order: the key (readable, long enough, not world-readable), the autop
 (heartbeat, GPS, battery, home), the daemon link (TCP/TLS connect and the full authenticated
 handshake with the key, round-trip time), time sync (clock offset against the daemon's
 ``server_time`` in the accept, NTP state) and clock drift (the offset measured twice,
-``drift_interval_s`` apart). Exit code 0 when nothing failed.
+``drift_interval_s`` apart), and with ``release_beacon`` set, whether the agent can listen for
+release beacons there. Exit code 0 when nothing failed.
 
 The handshake uses the agent's own identity by default and is a *probe* (``probe: true`` in the
 type-0 request): the daemon authenticates it and answers without a CID, so the check never
@@ -24,9 +25,11 @@ from pathlib import Path
 from typing import Literal
 
 from agent.autopilot.base import Autopilot
+from agent.beacon import beacon_socket
 from agent.config import AgentConfig
 from agent.link import client_tls_context
 from protocol import auth
+from protocol.beacon import parse_beacon_address
 from protocol.packets import SUPPORTED_VERSIONS, Close, CloseReason
 from protocol.session import V1_DAEMON, ClientHandshake, Refused
 from protocol.stream import FramedStream
@@ -320,4 +323,23 @@ async def diagnose(
     else:
         await check_autopilot(report, autopilot, timeout)
     await check_daemon(report, config, identity or config.identity, timeout, drift_interval_s)
+    check_release_beacon(report, config)
     return report
+
+
+def check_release_beacon(report: Report, config: AgentConfig) -> None:
+    """With ``release_beacon`` set: can the agent listen there (beside a running agent)?"""
+    if config.release_beacon is None:
+        return
+    try:
+        beacon_socket(parse_beacon_address(config.release_beacon)).close()
+    except OSError as exc:
+        report.add(
+            "release beacon",
+            "warn",
+            f"cannot listen on {config.release_beacon}: {exc.strerror or exc}",
+            "use the broadcast address of a network this machine is on (`ip -br addr`), or "
+            "127.255.255.255 on one host; until then barriers wait for their TCP release",
+        )
+    else:
+        report.add("release beacon", "ok", f"can listen on {config.release_beacon}")

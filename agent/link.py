@@ -142,6 +142,7 @@ class DaemonLink:
         self.stopped: str | None = None  # why the link gave up for good (a `stop` code)
         self.was_lost = False  # the daemon said it had marked us lost (v2 `accepted.lost`)
         self.compact_status = False  # the daemon accepted the compact binary status body (v2)
+        self.offer_release_beacon = False  # the agent listens for release beacons (agent/beacon.py)
         self.replayed = 0  # buffered status reports sent after outages
         self.thinned = 0  # buffered status reports left out of a replay
         self._stream: FramedStream | None = None
@@ -264,16 +265,9 @@ class DaemonLink:
     async def _session(self, stream: FramedStream) -> None:
         self._stream = stream
         self.compact_status = False
-        handshake = ClientHandshake(
-            self.config.identity,
-            self._key,
-            versions=self.versions,
-            capabilities=self.config.capabilities,
-            compact_status=True,
-        )
         accepted = await client_handshake(
             stream,
-            handshake,
+            self.handshake(),
             home=self._home(),
             resume=self._resume(),
             timeout=self.config.handshake_timeout_s,
@@ -306,6 +300,17 @@ class DaemonLink:
                     return
         except TimeoutError:  # a silent partition: TCP open, nothing flowing (the daemon keeps alive)
             raise ConnectionError(f"nothing from the daemon for {self.config.daemon_silence_s:g} s") from None
+
+    def handshake(self) -> ClientHandshake:
+        """This session's handshake: our versions, the compact status offer, the release beacon offer."""
+        return ClientHandshake(
+            self.config.identity,
+            self._key,
+            versions=self.versions,
+            capabilities=self.config.capabilities,
+            compact_status=True,
+            release_beacon=self.offer_release_beacon,
+        )
 
     async def _flush_control(self) -> None:
         while self._control_backlog and self.connected:

@@ -15,6 +15,7 @@ from agent.autopilot.base import (
     FenceSpec,
     Telemetry,
 )
+from agent.beacon import BeaconListener
 from agent.command_queue import CommandQueue, sanity_violation
 from agent.config import AgentConfig
 from agent.executor import ActionExecutor
@@ -23,6 +24,7 @@ from agent.monitor import ExceptionMonitor, finite_or_zero
 from agent.tasks import cancel_and_wait
 from protocol.actions import Action
 from protocol.auth import parse_key
+from protocol.beacon import parse_beacon_address
 from protocol.packets import (
     ActionFailure,
     Battery,
@@ -119,6 +121,11 @@ class Agent:
             resume=self._resume,
             current_status=self._build_status,
         )
+        self.beacon: BeaconListener | None = None  # release beacons: only when configured
+        if config.release_beacon is not None:
+            address = parse_beacon_address(config.release_beacon)
+            self.beacon = BeaconListener(address, self.queue, self._release)
+            self.link.offer_release_beacon = True
         self.monitor = ExceptionMonitor(
             autopilot,
             self.settings,
@@ -151,6 +158,8 @@ class Agent:
         await cancel_and_wait(self._tasks)
         self._tasks = []
         await self.link.stop()
+        if self.beacon is not None:
+            await self.beacon.close()
         await self.queue.stop()
         await self.autopilot.close()
 
@@ -204,6 +213,8 @@ class Agent:
     # --- handlers -------------------------------------------------------------------------------
 
     async def _on_actions(self, packet: PerformActions) -> None:
+        if packet.release_anchor is not None and self.beacon is not None:
+            await self.beacon.arm(packet.mission_id, packet.release_anchor)
         failsafe = self.monitor.failsafe
         if failsafe is not None:
             if packet.source != "operator":
@@ -265,7 +276,11 @@ class Agent:
         return True
 
     async def _on_release(self, signal: SyncSignal) -> None:
-        self.queue.release(signal.mission_id, signal.step)
+        self._release(signal.mission_id, signal.step)
+
+    def _release(self, mission_id: str, step: int) -> None:
+        """A barrier release, by TCP (type 5) or by a release beacon: whichever comes first counts."""
+        self.queue.release(mission_id, step)
 
     async def _on_parameters(self, packet: SetParameters) -> None:
         if packet.parameters is not None:
