@@ -573,6 +573,7 @@ class Client:
         self.closed = False
         self.releases: dict[int, float] = {}  # step -> kernel receive time of its TCP release
         self.beacons: dict[int, float] = {}  # step -> kernel receive time of its verified beacon
+        self.beacon_read: dict[int, float] = {}  # step -> when this process read that beacon
         self.read_at: dict[int, float] = {}  # step -> when this process first read either
         self.release_event = asyncio.Event()
         self.verifiers: dict[str, Any] = {}  # mission id -> protocol.beacon.ReleaseVerifier
@@ -678,6 +679,7 @@ def read_beacons(client: Client) -> None:
             client.rejected += 1  # a forgery, a replay, or a mission this agent has no anchor of
             continue
         client.beacons.setdefault(beacon.step, _kernel_stamp(ancillary, read))
+        client.beacon_read.setdefault(beacon.step, read)
         client.read_at.setdefault(beacon.step, read)
         client.release_event.set()
 
@@ -870,7 +872,12 @@ async def _worker(
                         await asyncio.wait_for(c.release_event.wait(), max(0.01, deadline - time.monotonic()))
             for c in clients:  # a beacon in a socket not yet read still counts at its kernel stamp
                 read_beacons(c)
-            conn.send([(c.releases.get(step), c.read_at.get(step), c.beacons.get(step)) for c in clients])
+            conn.send(
+                [
+                    (c.releases.get(step), c.read_at.get(step), c.beacons.get(step), c.beacon_read.get(step))
+                    for c in clients
+                ]
+            )
         elif command == "rejected":  # datagrams on the beacon port not taken as a release
             conn.send(sum(c.rejected for c in clients))
         elif command == "close":
@@ -1079,9 +1086,8 @@ class _BarrierStats:
         self.in_daemon: list[float] = []  # last arrival -> the burst written to every member's socket
         self.writing: list[float] = []  # the burst itself (every member's socket written)
         self.storing: list[float] = []  # barrier complete -> the first send (the release stored first)
-        self.gc_in_release: list[
-            float
-        ] = []  # garbage collection between the last arrival and the burst's end
+        self.gc_in_release: list[float] = []  # gc between the last arrival and the burst's end
+        self.per_step_read: list[float] = []  # as per_step, a beacon's arrival bounded by its read too
         self.sendto: list[float] = []  # the daemon's beacon sendto (on loopback: the whole fan-out)
         self.sendto_cpu: list[float] = []  # of which the daemon's thread was on the CPU
         self.to_beacon: list[float] = []  # last arrival -> the beacon's sendto returned
@@ -1090,17 +1096,21 @@ class _BarrierStats:
         self.heard = 0  # members that got a verified beacon
         self.beacon_first = 0  # members released by the beacon before their TCP release
 
-    def add(self, stamps: list[tuple[Any, Any, Any]], daemon: tuple[Any, ...]) -> str:
-        """One barrier's stamps (per member: TCP kernel, first read, beacon kernel); '' or why it failed."""
+    def add(self, stamps: list[tuple[Any, Any, Any, Any]], daemon: tuple[Any, ...]) -> str:
+        """One barrier's stamps and the daemon's; '' or why the barrier failed.
+
+        Per member: its TCP release's kernel stamp, its first read of a release, its verified
+        beacon's kernel stamp and when its process read that beacon.
+        """
         last_arrival, complete, started, written, gc_s, beacon = daemon
         self.gc_in_release.append(gc_s)
         if self.mode == "tcp" and beacon is not None:  # the runner must read its sender at each release
             return "a beacon went out on a TCP-only barrier (the bench's switch did not hold)"
-        if last_arrival is None or any(tcp is None for tcp, _, _ in stamps):
-            return f"{sum(tcp is None for tcp, _, _ in stamps)} not released"
-        released = []
-        for tcp, _, heard in stamps:
-            at = tcp
+        if last_arrival is None or any(tcp is None for tcp, _, _, _ in stamps):
+            return f"{sum(tcp is None for tcp, _, _, _ in stamps)} not released"
+        released, released_read = [], []
+        for tcp, _, heard, heard_read in stamps:
+            at = at_read = tcp
             if heard is not None and beacon is not None:
                 # The kernel stamps a broadcast once, before it is cloned to every socket; on
                 # loopback the clones are made inside the daemon's sendto, so a member's copy is
@@ -1110,11 +1120,16 @@ class _BarrierStats:
                 if arrival < tcp:
                     self.beacon_first += 1
                     at = arrival
+                # The return also counts time the daemon was off the CPU after the fan-out; the
+                # member's own read of the copy is an upper bound as hard (printed beside).
+                at_read = min(tcp, max(heard, min(beacon[1], heard_read)))
             released.append(at)
+            released_read.append(at_read)
         self.members += len(stamps)
         self.per_step.append(max(released) - last_arrival)
+        self.per_step_read.append(max(released_read) - last_arrival)
         self.per_agent += [t - last_arrival for t in released]
-        self.read_step.append(max(read for _, read, _ in stamps) - last_arrival)
+        self.read_step.append(max(read for _, read, _, _ in stamps) - last_arrival)
         if complete is not None:
             self.to_barrier.append(complete - last_arrival)
         if written is not None:
@@ -1127,7 +1142,7 @@ class _BarrierStats:
             self.sendto.append(beacon[1] - beacon[0])
             self.sendto_cpu.append(beacon[3])
             self.to_beacon.append(beacon[1] - last_arrival)
-            heard_at = [h for _, _, h in stamps if h is not None]
+            heard_at = [h for _, _, h, _ in stamps if h is not None]
             if heard_at:
                 self.stamp_early.append(beacon[1] - max(heard_at))
         return ""
@@ -1137,6 +1152,7 @@ class _BarrierStats:
             name: (percentile(values, 0.5) * 1000, percentile(values, 0.99) * 1000)
             for name, values in (
                 ("last_release", self.per_step),
+                ("last_release_read_bound", self.per_step_read),
                 ("per_agent_release", self.per_agent),
                 ("last_read", self.read_step),
                 ("to_barrier", self.to_barrier),
@@ -1239,7 +1255,10 @@ def _print_barrier(row: dict[str, Any]) -> None:
             f"(on the CPU p50 {row['beacon_sendto_cpu_p50_ms']:.3f} ms "
             f"p99 {row['beacon_sendto_cpu_p99_ms']:.3f} ms), arrival -> sendto returned "
             f"p50 {row['to_beacon_p50_ms']:.3f} ms p99 {row['to_beacon_p99_ms']:.3f} ms "
-            f"(the kernel's stamp p50 {row['beacon_stamp_before_return_p50_ms']:.3f} ms before that return)"
+            f"(the kernel's stamp p50 {row['beacon_stamp_before_return_p50_ms']:.3f} ms before that return); "
+            f"last release with a beacon's arrival bounded by its member's read too "
+            f"p50 {row['last_release_read_bound_p50_ms']:.2f} ms "
+            f"p99 {row['last_release_read_bound_p99_ms']:.2f} ms"
         )
     print(
         f"  {row['mode']:>6} {row['agents']:>6} agents  last arrival -> last release "
