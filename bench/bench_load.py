@@ -56,7 +56,10 @@ from array import array
 from collections.abc import Sequence
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from protocol.beacon import ReleaseVerifier
 
 RESULTS = Path(__file__).resolve().parent / "results"
 BIN = Path(sys.executable).parent
@@ -576,7 +579,7 @@ class Client:
         self.beacon_read: dict[int, float] = {}  # step -> when this process read that beacon
         self.read_at: dict[int, float] = {}  # step -> when this process first read either
         self.release_event = asyncio.Event()
-        self.verifiers: dict[str, Any] = {}  # mission id -> protocol.beacon.ReleaseVerifier
+        self.verifiers: dict[str, ReleaseVerifier] = {}  # mission id -> its chain's check
         self.rejected = 0  # datagrams on the beacon port that were not a verified, new release
         self.udp = _beacon_socket(beacon_port) if beacon_port is not None else None
 
