@@ -168,6 +168,7 @@ async def _server(
     # step -> (sendto began, returned, sent, the thread's CPU seconds in it: the rest it was off the CPU)
     beacon_sent: dict[int, tuple[float, float, bool, float]] = {}
     beacon_sender: Any = None  # the daemon's gcs.beacon.BeaconSender (release_beacon configured)
+    release_parts: dict[int, list[float]] = {}  # step -> [row began, row done, event began, event done]
     # Arrays of doubles, not lists of floats: this process's RSS is the daemon's memory figure, and a
     # list costs 32 B per report (2-3 KiB per agent over a trial), an array 8.
     latencies = array("d")  # agent timestamp -> written into the daemon's status table
@@ -237,6 +238,8 @@ async def _server(
                 release(mission, step)
 
             daemon.missions._release_now = release_and_stamp  # type: ignore[method-assign]
+            if os.environ.get("BENCH_RELEASE_PARTS"):  # diagnosis: where storing a release goes
+                _stamp_release_parts(daemon.missions, release_parts)
         else:  # the code before issue 16's round 4 (paired trials against an older tree)
             release_async = daemon.missions._release
 
@@ -415,6 +418,19 @@ async def _server(
             conn.send(
                 (begin, completed.get(step), burst_started.get(step), end, in_release, beacon_sent.get(step))
             )
+        elif command == "parts":  # BENCH_RELEASE_PARTS: step -> barrier complete -> first send, in parts
+            parts = {}
+            for step, (row_at, row_done, event_at, event_done) in release_parts.items():
+                mark = beacon_sent.get(step)
+                first_send = mark[0] if mark is not None else burst_started.get(step)
+                if step in completed and first_send is not None:
+                    parts[step] = (
+                        row_at - completed[step],  # gc off, the write lock (the telemetry writer's row)
+                        row_done - row_at,  # the release row
+                        event_done - event_at,  # the event (its row, the subscribers)
+                        first_send - event_done,  # the commit, and to the first send
+                    )
+            conn.send(parts)
         elif command == "beacon":  # (on): the release beacon for the next releases, or TCP only
             if daemon is not None and beacon_sender is not None:
                 # None is the runner's own "not configured" path; the mission keeps its chain.
@@ -434,6 +450,28 @@ async def _server(
         server.close()
     data_dir.cleanup()
     conn.send(stop_note)
+
+
+def _stamp_release_parts(missions: Any, parts: dict[int, list[float]]) -> None:
+    """Time the writes inside a release (``BENCH_RELEASE_PARTS=1``): the row and the event."""
+    store, events = missions._store, missions._events
+    record, publish = store.record_release, events.publish
+
+    def record_and_stamp(mission_id: str, step: int) -> None:
+        began = time.time()
+        record(mission_id, step)
+        parts[step] = [began, time.time()]
+
+    def publish_and_stamp(kind: str, *args: Any, **kwargs: Any) -> Any:
+        began = time.time()
+        event = publish(kind, *args, **kwargs)
+        step = (kwargs.get("data") or {}).get("step")
+        if kind == "sync_released" and step in parts:
+            parts[step] += [began, time.time()]
+        return event
+
+    store.record_release = record_and_stamp
+    events.publish = publish_and_stamp
 
 
 def _object_counts() -> tuple[collections.Counter[str], collections.Counter[str]]:
@@ -1238,12 +1276,30 @@ def barrier_trial(agents: int, steps: int, beacon: bool = True) -> list[dict[str
                 break
             time.sleep(0.05)
         rejected = sum(harness.workers_call("rejected"))
+        if os.environ.get("BENCH_RELEASE_PARTS"):
+            _print_release_parts(harness.server_call("parts"), [stats.mode for stats in modes])
     finally:
         harness.close()
     rows = [stats.row(agents, failed) for stats in modes]
     for row in rows:
         row["beacon_datagrams_rejected"] = rejected  # by the members' verifiers: 0 unless forged or replayed
     return rows
+
+
+def _print_release_parts(parts: dict[int, tuple[float, ...]], modes: list[str]) -> None:
+    """Barrier complete -> first send, in parts, p50 / p99 per mode (``BENCH_RELEASE_PARTS=1``)."""
+    names = ("gc off + write lock", "release row", "event", "commit -> first send")
+    for index, mode in enumerate(modes):
+        rows = [v for step, v in parts.items() if step % len(modes) == index]
+        cols = [[row[i] for row in rows] for i in range(len(names))]
+        print(
+            f"  {mode:>6} barrier complete -> first send, in parts (p50 / p99 ms): "
+            + ", ".join(
+                f"{name} {percentile(col, 0.5) * 1000:.3f} / {percentile(col, 0.99) * 1000:.3f}"
+                for name, col in zip(names, cols, strict=True)
+            ),
+            flush=True,
+        )
 
 
 def _print_barrier(row: dict[str, Any]) -> None:
