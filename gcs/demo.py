@@ -12,6 +12,7 @@ import contextlib
 import math
 import os
 import secrets
+import socket
 import sys
 import tempfile
 import time
@@ -65,6 +66,7 @@ class DemoResult:
     mission_wall_s: float = 0.0  # from submit (pre-flight wait included) to the mission's end
     predicted: dict[str, EnergyPrediction] = field(default_factory=dict)  # before take-off
     speedup: float = 1.0  # asked of the simulator
+    beacons: int = 0  # barrier releases announced by UDP release beacon (protocol/beacon.py)
 
 
 class DemoError(RuntimeError):
@@ -145,8 +147,15 @@ async def _start_simulator(options: DemoOptions) -> tuple[asyncio.subprocess.Pro
         raise DemoError("the simulator did not report READY within 30 s") from None
 
 
+def _loopback_beacon_address() -> str:
+    """The loopback broadcast address on a UDP port free now: this demo's release beacons."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return f"127.255.255.255:{probe.getsockname()[1]}"
+
+
 async def _start_agents(
-    endpoints: list[str], names: list[str], port: int, key_file: Path, quiet: bool
+    endpoints: list[str], names: list[str], port: int, key_file: Path, quiet: bool, beacon: str
 ) -> list[asyncio.subprocess.Process]:
     processes = []
     for name, endpoint in zip(names, endpoints, strict=True):
@@ -166,6 +175,8 @@ async def _start_agents(
                 str(key_file),
                 "--max-speed",
                 "10",
+                "--release-beacon",
+                beacon,
                 stderr=asyncio.subprocess.DEVNULL if quiet else None,
             )
         )
@@ -211,6 +222,7 @@ async def run_demo(options: DemoOptions) -> DemoResult:
     temp = None if options.data_dir else tempfile.TemporaryDirectory(prefix="fleetgcs-demo-")
     data_dir = options.data_dir or Path(temp.name)  # type: ignore[union-attr]
     key_hex = secrets.token_hex(32)
+    beacon = _loopback_beacon_address()  # barrier releases by one datagram, then TCP (docs/protocol.md)
     key_file = data_dir / "fleet.key"
     data_dir.mkdir(parents=True, exist_ok=True)
     key_file.write_text(key_hex + "\n")
@@ -226,6 +238,7 @@ async def run_demo(options: DemoOptions) -> DemoResult:
             data_dir=data_dir,
             fleet_key_hex=key_hex,
             status_period_s=0.2,
+            release_beacon=beacon,
         )
     )
     recorder = FlightRecorder(time_scale=options.speedup)
@@ -250,7 +263,7 @@ async def run_demo(options: DemoOptions) -> DemoResult:
         _say(options, f"daemon on 127.0.0.1:{daemon.listen_port}; starting {options.drones} {kind} vehicles")
         sim_process, endpoints = await _start_simulator(options)
         simulator.append(sim_process)
-        agents += await _start_agents(endpoints, names, daemon.listen_port, key_file, options.quiet)
+        agents += await _start_agents(endpoints, names, daemon.listen_port, key_file, options.quiet, beacon)
         deadline = time.monotonic() + 60
         while not all(daemon.agents.session(n) is not None for n in names):
             if time.monotonic() > deadline:
@@ -282,7 +295,10 @@ async def run_demo(options: DemoOptions) -> DemoResult:
         landed = {n: bool((r := recorder.records.get(n)) and r.landed and not r.armed) for n in names}
         ok = progress is not None and progress.state == "completed" and all(landed.values())
         message = progress.result if progress and progress.result else "no result"
-        return DemoResult(ok, progress, recorder, landed, message, mission_wall_s, predicted, options.speedup)
+        beacons = daemon.missions.beacon.sent if daemon.missions.beacon is not None else 0
+        return DemoResult(
+            ok, progress, recorder, landed, message, mission_wall_s, predicted, options.speedup, beacons
+        )
     finally:
         await _stop(agents)  # agents first, so none sees its autopilot vanish
         await _stop(simulator)
@@ -319,6 +335,11 @@ def summary_table(result: DemoResult) -> str:
         lines.append(f"simulator speed-up: {worst:.2f}x of {result.speedup:g}x asked, {note}")
     else:
         lines.append("vehicle clock not reported: times and energy above are wall time x speed-up")
+    if result.mission is not None:
+        lines.append(
+            f"barriers released: {len(result.mission.released_steps)}, "
+            f"announced by UDP release beacon: {result.beacons} (each also sent over TCP)"
+        )
     state = result.mission.state if result.mission else "unknown"
     lines.append(f"mission: {state} ({result.message}); result: {'SUCCESS' if result.ok else 'FAILURE'}")
     return "\n".join(lines)

@@ -104,9 +104,15 @@ def assert_pair_separated(truth: list[list[tuple[float, ...]]]) -> float:
 
 
 def mavlink_agent(
-    name: str, port: int, key: str, endpoint: str, settings: AgentSettings | None = None
+    name: str,
+    port: int,
+    key: str,
+    endpoint: str,
+    settings: AgentSettings | None = None,
+    options: dict[str, Any] | None = None,
 ) -> Agent:
-    """An in-process agent on the MAVLink backend, its timers shortened for SPEEDUP."""
+    """An in-process agent on the MAVLink backend, its timers shortened for SPEEDUP (``options``:
+    more AgentConfig fields)."""
     return Agent(
         AgentConfig(
             identity=name,
@@ -117,6 +123,7 @@ def mavlink_agent(
             reconnect_max_s=0.5,
             resend_target_s=0.4,
             monitor_period_s=0.05,
+            **(options or {}),
         ),
         MavlinkAutopilot(endpoint, telemetry_hz=20.0),
     )
@@ -160,6 +167,7 @@ async def rig(
     settings: AgentSettings | None = None,
     fleet_options: dict[str, Any] | None = None,
     spacing_m: float = SPACING_M,
+    agent_options: dict[str, Any] | None = None,
     **daemon_options: Any,
 ) -> AsyncIterator[Rig]:
     key = secrets.token_hex(32)
@@ -185,7 +193,7 @@ async def rig(
     sampler = threading.Thread(target=_sample_truth, args=(fleet, truth, stop), daemon=True)
 
     def make_agent(name: str, port: int) -> Agent:
-        return mavlink_agent(name, port, key, endpoints[name], settings)
+        return mavlink_agent(name, port, key, endpoints[name], settings, agent_options)
 
     the_rig = Rig(daemon, fleet, agents, names, truth, make_agent)
     tasks = the_rig.tasks

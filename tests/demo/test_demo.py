@@ -36,6 +36,12 @@ def test_gcs_demo_flies_three_drones_to_a_landed_finish(tmp_path: Path) -> None:
     # The daemon kept its record: a completed mission with every sync step released.
     assert (tmp_path / "fleetgcs.sqlite").exists()
     assert "sync_released: step 0 released to 3 agents" in result.stderr
+    # Every release was announced by UDP beacon too, and the agents acted on beacons.
+    announced = re.search(
+        r"^barriers released: (\d+), announced by UDP release beacon: (\d+)", result.stdout, re.M
+    )
+    assert announced and int(announced[1]) >= 2 and announced[1] == announced[2], result.stdout[-2000:]
+    assert "release beacon accepted" in result.stderr, result.stderr[-3000:]
 
 
 def test_demo_mission_syncs_takeoff_and_survey_end_for_every_drone() -> None:
