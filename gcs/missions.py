@@ -625,35 +625,42 @@ class MissionRunner:
         self._release_now(mission, step)
 
     def _release_now(self, mission: ActiveMission, step: int) -> None:
-        """Persist the release of ``step``, then write it to every member's socket in one pass.
+        """Make the release of ``step`` durable, announce it, write it to every member's socket in
+        one pass, then record it in the database.
 
-        The release row and its event are one transaction (a kill -9 between the two lost the
-        event once), committed before anyone hears of it. The store's write lock is taken ahead
-        of the telemetry writer (``Store.write_priority``: its chunk in progress commits after the next
-        row) and held through the burst, so the writer thread waits blocked instead of competing
-        with this thread for the GIL while the sockets are written (each ``send`` lets another
-        thread run, which may then keep the GIL for up to the switch interval). The garbage
-        collector is off for the same span (it runs at the next allocation threshold after).
+        Durable first: one append to the release journal (``Store.journal_release``; no lock, no
+        transaction), so an agent never hears of a release a restarted daemon would not know.
+        Then the beacon (one datagram for every listening member) and the TCP burst. The release
+        row and its event follow as one transaction (a kill -9 between the two lost the event once;
+        between the journal and this transaction the store recovers both when it opens).
+        ``write_wanted`` is set through the burst: the telemetry writer ends its chunk at the next
+        row and waits, instead of competing with this thread for the GIL while the sockets are
+        written (each ``send`` lets another thread run, which may then keep the GIL for up to the
+        switch interval). The garbage collector is off for the same span.
         """
         mission.barriers.mark_released(step)
         members = sorted(mission.barriers.members)
         release = SyncSignal(mission_id=mission.id, step=step, kind="release")
+        store = self._store
         collecting = gc.isenabled()
         gc.disable()
+        store.write_wanted.set()
         try:
-            with self._store.write_priority():
-                with self._store.atomic():
-                    self._store.record_release(mission.id, step)
-                    self._events.publish(
-                        "sync_released",
-                        f"step {step} released to {len(members)} agents",
-                        mission_id=mission.id,
-                        data={"step": step, "agents": members},
-                    )
-                self._announce(mission, step)  # one datagram for every listening member first
-                # One burst: encoded once, written to every member's socket in this pass.
-                self._agents.burst(members, release)
+            at = store.journal_release(mission.id, step)
+            self._announce(mission, step)  # one datagram for every listening member first
+            # One burst: encoded once, written to every member's socket in this pass.
+            self._agents.burst(members, release)
+            with store.atomic():
+                store.record_release(mission.id, step, at)
+                self._events.publish(
+                    "sync_released",
+                    f"step {step} released to {len(members)} agents",
+                    mission_id=mission.id,
+                    data={"step": step, "agents": members},
+                )
+            store.release_recorded()
         finally:
+            store.write_wanted.clear()
             if collecting:
                 gc.enable()
         timer = mission.timers.pop(step, None)

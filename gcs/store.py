@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import sqlite3
 import threading
@@ -21,6 +22,10 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from gcs.release_journal import ReleaseJournal
+
+log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 3
 MAX_CID = 65_535  # the wire's cid range (docs/protocol.md, type 1)
@@ -185,6 +190,7 @@ class Store:
             with contextlib.suppress(OSError):
                 os.chmod(file, 0o600)  # the WAL and shared-memory files take the database's mode
         self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        self.journal: ReleaseJournal | None = None
         # Held around every write transaction in this process (the loop's small ones and the
         # telemetry writer's chunks): a writer waiting here is woken the moment the other is
         # done, where SQLite's own busy handler would sleep in growing steps (up to 100 ms).
@@ -200,6 +206,9 @@ class Store:
             if check != "ok":
                 raise sqlite3.DatabaseError(check)
             self._migrate()
+            if self.path != ":memory:":
+                self.journal = ReleaseJournal(Path(self.path + "-releases"))
+                self.recover_releases()
         except sqlite3.DatabaseError as exc:
             self._db.close()
             raise StoreError(
@@ -214,6 +223,8 @@ class Store:
             self._db.executescript(f"BEGIN; {_MIGRATIONS[target]} PRAGMA user_version={target}; COMMIT;")
 
     def close(self) -> None:
+        if self.journal is not None:
+            self.journal.close()
         self._db.close()
 
     # --- agents ---------------------------------------------------------------------------------
@@ -330,11 +341,55 @@ class Store:
         )
         return {str(a): (int(s), bool(e)) for a, s, e in rows}
 
-    def record_release(self, mission_id: str, step: int) -> None:
+    def journal_release(self, mission_id: str, step: int) -> float:
+        """The release of ``step`` made durable before it is sent (:mod:`gcs.release_journal`): one
+        append, no lock, no transaction. Its row follows with :meth:`record_release`; returns the
+        release time to give it."""
+        at = time.time()
+        if self.journal is not None:
+            self.journal.append(mission_id, step, at)
+        return at
+
+    def record_release(self, mission_id: str, step: int, at: float | None = None) -> None:
+        """The release row (inside the caller's transaction, with its event): after a
+        :meth:`journal_release`, :meth:`release_recorded` once it is committed."""
         self._write(
             "INSERT OR IGNORE INTO releases(mission_id, step, released_at) VALUES (?,?,?)",
-            (mission_id, step, time.time()),
+            (mission_id, step, time.time() if at is None else at),
         )
+
+    def release_recorded(self) -> None:
+        """The journaled release's row is committed (the journal may be emptied)."""
+        if self.journal is not None:
+            self.journal.recorded()
+
+    def recover_releases(self) -> list[tuple[str, int]]:
+        """Releases journaled but not in the database (the daemon died between the two): written
+        now, each with its ``sync_released`` event, in one transaction; then the journal is
+        emptied. Returns what was recovered. A release of a mission the database does not hold is
+        skipped (logged)."""
+        if self.journal is None:
+            return []
+        recovered: list[tuple[str, int]] = []
+        with self.atomic():
+            for mission_id, step, at in self.journal.entries():
+                if self.mission(mission_id) is None:
+                    log.warning("release journal: step %d of unknown mission %s skipped", step, mission_id)
+                    continue
+                if step in self.released_steps(mission_id):
+                    continue
+                self.record_release(mission_id, step, at)
+                self.add_event(
+                    "sync_released",
+                    "info",
+                    f"step {step} released (recovered from the release journal after a restart)",
+                    mission_id=mission_id,
+                    data={"step": step, "recovered": True},
+                    at=at,
+                )
+                recovered.append((mission_id, step))
+        self.journal.clear()
+        return recovered
 
     def released_steps(self, mission_id: str) -> set[int]:
         return {

@@ -116,7 +116,16 @@ class ClusterStore(Store):
             for k, v in self.state.json_values("progress", prefix).items()
         }
 
-    def record_release(self, mission_id: str, step: int) -> None:
+    def journal_release(self, mission_id: str, step: int) -> float:
+        """Nothing to journal: the compare-and-set claim in shared state (:meth:`ClusterState.create`)
+        made the release durable before the runner sends it."""
+        return time.time()
+
+    def recover_releases(self) -> list[tuple[str, int]]:
+        """Releases live in shared state, never journaled here (see :meth:`journal_release`)."""
+        return []
+
+    def record_release(self, mission_id: str, step: int, at: float | None = None) -> None:
         """Already written by the compare-and-set claim (:meth:`ClusterState.create`); mirror only."""
         self.state.mirror["barriers"].setdefault(f"{mission_id}.{step}.released", b"%f" % time.time())
 

@@ -1,14 +1,16 @@
-"""A barrier release against a real daemon and real TCP agents: one burst, persisted first.
+"""A barrier release against a real daemon and real TCP agents: one burst, journaled first.
 
 The agents are the stdlib agent of docs/protocol.md on blocking sockets in threads, so they
 observe the daemon from outside its event loop. The test holds the store's write lock while the
-last agent arrives: a daemon that sent the release before persisting it would be seen by the
-agents with no release row and no ``sync_released`` event in the database.
+last agent arrives: the release must reach every agent anyway (it no longer waits for the
+database), each agent must find it in the release journal when it hears it (durable before it is
+sent), and the release row and its event must be in the database once the lock is free.
 """
 
 from __future__ import annotations
 
 import asyncio
+import json
 import sqlite3
 import threading
 import time
@@ -41,8 +43,14 @@ def _persisted(db_path: str, mission_id: str, step: int) -> tuple[bool, bool]:
         db.close()
 
 
+def _journaled(db_path: str, mission_id: str, step: int) -> bool:
+    """The release is a line of the release journal beside the database (gcs/release_journal.py)."""
+    entries = [json.loads(line) for line in Path(db_path + "-releases").read_text().splitlines()]
+    return any(entry["m"] == mission_id and entry["s"] == step for entry in entries)
+
+
 def _await_release(agent: StdlibAgent, mission_id: str, step: int, db_path: str, out: dict[str, Any]) -> None:
-    """Read frames until the release of ``step``; note when it came and what the database held then."""
+    """Read frames until the release of ``step``; note when it came and whether it was journaled then."""
     deadline = time.monotonic() + 20
     while time.monotonic() < deadline:
         try:
@@ -50,11 +58,11 @@ def _await_release(agent: StdlibAgent, mission_id: str, step: int, db_path: str,
         except TimeoutError:
             continue
         if ptype == 5 and body.get("kind") == "release" and body.get("mission_id") == mission_id:
-            out[agent.identity] = (time.time(), body["step"], _persisted(db_path, mission_id, step))
+            out[agent.identity] = (time.time(), body["step"], _journaled(db_path, mission_id, step))
             return
 
 
-async def test_a_release_reaches_every_member_in_one_burst_after_it_is_persisted(tmp_path: Path) -> None:
+async def test_a_release_reaches_every_member_in_one_burst_journaled_first(tmp_path: Path) -> None:
     key = new_key()
     async with running_daemon(tmp_path, key) as daemon:
         agents = [StdlibAgent(daemon.listen_port, f"burst-{i:02d}", key) for i in range(AGENTS)]
@@ -115,10 +123,13 @@ async def test_a_release_reaches_every_member_in_one_burst_after_it_is_persisted
             members, sent, outside_tasks = bursts[0]
             assert sorted(members) == sorted(identities) and sent == AGENTS
             assert outside_tasks, "the release was sent from a hook task, not from the last arrival's frame"
-            for identity, (at, step, (row, event)) in received.items():
+            for identity, (at, step, journaled) in received.items():
                 assert step == 0
-                assert row and event, f"{identity} got the release before it was persisted"
-                assert at >= unlocked_at[0], f"{identity} got the release while the store was locked"
+                assert journaled, f"{identity} got the release before it was journaled"
+                assert at < unlocked_at[0], f"{identity} got the release only once the database was free"
+            await wait_for(
+                lambda: all(_persisted(db_path, mission_id, 0)), 10, "release row and event stored"
+            )
             assert daemon.store.released_steps(mission_id) == {0}
         finally:
             for agent in agents:
