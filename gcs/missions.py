@@ -639,8 +639,6 @@ class MissionRunner:
         switch interval). The garbage collector is off for the same span.
         """
         mission.barriers.mark_released(step)
-        members = sorted(mission.barriers.members)
-        release = SyncSignal(mission_id=mission.id, step=step, kind="release")
         store = self._store
         collecting = gc.isenabled()
         gc.disable()
@@ -649,7 +647,8 @@ class MissionRunner:
             at = store.journal_release(mission.id, step)
             self._announce(mission, step)  # one datagram for every listening member first
             # One burst: encoded once, written to every member's socket in this pass.
-            self._agents.burst(members, release)
+            members = sorted(mission.barriers.members)
+            self._agents.burst(members, SyncSignal(mission_id=mission.id, step=step, kind="release"))
             with store.atomic():
                 store.record_release(mission.id, step, at)
                 self._events.publish(
