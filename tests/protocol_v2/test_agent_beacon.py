@@ -26,7 +26,9 @@ from protocol.beacon import VALUE_BYTES, ReleaseChain, encode_beacon
 from protocol.packets import PerformActions, RequestCid, SyncSignal
 from protocol.session import ServerHandshake
 from tests.backbone.helpers import (
+    LOOPBACK_BROADCAST,
     RunningAgent,
+    free_udp_port,
     new_key,
     running_daemon,
     start_agent,
@@ -35,14 +37,7 @@ from tests.backbone.helpers import (
     wait_for,
 )
 
-BROADCAST = "127.255.255.255"
-
-
-def free_udp_port() -> int:
-    """A UDP port nothing uses right now (the kernel's pick for a throwaway socket)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
+BROADCAST = LOOPBACK_BROADCAST
 
 
 def broadcast(port: int, *datagrams: bytes) -> None:

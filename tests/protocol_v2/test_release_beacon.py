@@ -19,18 +19,19 @@ import pytest
 
 from gcs.config import DaemonConfig
 from gcs.metrics import DaemonMetrics
-from tests.backbone.helpers import new_key, running_daemon, survey_mission, wait_for
+from tests.backbone.helpers import (
+    LOOPBACK_BROADCAST,
+    free_udp_port,
+    new_key,
+    running_daemon,
+    survey_mission,
+    wait_for,
+)
 from tests.protocol_v2.stdlib_agent import StdlibAgent
 
 pytestmark = pytest.mark.timeout(90)
 
-BROADCAST = "127.255.255.255"
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
+BROADCAST = LOOPBACK_BROADCAST
 
 
 def _listener(port: int) -> socket.socket:
@@ -105,7 +106,7 @@ async def _joined(daemon: object, agents: list[StdlibAgent]) -> None:
 async def test_a_release_is_announced_by_one_stored_verifiable_beacon_then_sent_over_tcp(
     tmp_path: Path,
 ) -> None:
-    key, port = new_key(), _free_udp_port()
+    key, port = new_key(), free_udp_port()
     listener = _listener(port)
     async with running_daemon(tmp_path, key, release_beacon=f"{BROADCAST}:{port}") as daemon:
         listening = [
@@ -157,7 +158,7 @@ async def test_a_release_is_announced_by_one_stored_verifiable_beacon_then_sent_
 
 
 async def test_no_beacon_when_no_member_listens(tmp_path: Path) -> None:
-    key, port = new_key(), _free_udp_port()
+    key, port = new_key(), free_udp_port()
     listener = _listener(port)
     async with running_daemon(tmp_path, key, release_beacon=f"{BROADCAST}:{port}") as daemon:
         agents = [StdlibAgent(daemon.listen_port, f"deaf-{i}", key) for i in range(2)]

@@ -9,13 +9,13 @@ put until the operator lets it go, then the mission completes.
 from __future__ import annotations
 
 import asyncio
-import socket
 from pathlib import Path
 
 import pytest
 
 from gcs.cooperation.config import CooperationConfig
 from protocol.geo import distance_m
+from tests.backbone.helpers import beacon_address
 from tests.cooperation.rig import SPEEDUP, rig, wait_for
 from tests.scenarios.scenarios import barrier_task
 
@@ -24,14 +24,8 @@ pytestmark = pytest.mark.slow
 COOP = CooperationConfig(vehicle_time_scale=SPEEDUP)
 
 
-def _beacon_address() -> str:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return f"127.255.255.255:{probe.getsockname()[1]}"
-
-
 async def test_a_beacon_release_does_not_undo_an_operator_hold_at_the_barrier(tmp_path: Path) -> None:
-    address = _beacon_address()
+    address = beacon_address()
     async with rig(tmp_path, 2, COOP, release_beacon=address, agent_options={"release_beacon": address}) as r:
         mission_id = await r.daemon.missions.submit(barrier_task(r.names))
         await wait_for(lambda: r.status("drone-1").waiting_sync == 1, 60, "drone-1 at barrier 1")
