@@ -155,7 +155,12 @@ def _loopback_beacon_address() -> str:
 
 
 async def _start_agents(
-    endpoints: list[str], names: list[str], port: int, key_file: Path, quiet: bool, beacon: str
+    endpoints: list[str],
+    names: list[str],
+    port: int,
+    key_file: Path,
+    quiet: bool,
+    beacon: str | None = None,
 ) -> list[asyncio.subprocess.Process]:
     processes = []
     for name, endpoint in zip(names, endpoints, strict=True):
@@ -175,8 +180,7 @@ async def _start_agents(
                 str(key_file),
                 "--max-speed",
                 "10",
-                "--release-beacon",
-                beacon,
+                *(["--release-beacon", beacon] if beacon else []),
                 stderr=asyncio.subprocess.DEVNULL if quiet else None,
             )
         )
