@@ -34,6 +34,7 @@ import numpy as np
 
 from gcs.agents_table import StatusTick
 from gcs.config import TelemetryConfig
+from gcs.memory import release_free_memory
 from gcs.store import Store, checkpoint, insert_telemetry, prune_telemetry, telemetry_page_json
 from protocol.packets import StatusReport
 from protocol.status_binary import ARMED, BUFFERED, HAS_POSITION, LANDED
@@ -133,6 +134,8 @@ def _rows_of(block: RowBlock) -> Iterable[tuple[Any, ...]]:
     return block.rows() if isinstance(block, TickRows) else block
 
 
+TRIM_EVERY_S = 5.0
+"""How often the writer thread returns the allocator's free memory (gcs/memory.py)."""
 MAX_QUEUED_ROWS = 500_000
 """Rows waiting for the writer thread before the oldest are dropped (about 100 s at 500 agents x 10 Hz)."""
 HISTORY_QUERIES = 1
@@ -207,7 +210,7 @@ class TelemetryWriter:
     def _run(self) -> None:
         db = self._store.writer()
         wanted = self._store.write_wanted
-        last_prune = 0.0
+        last_prune = last_trim = 0.0
         try:
             while True:
                 self._wake.wait(self.config.flush_s)
@@ -222,6 +225,9 @@ class TelemetryWriter:
                 if self._stopping:
                     return
                 now = time.monotonic()
+                if now - last_trim >= TRIM_EVERY_S:
+                    last_trim = now
+                    release_free_memory()  # the blocks' tuples just freed: give the pages back
                 if now - last_prune >= self.config.prune_every_s:
                     last_prune = now
                     self._prune(db)
