@@ -174,9 +174,14 @@ class DroneState:
 @dataclass(frozen=True)
 class Escape:
     ident: str
-    other: str
+    blockers: tuple[str, ...]  # the drones it climbs clear of (sorted)
     target_up: float  # AMSL metres to climb to
     reason: str
+
+    @property
+    def other(self) -> str:
+        """The blockers as one name list, for messages."""
+        return ", ".join(self.blockers)
 
 
 @dataclass
@@ -228,7 +233,7 @@ class CollisionAvoider:
         climbs clear instead, if it can), and when the hold expires it is released, not re-escaped.
         """
         self.escaping.pop(escape.ident, None)
-        self.holds[escape.ident] = {o.strip() for o in escape.other.split(",") if o.strip()}
+        self.holds[escape.ident] = set(escape.blockers)
         self._held_since[escape.ident] = now
         self._last_conflict[escape.ident] = now
         self._cannot_escape.add(escape.ident)
@@ -295,8 +300,8 @@ class CollisionAvoider:
             me = drones[index[ident]]
             blockers = [drones[index[b]] for b in wanted[ident] if b in index]
             top = max([me.position[2]] + [b.position[2] for b in blockers])
-            others = ", ".join(sorted(wanted[ident]))
-            del wanted[ident]
+            wanted_by = wanted.pop(ident)
+            others = ", ".join(sorted(wanted_by))
             self.holds.pop(ident, None)
             self._held_since.pop(ident, None)
             if self.config.escape == "none" or not me.yieldable or ident in self._cannot_escape:
@@ -313,7 +318,7 @@ class CollisionAvoider:
             target = top + self.config.vertical_margin_m + self.config.escape_buffer_m
             escape = Escape(
                 ident,
-                others,
+                tuple(sorted(wanted_by)),
                 float(target),
                 f"collision avoidance: held {self.config.max_hold_s:.0f} s for {others}; climbing clear",
             )
@@ -417,7 +422,7 @@ class CollisionAvoider:
         )
         escape = Escape(
             escaper.ident,
-            other.ident,
+            (other.ident,),
             float(target),
             f"collision avoidance: climb clear of {other.ident}; {detail}",
         )
