@@ -148,6 +148,10 @@ class Consumer:
     _task: asyncio.Task[None] | None = None
     _last_slow_log: float = 0.0
 
+    def holds(self, agent: str) -> bool:
+        """Whether an event of ``agent`` (a join, sync or lost; not a status batch) waits here."""
+        return agent in self._latest
+
     def __post_init__(self) -> None:
         self._idle.set()
         self._task = asyncio.create_task(self._run(), name=f"hooks-{self.name}")
@@ -313,7 +317,7 @@ class HookDispatcher:
         right away without overtaking one of those."""
         owner = _owner(hook)
         consumer = self._consumers.get(id(owner))
-        return consumer is not None and consumer.owner is owner and agent in consumer._latest
+        return consumer is not None and consumer.owner is owner and consumer.holds(agent)
 
     def has(self, kind: HookKind) -> bool:
         """Whether any hook of ``kind`` is registered (the status tick builds reports only for them)."""
