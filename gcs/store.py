@@ -207,8 +207,15 @@ class Store:
                 raise sqlite3.DatabaseError(check)
             self._migrate()
             if self.path != ":memory:":
-                self.journal = ReleaseJournal(Path(self.path + "-releases"))
+                journal = Path(self.path + "-releases")
+                try:
+                    self.journal = ReleaseJournal(journal)
+                except OSError as exc:
+                    raise StoreError(f"cannot open the release journal {journal}: {exc}") from None
                 self.recover_releases()
+        except StoreError:
+            self._db.close()
+            raise
         except sqlite3.DatabaseError as exc:
             self._db.close()
             raise StoreError(
@@ -347,7 +354,12 @@ class Store:
         release time to give it."""
         at = time.time()
         if self.journal is not None:
-            self.journal.append(mission_id, step, at)
+            try:
+                self.journal.append(mission_id, step, at)
+            except OSError as exc:  # a full disk: the database makes it durable instead (slower)
+                where = self.journal.path
+                log.error("release journal %s: %s; the release goes to the database first", where, exc)
+                self.record_release(mission_id, step, at)
         return at
 
     def record_release(self, mission_id: str, step: int, at: float | None = None) -> None:
@@ -371,8 +383,12 @@ class Store:
         if self.journal is None:
             return []
         recovered: list[tuple[str, int]] = []
+        try:
+            entries = self.journal.entries()
+        except OSError as exc:  # refuse to start rather than forget a release agents acted on
+            raise StoreError(f"cannot read the release journal {self.journal.path}: {exc}") from None
         with self.atomic():
-            for mission_id, step, at in self.journal.entries():
+            for mission_id, step, at in entries:
                 if self.mission(mission_id) is None:
                     log.warning("release journal: step %d of unknown mission %s skipped", step, mission_id)
                     continue

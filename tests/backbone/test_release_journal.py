@@ -6,8 +6,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from gcs.release_journal import TRUNCATE_AT_BYTES
-from gcs.store import Store
+from gcs.store import Store, StoreError
 
 
 def _store_with_mission(path: Path) -> Store:
@@ -73,4 +75,25 @@ def test_the_journal_is_emptied_only_when_every_line_is_in_the_database(tmp_path
     store.record_release("m-1", steps)
     store.release_recorded()
     assert journal.path.stat().st_size == 0
+    store.close()
+
+
+def test_an_unreadable_journal_stops_the_store_from_opening(tmp_path: Path) -> None:
+    """Refusing to start beats forgetting a release the agents acted on."""
+    db = tmp_path / "fleetgcs.sqlite"
+    _store_with_mission(db).close()
+    journal = Path(str(db) + "-releases")
+    journal.unlink()
+    journal.mkdir()  # not a file: reading it fails
+    with pytest.raises(StoreError, match="the release journal"):
+        Store(db)
+
+
+def test_a_journal_that_cannot_be_written_falls_back_to_the_database(tmp_path: Path) -> None:
+    store = _store_with_mission(tmp_path / "fleetgcs.sqlite")
+    assert store.journal is not None
+    store.journal.close()  # its descriptor gone: the append fails like a full disk would
+    store.journal_release("m-1", 0)
+    assert store.released_steps("m-1") == {0}  # durable all the same, before it is sent
+    store.journal = None
     store.close()
