@@ -38,12 +38,14 @@ _EPS = 1e-9
 
 
 def candidate_pairs(positions_ne: FloatArray, radius: float) -> IntArray:
-    """(M, 2) index pairs i < j whose horizontal distance is at most ``radius`` (cKDTree)."""
+    """(M, 2) index pairs i < j whose horizontal distance is at most ``radius`` (cKDTree), in
+    (i, j) order: the avoider handles conflicts in this order, so it must not depend on the tree's
+    shape (which a subset of the fleet changes)."""
     if len(positions_ne) < 2:
         return np.empty((0, 2), dtype=np.int64)
     tree = cKDTree(positions_ne)
-    pairs = tree.query_pairs(radius, output_type="ndarray")
-    return np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    pairs = np.asarray(tree.query_pairs(radius, output_type="ndarray"), dtype=np.int64).reshape(-1, 2)
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
 
 @dataclass(frozen=True)

@@ -10,9 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numpy as np
+from scipy.spatial import cKDTree
+
 from gcs.cooperation.collision import CollisionAvoider, Decision, DroneState, Escape
 from gcs.cooperation.config import CollisionConfig
-from gcs.cooperation.geo import LocalFrame
+from gcs.cooperation.geo import FloatArray, LocalFrame
 from gcs.cooperation.intents import (
     EndOrderIntent,
     EventIntent,
@@ -24,11 +27,47 @@ from gcs.cooperation.intents import (
 from gcs.cooperation.tracking import Kinematics, TrackedAgent, leg_motion
 
 
+def reach_m(config: CollisionConfig) -> float:
+    """The farthest apart (horizontally) two drones can be and still get a conflict this pass.
+
+    :func:`~gcs.cooperation.collision.find_conflicts` pairs drones within the margin (scaled up
+    to ``release_factor`` for a held drone) plus twice the fastest speed (capped at
+    ``max_speed_mps``) times the horizon; this is that radius at its largest.
+    """
+    scale = max(1.0, config.release_factor)
+    return config.horizontal_margin_m * scale + 2.0 * config.max_speed_mps * config.horizon_s
+
+
 class CollisionMonitor:
-    def __init__(self, config: CollisionConfig) -> None:
+    def __init__(self, config: CollisionConfig, prefilter: bool = True) -> None:
         self.config = config
         self.avoider = CollisionAvoider(config)
         self.last: Decision = Decision()
+        # Build a DroneState only for a drone that could take part in a decision this pass (see
+        # _involved); False hands the avoider every drone (the reference the tests compare with).
+        self.prefilter = prefilter
+
+    def _involved(self, agents: list[TrackedAgent], ne: FloatArray) -> list[int]:
+        """Indices of the drones the avoider must see: every drone with another within
+        :func:`reach_m` (only such pairs can conflict), and every drone it holds, waits for or
+        has escaping (it keeps state about them and forgets a drone it does not see). Order is
+        kept, and conflicting pairs are handled in index order, so the avoider decides exactly what
+        it decides seeing the whole fleet (tests/cooperation/test_fleet_gates.py)."""
+        if not self.prefilter or len(agents) < 3:
+            return list(range(len(agents)))
+        # The nearest other drone of each (no pair list: in a dense formation that is ~100 pairs
+        # a drone, more work than the check it would spare).
+        nearest, _ = cKDTree(ne).query(ne, k=2, distance_upper_bound=reach_m(self.config))
+        keep = np.isfinite(nearest[:, 1])
+        avoider = self.avoider
+        tracked = set(avoider.holds) | set(avoider.escaping)
+        for blockers in avoider.holds.values():
+            tracked |= blockers
+        if tracked:
+            for k, agent in enumerate(agents):
+                if agent.ident in tracked:
+                    keep[k] = True
+        return np.flatnonzero(keep).tolist()
 
     def forget(self, ident: str) -> None:
         self.avoider.forget(ident)
@@ -45,7 +84,13 @@ class CollisionMonitor:
         velocities, one element each); returns holds, releases, escapes."""
         drones = []
         tracked = {}
-        ne = frame.to_ne(kin.lat, kin.lon).tolist()
+        ne_all = frame.to_ne(kin.lat, kin.lon)
+        rows = self._involved(agents, ne_all)
+        if len(rows) < len(agents):
+            agents = [agents[k] for k in rows]
+            ne_all = ne_all[rows]
+            kin = kin.take(rows)
+        ne = ne_all.tolist()
         columns = zip(
             kin.lat.tolist(),
             kin.lon.tolist(),

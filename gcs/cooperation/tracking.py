@@ -184,6 +184,10 @@ class Kinematics(NamedTuple):
         """From status columns (``gcs.agents_table.ROW_DTYPE``)."""
         return cls(*(np.asarray(cols[name], dtype=np.float64) for name in cls._fields))
 
+    def take(self, rows: list[int]) -> Kinematics:
+        """The elements at ``rows``, in that order."""
+        return Kinematics(*(column[rows] for column in self))
+
     @classmethod
     def of_agents(cls, agents: list[TrackedAgent]) -> Kinematics:
         """From the agents' reports (built if need be)."""

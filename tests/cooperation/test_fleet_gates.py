@@ -16,7 +16,7 @@ from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
 from gcs.agents_table import StatusTable, StatusTick
-from gcs.cooperation.config import CooperationConfig, DivergenceConfig, EmergencyConfig
+from gcs.cooperation.config import CollisionConfig, CooperationConfig, DivergenceConfig, EmergencyConfig
 from gcs.cooperation.emergency import BatteryColumns, BatteryEstimator
 from gcs.cooperation.intents import HoldIntent, Intent, ReplaceIntent
 from gcs.cooperation.service import CooperationService
@@ -91,7 +91,12 @@ class Recording(CooperationService):
 
 
 class EveryReport(Recording):
-    """The reference: every report is built and checked, as before the gates."""
+    """The reference: every report is built and checked, as before the gates, and the collision
+    avoider sees every drone (no prefilter)."""
+
+    def __init__(self, config: CooperationConfig, fences: dict[str, Geofence]) -> None:
+        super().__init__(config, fences)
+        self.collision.prefilter = False
 
     def _gate(self, tick: StatusTick, rows: np.ndarray[Any, np.dtype[np.intp]], now: float) -> list[int]:
         super()._gate(tick, rows, now)  # the arrays and battery columns are fed the same way
@@ -99,7 +104,7 @@ class EveryReport(Recording):
 
 
 def _report(k: int, t: float, s: dict[str, Any]) -> StatusReport:
-    lat, lon = offset_latlon(HOME[0], HOME[1], 30.0 * k + s["north"], s["east"])
+    lat, lon = offset_latlon(HOME[0], HOME[1], s.get("origin", 30.0 * k) + s["north"], s["east"])
     return StatusReport(
         time=t,
         position=Position(lat=lat, lon=lon, alt_rel=s["alt"], alt_amsl=400.0 + s["alt"]),
@@ -156,7 +161,7 @@ def _fly(c: dict[str, Any], s: dict[str, Any]) -> dict[str, Any]:
         "north": s["north"] + c["dn"],
         "east": s["east"] + c["de"],
         "alt": 20.0,
-        "vn": 1.0,
+        "vn": c.get("vn", 1.0),
         "drain": 0.05,
         "fix": c["fix"],
         "mode": "GUIDED",
@@ -187,11 +192,19 @@ FENCES = [  # none; a circle with a ceiling (checked on columns); a polygon (che
 
 
 async def _run(
-    steps: list[list[dict[str, Any]]], fenced: int, mission: bool = False
+    steps: list[list[dict[str, Any]]],
+    fenced: int,
+    mission: bool = False,
+    origins: list[float] | None = None,
+    collisions: bool = False,
+    collision: CollisionConfig | None = None,
 ) -> tuple[Recording, Recording, dict[str, StatusReport]]:
+    """Both services fed the same ticks; ``origins``: each drone's start north of home (default
+    30 m apart); ``collisions``: a fleet-wide collision pass after every tick, its intents recorded."""
     config = CooperationConfig(
         emergency=EmergencyConfig(gps_grace_s=0.0, battery_window_s=4.0, battery_reserve_pct=40.0),
         divergence=DivergenceConfig(persist_s=0.0, cooldown_s=0.0, lag_event_m=20.0),
+        collision=collision or CollisionConfig(),
     )
     fences = {"drone-0": FENCES[fenced], "drone-2": FENCES[fenced]} if fenced else {}
     gated, every = Recording(config, fences), EveryReport(config, fences)
@@ -203,6 +216,8 @@ async def _run(
         {"north": 0.0, "east": 0.0, "alt": 20.0, "vn": 0.0, "pct": 95.0, "t": 1000.0 + k}
         for k in range(agents)
     ]
+    for k, origin in enumerate(origins or []):
+        state[k]["origin"] = origin
     newest: dict[str, StatusReport] = {}
     for n, step in enumerate(steps):
         for k, c in enumerate(step):
@@ -225,6 +240,10 @@ async def _run(
             cols = table.columns(dirty)  # whole rows (a copy of the columns would drop mode, mission)
             tick = StatusTick(owners, cols, table.arrivals(dirty), [None] * len(owners))
             await service._on_tick(tick)
+            if collisions and service.frame is not None:
+                now = state[0]["t"]
+                fleet = list(service.agents.values())
+                service.decided += [(n, i) for i in service._collision_pass(fleet, now)]
     return gated, every, newest
 
 
@@ -286,6 +305,32 @@ def test_in_a_mission_the_gated_checks_decide_what_checking_every_report_decides
             other.conditions.keys(),
         )
         assert agent.status == newest[ident]
+
+
+@settings(max_examples=120, deadline=None)
+@given(st.lists(st.sampled_from([0, 0, 1, 2, 3]), min_size=3, max_size=7), st.data())
+def test_the_collision_prefilter_decides_what_the_whole_fleet_decides(
+    clusters: list[int], data: st.DataObject
+) -> None:
+    """Drones in clusters 600 m apart (beyond any conflict), 3 or 7 m apart inside one, flying their
+    plan with gusts, waits and pauses: the avoider seeing only the drones within reach of another
+    (and those it holds or waits for) holds, releases and escapes exactly as seeing them all."""
+    n = len(clusters)
+    moving = st.tuples(flight, st.sampled_from([-8.0, -3.0, 0.0, 1.0, 3.0, 8.0])).map(
+        lambda fv: {**fv[0], "vn": fv[1]}  # closing and opening speeds along the cluster
+    )
+    steps = data.draw(st.lists(st.lists(moving, min_size=n, max_size=n), min_size=2, max_size=60))
+    spacing = {0: 3.0, 1: 7.0, 2: 3.0, 3: 7.0}  # inside the 4 m margin at once, or a gust away
+    origins = [600.0 * c + spacing[c] * clusters[:k].count(c) for k, c in enumerate(clusters)]
+    # Speeds capped at 3 m/s: the reach is 41 m, so a gust (40 m) takes a drone in or out of it.
+    collision = CollisionConfig(max_speed_mps=3.0)
+    run = _run(steps, 0, mission=True, origins=origins, collisions=True, collision=collision)
+    gated, every, _ = asyncio.run(run)
+    held = any(isinstance(i, HoldIntent) and i.owner == "collision" for _, i in every.decided)
+    event("collision hold" if held else "no collision hold")
+    event("an isolated drone" if any(clusters.count(c) == 1 for c in clusters) else "all clustered")
+    assert gated.decided == every.decided
+    assert gated.collision.avoider.holds == every.collision.avoider.holds
 
 
 def test_a_mission_flown_on_its_leg_skips_the_checks_and_a_gust_is_still_corrected() -> None:
