@@ -51,6 +51,35 @@ def default_timeout(action: Action) -> float:
     return 3600.0  # legs: bounded by battery long before this
 
 
+class VehicleClock:
+    """Seconds elapsed on the vehicle's clock since this object was made.
+
+    Why: a ``hold`` of N seconds is N seconds of the vehicle's time. On a real autopilot that is
+    wall time; in a simulator running N times faster it is not, and a hold timed on the wall
+    clock would last N times too long in flight. The autopilot's clock (``time_boot_ms``, as
+    ``Telemetry.vehicle_time_s``) is used when it reports one; a jump back (the autopilot
+    rebooted) counts as no time, and without a vehicle clock the wall clock is used.
+    """
+
+    def __init__(self, autopilot: Autopilot) -> None:
+        self._autopilot = autopilot
+        self._last = autopilot.telemetry().vehicle_time_s
+        self._wall = time.monotonic()
+        self._elapsed = 0.0
+
+    def elapsed(self) -> float:
+        now = self._autopilot.telemetry().vehicle_time_s
+        if self._last is None or now is None:
+            wall = time.monotonic()
+            self._elapsed += wall - self._wall
+            self._wall, self._last = wall, now
+            return self._elapsed
+        if now > self._last:
+            self._elapsed += now - self._last
+        self._last, self._wall = now, time.monotonic()
+        return self._elapsed
+
+
 class ActionExecutor:
     """Executes actions on one autopilot with the agent's settings."""
 
@@ -138,8 +167,8 @@ class ActionExecutor:
             await self._until_disarmed()
         elif isinstance(action, Hold):
             await ap.hold()
-            until = time.monotonic() + action.seconds
-            while (left := until - time.monotonic()) > 0:
+            clock = VehicleClock(ap)
+            while (left := action.seconds - clock.elapsed()) > 0:
                 self.continuation = action.model_copy(update={"seconds": left})
                 await asyncio.sleep(min(left, POLL_S * 4))
         elif isinstance(action, SetSpeed):

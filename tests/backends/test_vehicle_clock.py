@@ -39,3 +39,22 @@ def test_simulator_counts_and_reports_a_speed_up_it_cannot_keep(caplog: pytest.L
     assert fleet.overruns >= 3 and fleet.dropped_sim_s > 0.0
     assert fleet.speedup_kept < 50_000.0
     assert any("simulator behind" in r.getMessage() for r in caplog.records)
+
+
+async def test_a_hold_lasts_its_seconds_on_the_vehicle_clock(sim_fleet: Any, closing: Any) -> None:
+    """At 8x a 16 s hold is 16 s of the simulator's time, about 2 s of wall time (not 16)."""
+    from agent.config import AgentConfig
+    from agent.executor import ActionExecutor
+    from protocol.actions import Hold
+
+    fleet = sim_fleet(speedup=8.0)
+    ap = MavlinkAutopilot(fleet.endpoints[0])
+    closing(ap)
+    await ap.connect(timeout=10.0)
+    await wait_until(ap, lambda t: t.has_position and t.vehicle_time_s is not None, "a fix and a clock")
+    executor = ActionExecutor(ap, AgentConfig(identity="clock", key_hex="00" * 32))
+    started_wall, started_sim = time.monotonic(), fleet.sim_time
+    await executor.run(Hold(step=0, seconds=16.0))
+    wall, sim = time.monotonic() - started_wall, fleet.sim_time - started_sim
+    assert sim >= 15.0, f"the hold ended after {sim:.1f} s of vehicle time"
+    assert wall < 8.0, f"the hold took {wall:.1f} s of wall time: timed on the wall clock"
