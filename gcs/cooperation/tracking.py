@@ -217,9 +217,10 @@ Velocity = tuple[float, float, float]
 def leg_motion(
     agent: TrackedAgent, frame: LocalFrame, default_speed: float, here: Here | None = None
 ) -> tuple[Velocity | None, float | None]:
-    """Where the drone wants to go and how far it has left: (:func:`leg_target_velocity`,
-    :func:`leg_remaining_m`) from one look at its leg, in plain floats (the collision check asks
-    for both for every drone of the fleet on each pass)."""
+    """Where the drone wants to go (toward its leg target at the planned speed; still while it
+    waits at a barrier) and how far it has left to the target, where it will stop (3-D metres),
+    from one look at its leg, in plain floats (the collision check asks for both for every drone
+    of the fleet on each pass)."""
     plan, waiting = agent.plan, agent.state.waiting_sync
     if plan is None:
         return None, None
@@ -237,16 +238,3 @@ def leg_motion(
         return (0.0, 0.0, 0.0), norm
     k = (leg.speed or default_speed) / norm
     return (dn * k, de * k, du * k), norm
-
-
-def leg_remaining_m(agent: TrackedAgent, frame: LocalFrame, here: Here | None = None) -> float | None:
-    """Distance (3-D, metres) to the target of the leg the drone flies, where it will stop
-    (``here``: the drone's newest position, else read from the agent)."""
-    return leg_motion(agent, frame, 0.0, here)[1]
-
-
-def leg_target_velocity(
-    agent: TrackedAgent, frame: LocalFrame, default_speed: float, here: Here | None = None
-) -> Velocity | None:
-    """Where a held drone wants to go: toward its leg target at the planned speed."""
-    return leg_motion(agent, frame, default_speed, here)[0]
