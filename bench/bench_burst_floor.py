@@ -32,10 +32,11 @@ import struct
 import time
 from multiprocessing.connection import Connection
 
+from gcs.beacon import LOOPBACK_BROADCAST, free_udp_port
+
 FRAME = b"\x00" * 60
 TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
 SCM_TIMESTAMPNS = TIMESTAMPNS
-BROADCAST = "127.255.255.255"  # loopback broadcast, as bench_load.py's beacons
 
 
 def _open(kind: str, port: int, count: int) -> list[socket.socket]:
@@ -47,7 +48,7 @@ def _open(kind: str, port: int, count: int) -> list[socket.socket]:
         else:
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            sock.bind((BROADCAST, port))
+            sock.bind((LOOPBACK_BROADCAST, port))
         sock.setsockopt(socket.SOL_SOCKET, TIMESTAMPNS, 1)
         sock.setblocking(False)
         socks.append(sock)
@@ -105,9 +106,7 @@ def floor(agents: int, rounds: int, kind: str = "tcp") -> dict[str, float]:
     else:
         sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sender.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:  # a port free for this run
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
+        port = free_udp_port()  # a port free for this run
     ctx = mp.get_context("spawn")
     pipes, workers = [], []
     for share in (agents // 2, agents - agents // 2):
@@ -131,7 +130,7 @@ def floor(agents: int, rounds: int, kind: str = "tcp") -> dict[str, float]:
             time.sleep(0.05)
             started = time.time()
             if sender is not None:
-                sender.sendto(FRAME, (BROADCAST, port))
+                sender.sendto(FRAME, (LOOPBACK_BROADCAST, port))
             else:
                 for sock in near:
                     sock.send(FRAME)

@@ -667,28 +667,17 @@ def _kernel_stamp(ancillary: list[tuple[int, int, bytes]], default: float) -> fl
     return default
 
 
-def free_udp_port() -> int:
-    """A UDP port number free on loopback now, for one run's beacons."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
-
 def _beacon_socket(port: int) -> socket.socket:
-    """A non-blocking UDP socket on the loopback broadcast address: every agent of the host hears a beacon.
+    """The agent's own beacon socket (agent/beacon.py: ``SO_REUSEADDR`` on the loopback broadcast
+    address, so every agent of the host gets its copy), with ``SO_TIMESTAMPNS`` to stamp arrivals
+    as the TCP path does."""
+    from agent.beacon import beacon_socket
 
-    ``SO_REUSEADDR`` lets every agent bind the same address and port (each gets its own copy of
-    a broadcast); ``SO_TIMESTAMPNS`` stamps arrivals as the TCP path does.
-    """
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-        sock.bind((BEACON_HOST, port))
+        sock = beacon_socket((BEACON_HOST, port))
     except OSError as exc:
-        sock.close()
         raise RuntimeError(f"cannot listen for beacons on {BEACON_HOST}:{port}: {exc}") from None
-    sock.setblocking(False)
+    sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
     return sock
 
 
@@ -1244,7 +1233,12 @@ def barrier_trial(agents: int, steps: int, beacon: bool = True) -> list[dict[str
     from protocol.taskfile import AgentPlan, TaskFile
 
     modes = [_BarrierStats("beacon"), _BarrierStats("tcp")] if beacon else [_BarrierStats("tcp")]
-    harness = Harness("daemon", agents, beacon_port=free_udp_port() if beacon else None)
+    beacon_port = None
+    if beacon:
+        from gcs.beacon import free_udp_port  # (not at the top: paired trials run older trees too)
+
+        beacon_port = free_udp_port()
+    harness = Harness("daemon", agents, beacon_port=beacon_port)
     failed = ""
     rejected = 0
     try:

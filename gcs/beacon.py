@@ -16,6 +16,20 @@ from protocol.beacon import encode_beacon, parse_beacon_address
 
 log = logging.getLogger(__name__)
 WARN_EVERY_S = 60.0
+LOOPBACK_BROADCAST = "127.255.255.255"
+"""The broadcast address of loopback: every socket of the host bound to it hears one datagram."""
+
+
+def free_udp_port() -> int:
+    """A UDP port nothing on loopback uses right now (the kernel's pick for a throwaway socket)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+def loopback_beacon_address() -> str:
+    """A release-beacon address of its own for one run on one host (the demo, tests, benches)."""
+    return f"{LOOPBACK_BROADCAST}:{free_udp_port()}"
 
 
 class BeaconSender:

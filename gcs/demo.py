@@ -12,13 +12,13 @@ import contextlib
 import math
 import os
 import secrets
-import socket
 import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from gcs.beacon import loopback_beacon_address
 from gcs.config import DaemonConfig
 from gcs.cooperation.config import EnergyConfig
 from gcs.cooperation.energy import EnergyPrediction, predict_plan_energy
@@ -147,13 +147,6 @@ async def _start_simulator(options: DemoOptions) -> tuple[asyncio.subprocess.Pro
         raise DemoError("the simulator did not report READY within 30 s") from None
 
 
-def _loopback_beacon_address() -> str:
-    """The loopback broadcast address on a UDP port free now: this demo's release beacons."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return f"127.255.255.255:{probe.getsockname()[1]}"
-
-
 async def _start_agents(
     endpoints: list[str],
     names: list[str],
@@ -226,7 +219,7 @@ async def run_demo(options: DemoOptions) -> DemoResult:
     temp = None if options.data_dir else tempfile.TemporaryDirectory(prefix="fleetgcs-demo-")
     data_dir = options.data_dir or Path(temp.name)  # type: ignore[union-attr]
     key_hex = secrets.token_hex(32)
-    beacon = _loopback_beacon_address()  # barrier releases by one datagram, then TCP (docs/protocol.md)
+    beacon = loopback_beacon_address()  # barrier releases by one datagram, then TCP (docs/protocol.md)
     key_file = data_dir / "fleet.key"
     data_dir.mkdir(parents=True, exist_ok=True)
     key_file.write_text(key_hex + "\n")

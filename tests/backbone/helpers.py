@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import secrets
-import socket
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
@@ -128,21 +127,6 @@ async def running_daemon(tmp_path: Path, key_hex: str, **overrides: object) -> A
         yield daemon
     finally:
         await daemon.stop()
-
-
-LOOPBACK_BROADCAST = "127.255.255.255"
-
-
-def free_udp_port() -> int:
-    """A UDP port nothing uses right now (the kernel's pick for a throwaway socket)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
-
-
-def beacon_address() -> str:
-    """A release-beacon address of its own for one test: the loopback broadcast, a free port."""
-    return f"{LOOPBACK_BROADCAST}:{free_udp_port()}"
 
 
 def new_key() -> str:

@@ -20,15 +20,14 @@ from agent.beacon import MAX_MISSIONS, MAX_REJECTS_PER_STEP, BeaconListener
 from agent.cli import agent_from_args, build_parser
 from agent.config import AgentConfig
 from agent.config_file import load_agent_config
+from gcs.beacon import LOOPBACK_BROADCAST, free_udp_port
 from gcs.daemon import Daemon
 from protocol.actions import Action, Hold
 from protocol.beacon import VALUE_BYTES, ReleaseChain, encode_beacon
 from protocol.packets import PerformActions, RequestCid, SyncSignal
 from protocol.session import ServerHandshake
 from tests.backbone.helpers import (
-    LOOPBACK_BROADCAST,
     RunningAgent,
-    free_udp_port,
     new_key,
     running_daemon,
     start_agent,

@@ -17,11 +17,10 @@ from pathlib import Path
 
 import pytest
 
+from gcs.beacon import LOOPBACK_BROADCAST, free_udp_port
 from gcs.config import DaemonConfig
 from gcs.metrics import DaemonMetrics
 from tests.backbone.helpers import (
-    LOOPBACK_BROADCAST,
-    free_udp_port,
     new_key,
     running_daemon,
     survey_mission,

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
+from gcs.beacon import loopback_beacon_address
 from gcs.cooperation.config import CooperationConfig
 from protocol.geo import distance_m
-from tests.backbone.helpers import beacon_address
 from tests.cooperation.rig import SPEEDUP, rig, wait_for
 from tests.scenarios.scenarios import barrier_task
 
@@ -25,7 +25,7 @@ COOP = CooperationConfig(vehicle_time_scale=SPEEDUP)
 
 
 async def test_a_beacon_release_does_not_undo_an_operator_hold_at_the_barrier(tmp_path: Path) -> None:
-    address = beacon_address()
+    address = loopback_beacon_address()
     async with rig(tmp_path, 2, COOP, release_beacon=address, agent_options={"release_beacon": address}) as r:
         mission_id = await r.daemon.missions.submit(barrier_task(r.names))
         await wait_for(lambda: r.status("drone-1").waiting_sync == 1, 60, "drone-1 at barrier 1")
