@@ -222,12 +222,13 @@ class MissionRunner:
         steps = mission.barriers.sync_steps
         if self.beacon is None or self.claim_release is not None or not steps:
             return None
-        if max(steps) >= MAX_CHAIN_STEPS:
+        length = max(steps) + 1
+        if length > MAX_CHAIN_STEPS:
             return None
         listening = (self._agents.session(identity) for identity in mission.plans)
         if not any(session is not None and session.release_beacon for session in listening):
             return None
-        return ReleaseChain(max(steps) + 1)
+        return ReleaseChain(length)
 
     def _send_plan(
         self,

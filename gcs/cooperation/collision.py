@@ -302,8 +302,8 @@ class CollisionAvoider:
             me = drones[index[ident]]
             blockers = [drones[index[b]] for b in wanted[ident] if b in index]
             top = max([me.position[2]] + [b.position[2] for b in blockers])
-            wanted_by = wanted.pop(ident)
-            others = ", ".join(sorted(wanted_by))
+            waited_for = tuple(sorted(wanted.pop(ident)))
+            others = ", ".join(waited_for)
             self.holds.pop(ident, None)
             self._held_since.pop(ident, None)
             if self.config.escape == "none" or not me.yieldable or ident in self._cannot_escape:
@@ -320,7 +320,7 @@ class CollisionAvoider:
             target = top + self.config.vertical_margin_m + self.config.escape_buffer_m
             escape = Escape(
                 ident,
-                tuple(sorted(wanted_by)),
+                waited_for,
                 float(target),
                 f"collision avoidance: held {self.config.max_hold_s:.0f} s for {others}; climbing clear",
             )
