@@ -119,13 +119,6 @@ class TickRows:
         return (decoded.get(n, row) for n, row in enumerate(rows))
 
 
-def tick_rows(tick: StatusTick, received: float) -> list[tuple[Any, ...]]:
-    """The telemetry rows of a status tick, straight from its columns (no report objects; rows
-    that came decoded use theirs): the same rows as :func:`status_row` gives, for the rows with
-    a position."""
-    return list(TickRows(tick, received).rows())
-
-
 RowBlock = TickRows | list[tuple[Any, ...]]
 """What the writer queues: a tick's rows as columns, or rows already made."""
 

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gcs.agents_table import StatusTable, StatusTick
-from gcs.telemetry import TickRows, status_row, tick_rows
+from gcs.telemetry import TickRows, status_row
 from protocol.packets import StatusReport
 from tests.backbone.helpers import new_key, running_daemon, wait_for
 from tests.protocol.test_status_binary import reports
@@ -43,7 +43,7 @@ def test_a_tick_gives_the_reports_and_telemetry_rows_of_its_rows(batch: list[Sta
     for i, report in enumerate(expected):
         assert tick.report(i) == report
         assert tick.mode_mission(i) == (report.mode, report.mission_id)
-    got = tick_rows(tick, 5.0)
+    got = list(TickRows(tick, 5.0).rows())
     block = TickRows(tick, 5.0)  # what the recorder queues; the writer thread makes its tuples later
     for row in rows:  # the table moves on before the writer gets to the block
         _stored(table, row, _report(1.0, armed=True))
@@ -52,7 +52,7 @@ def test_a_tick_gives_the_reports_and_telemetry_rows_of_its_rows(batch: list[Sta
     assert len(got) == len(want) and all(_same(g, w) for g, w in zip(got, want, strict=True))
     again = StatusTick.of_reports(list(zip(tick.owners, expected, strict=True)), 5.0)
     assert [again.report(i) for i in range(len(again))] == expected
-    assert _same(tuple(tick_rows(again, 5.0)), tuple(got))
+    assert _same(tuple(TickRows(again, 5.0).rows()), tuple(got))
 
 
 def test_changed_rows_are_found_by_their_state_bytes() -> None:
