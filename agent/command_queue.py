@@ -11,16 +11,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
-from agent.config import SanityLimits
 from agent.executor import ActionExecutor, ActionFailed
+from agent.limits import Refusal
 from agent.tasks import cancel_and_wait
-from protocol.actions import Action, GoBy, Goto, Hold, Land, ReturnToLaunch, Takeoff, Waypoints
-from protocol.geo import distance_m
+from protocol.actions import Action
 
 log = logging.getLogger("agent.queue")
 
@@ -35,68 +33,41 @@ class _BarrierWait:
     sync: bool = True
 
 
+@dataclass(frozen=True)
+class _RefusedAt:
+    """Queue entry where the agent's limits cut a batch: reaching it refuses the rest (agent/limits.py)."""
+
+    refusal: Refusal
+
+    @property
+    def step(self) -> int:
+        return self.refusal.step
+
+
 FailedHook = Callable[[Action, str], Awaitable[None]]
-
-
-def sanity_violation(
-    actions: list[Action],
-    limits: SanityLimits,
-    home: tuple[float, float] | None,
-    queued: int,
-) -> tuple[Action | None, str] | None:
-    """Why ``actions`` must be refused under ``limits`` (the offending action and the reason), or None.
-
-    ``home`` (lat, lon) is where distances are measured from (None: not known yet, distances
-    unchecked); ``queued`` is the number of actions that stay queued ahead of these.
-    """
-    if queued + len(actions) > limits.max_queue_actions:
-        return (
-            None,
-            f"{queued + len(actions)} queued actions exceed max_queue_actions {limits.max_queue_actions}",
-        )
-    for action in actions:
-        alts: list[float] = []
-        points: list[tuple[float, float]] = []
-        if isinstance(action, (Takeoff, Goto)):
-            alts.append(action.alt)
-        if isinstance(action, ReturnToLaunch) and action.alt is not None:
-            alts.append(action.alt)
-        if isinstance(action, (Goto, Land)) and action.lat is not None and action.lon is not None:
-            points.append((action.lat, action.lon))
-        if isinstance(action, Waypoints):
-            alts.extend(p.alt for p in action.points)
-            points.extend((p.lat, p.lon) for p in action.points)
-        if isinstance(action, GoBy):
-            reach = math.hypot(action.north, action.east)
-            if reach > limits.max_distance_from_home_m:
-                limit = limits.max_distance_from_home_m
-                return action, f"go_by of {reach:.0f} m exceeds max_distance_from_home_m {limit:g}"
-            if action.up > limits.max_alt_m:
-                return action, f"go_by climb of {action.up:.0f} m exceeds max_alt_m {limits.max_alt_m:g}"
-        if isinstance(action, Hold) and not limits.min_hold_s <= action.seconds <= limits.max_hold_s:
-            return action, (
-                f"hold of {action.seconds:g} s outside {limits.min_hold_s:g}..{limits.max_hold_s:g} s"
-            )
-        for alt in alts:
-            if alt > limits.max_alt_m:
-                return action, f"altitude {alt:g} m exceeds max_alt_m {limits.max_alt_m:g}"
-        if home is not None:
-            for lat, lon in points:
-                off = distance_m(home[0], home[1], lat, lon)
-                if off > limits.max_distance_from_home_m:
-                    return action, (
-                        f"target {off / 1000:.1f} km from home exceeds max_distance_from_home_m "
-                        f"{limits.max_distance_from_home_m:g}"
-                    )
-    return None
+RefusedHook = Callable[[Refusal], Awaitable[None]]
+Vet = Callable[[Action], Refusal | None]
 
 
 class CommandQueue:
-    def __init__(self, executor: ActionExecutor, on_finished: FinishedHook, on_failed: FailedHook) -> None:
+    """``vet`` checks each action against the agent's limits from the actual position just before
+    it starts; a refusal there, or a :class:`_RefusedAt` entry reached, empties the queue and calls
+    ``on_refused`` (as a failed action calls ``on_failed``)."""
+
+    def __init__(
+        self,
+        executor: ActionExecutor,
+        on_finished: FinishedHook,
+        on_failed: FailedHook,
+        on_refused: RefusedHook | None = None,
+        vet: Vet | None = None,
+    ) -> None:
         self._executor = executor
         self._on_finished = on_finished
         self._on_failed = on_failed
-        self._pending: deque[Action | _BarrierWait] = deque()
+        self._on_refused = on_refused
+        self._vet = vet
+        self._pending: deque[Action | _BarrierWait | _RefusedAt] = deque()
         self._wakeup = asyncio.Event()
         self._releases: set[int] = set()
         self._release_event = asyncio.Event()
@@ -116,6 +87,18 @@ class CommandQueue:
         """Actions not yet started (the running one excluded)."""
         return len(self._pending)
 
+    def planned(self) -> list[Action]:
+        """The actions still to fly, in order: what is left of the running one, then the queue.
+
+        Where they lead is where a new appended batch starts from (agent/limits.py ``project``).
+        """
+        ahead: list[Action] = []
+        current, left = self._current, self._executor.continuation
+        if current is not None and not current.done() and self.waiting_sync is None and left is not None:
+            ahead.append(left)
+        ahead.extend(a for a in self._pending if not isinstance(a, (_BarrierWait, _RefusedAt)))
+        return ahead
+
     @property
     def busy(self) -> bool:
         return self.current_step >= 0
@@ -127,12 +110,18 @@ class CommandQueue:
         await cancel_and_wait([t for t in (self._current, self._runner) if t is not None])
 
     async def submit(
-        self, mission_id: str, actions: list[Action], replace: bool, await_release: int | None = None
+        self,
+        mission_id: str,
+        actions: list[Action],
+        replace: bool,
+        await_release: int | None = None,
+        refusal: Refusal | None = None,
     ) -> None:
         """Add ``actions`` (type 4). ``replace`` empties the queue and cancels the running action.
 
         ``await_release`` (a rejoin at an unreleased barrier): wait for the release of that step
         before running ``actions``, exactly as if the barrier action had just finished here.
+        ``refusal``: the batch was cut there by the agent's limits; reaching it refuses the rest.
         """
         if replace or mission_id != self.mission_id:
             await self.interrupt()
@@ -143,6 +132,8 @@ class CommandQueue:
             self.completed_step = max(self.completed_step, await_release)
             self._pending.append(_BarrierWait(step=await_release))
         self._pending.extend(actions)
+        if refusal is not None:
+            self._pending.append(_RefusedAt(refusal))
         self._wakeup.set()
 
     async def interrupt(self) -> None:
@@ -229,11 +220,20 @@ class CommandQueue:
             self._current = None
             self.current_step = -1
 
-    async def _perform(self, action: Action | _BarrierWait) -> None:
+    async def _perform(self, action: Action | _BarrierWait | _RefusedAt) -> None:
         mission_id = self.mission_id or ""
         if isinstance(action, _BarrierWait):
             await self._wait_release(mission_id, action.step)
             return
+        refusal = (
+            action.refusal if isinstance(action, _RefusedAt) else self._vet(action) if self._vet else None
+        )
+        if refusal is not None:
+            self._pending.clear()
+            if self._on_refused is not None:
+                await self._on_refused(refusal)
+            return
+        assert not isinstance(action, _RefusedAt)
         try:
             await self._executor.run(action)
         except ActionFailed as exc:

@@ -41,14 +41,25 @@ class AgentSettings(BaseModel):
 class SanityLimits(BaseModel):
     """What the agent refuses to fly whoever orders it (fixed at start; the daemon cannot change them).
 
-    A type-4 batch with any action outside these limits is refused whole and reported to the
-    daemon (``command_refused`` exception and the status ``failure``).
+    The distance and altitude limits bound where the orders take the vehicle, applied in
+    sequence from its position (agent/limits.py): the orders before the first one that would
+    cross a limit fly, that one and the rest of its batch are refused, and the daemon hears why
+    (``command_refused`` exception at once, the status ``failure`` when the vehicle gets there).
+    A batch that would overfill the queue is refused whole.
     """
 
     model_config = ConfigDict(extra="forbid")
 
-    max_distance_from_home_m: float = Field(default=10_000.0, gt=0.0, le=1_000_000.0)
+    max_distance_from_home_m: float = Field(
+        default=10_000.0,
+        gt=0.0,
+        le=1_000_000.0,
+        description="horizontal distance from home of every place the queued orders lead to",
+    )
     max_alt_m: float = Field(default=500.0, gt=0.0, le=10_000.0, description="metres above home")
+    min_alt_m: float = Field(
+        default=-500.0, ge=-1000.0, le=0.0, description="metres relative to home (below home: negative)"
+    )
     max_queue_actions: int = Field(default=20_000, ge=1, le=1_000_000)
     min_hold_s: float = Field(default=0.0, ge=0.0)
     max_hold_s: float = Field(default=3600.0, gt=0.0, le=86_400.0)

@@ -16,9 +16,10 @@ from agent.autopilot.base import (
     Telemetry,
 )
 from agent.beacon import BeaconListener
-from agent.command_queue import CommandQueue, sanity_violation
+from agent.command_queue import CommandQueue
 from agent.config import AgentConfig
 from agent.executor import ActionExecutor
+from agent.limits import Place, Refusal, first_crossing, project, queue_refusal
 from agent.link import DaemonLink
 from agent.monitor import ExceptionMonitor, finite_or_zero
 from agent.tasks import cancel_and_wait
@@ -110,7 +111,13 @@ class Agent:
         self.settings = config.settings
         self.autopilot = autopilot
         self.executor = ActionExecutor(autopilot, config)
-        self.queue = CommandQueue(self.executor, self._on_step_finished, self._on_action_failed)
+        self.queue = CommandQueue(
+            self.executor,
+            self._on_step_finished,
+            self._on_action_failed,
+            on_refused=self._on_refused,
+            vet=self._vet,
+        )
         self.link = DaemonLink(
             config,
             parse_key(config.key_hex),
@@ -236,44 +243,92 @@ class Agent:
             log.info("resumed: %s", packet.reason or "no reason given")
             self.queue.resume()
         else:
-            actions: list[Action] = list(packet.actions)
-            if await self._refuse_if_insane(packet, actions):
-                return
-            log.info("%s %d actions for mission %s", packet.mode, len(actions), packet.mission_id)
-            await self.queue.submit(
-                packet.mission_id,
-                actions,
-                replace=packet.mode == "replace",
-                await_release=packet.await_release,
-            )
+            await self._take_actions(packet)
         self._status_wakeup.set()
 
-    async def _refuse_if_insane(self, packet: PerformActions, actions: list[Action]) -> bool:
-        """Refuse a batch outside the agent's own limits; the daemon hears why (exception + failure)."""
-        t = self.autopilot.telemetry()
-        home = (t.home_lat, t.home_lon) if t.home_lat is not None and t.home_lon is not None else None
+    async def _take_actions(self, packet: PerformActions) -> None:
+        """Queue a replace/append batch within the agent's limits (agent/limits.py).
+
+        A batch that would overfill the queue is refused whole. Otherwise the batch is applied
+        in sequence from where the vehicle will be (its position, then whatever stays queued
+        ahead): the actions before the first one that would cross a limit are queued and fly;
+        that one and the rest of the batch are refused. The daemon is told at once
+        (``command_refused``), and again with the status ``failure`` when the vehicle gets to
+        the refused step, empties its queue and holds (the contract of a failed action).
+        """
+        actions: list[Action] = list(packet.actions)
         replacing = packet.mode == "replace" or packet.mission_id != self.queue.mission_id
-        verdict = sanity_violation(actions, self.config.limits, home, 0 if replacing else self.queue.depth)
-        if verdict is None:
-            return False
-        action, reason = verdict
-        detail = f"{packet.mode} of {len(actions)} actions for {packet.mission_id} refused: {reason}"
+        limits = self.config.limits
+        whole = queue_refusal(len(actions), 0 if replacing else self.queue.depth, limits)
+        if whole is not None:
+            await self._refuse_batch(packet, len(actions), whole, replacing)
+            return
+        home = self._home_latlon()
+        start = self._place()
+        if not replacing:
+            start = project(self.queue.planned(), start, home)
+        crossing = first_crossing(actions, start, limits, home, self.monitor.geofence)
+        if crossing is not None and crossing.index is not None:
+            kept = crossing.index
+            detail = (
+                f"{packet.mode} of {len(actions)} actions for {packet.mission_id}: {crossing.reason}; "
+                f"refused from step {crossing.step} on ({len(actions) - kept} actions), "
+                f"the {kept} before it fly, then the vehicle holds"
+            )
+            log.error("%s", detail)
+            await self._on_exception("command_refused", detail)
+            actions = actions[:kept]
+        log.info("%s %d actions for mission %s", packet.mode, len(actions), packet.mission_id)
+        await self.queue.submit(
+            packet.mission_id,
+            actions,
+            replace=packet.mode == "replace",
+            await_release=packet.await_release,
+            refusal=crossing,
+        )
+
+    async def _refuse_batch(
+        self, packet: PerformActions, count: int, refusal: Refusal, replacing: bool
+    ) -> None:
+        """Refuse a whole batch: the queue is emptied and the vehicle holds, as after a failure."""
+        detail = f"{packet.mode} of {count} actions for {packet.mission_id} refused: {refusal.reason}"
         log.error("%s", detail)
-        # Like a failed action: the queue is emptied, a flying vehicle holds, the failure is reported.
         if replacing:
             await self.queue.submit(packet.mission_id, [], replace=True)
         else:
             await self.queue.interrupt()
+        step = refusal.step if refusal.step >= 0 else max(0, self.queue.completed_step + 1)
+        await self._on_refused(Refusal(None, step, refusal.kind, refusal.reason), detail)
+
+    def _home_latlon(self) -> tuple[float, float] | None:
+        t = self.autopilot.telemetry()
+        return (t.home_lat, t.home_lon) if t.home_lat is not None and t.home_lon is not None else None
+
+    def _place(self) -> Place:
+        """Where the vehicle is now, for the limits (no lat/lon before the first 3-D fix)."""
+        t = self.autopilot.telemetry()
+        alt = finite_or_zero(t.alt_rel)
+        if not t.position_known:
+            return Place(None, None, alt)
+        return Place(t.lat, t.lon, alt)
+
+    def _vet(self, action: Action) -> Refusal | None:
+        """The last check before ``action`` starts: its limits from the actual position."""
+        return first_crossing(
+            [action], self._place(), self.config.limits, self._home_latlon(), self.monitor.geofence
+        )
+
+    async def _on_refused(self, refusal: Refusal, detail: str | None = None) -> None:
+        """An action refused by the agent's limits: reported like a failure, the vehicle holds."""
         self.executor.failure = ActionFailure(
-            step=action.step if action is not None else max(0, self.queue.completed_step + 1),
-            kind=action.kind if action is not None else "queue",
-            reason=f"refused by the agent: {reason}"[:300],
+            step=refusal.step,
+            kind=refusal.kind,
+            reason=f"refused by the agent: {refusal.reason}"[:300],
             time=time.time(),
         )
-        await self._on_exception("command_refused", detail)
+        await self._on_exception("command_refused", detail or f"{refusal.reason}; queue emptied, holding")
         with contextlib.suppress(AutopilotError):
             await self.executor.hold_vehicle()
-        return True
 
     async def _on_release(self, signal: SyncSignal) -> None:
         self._release(signal.mission_id, signal.step)

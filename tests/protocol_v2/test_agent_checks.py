@@ -23,7 +23,9 @@ async def test_absurd_orders_are_refused_and_reported(tmp_path: Path) -> None:
             far_lat, far_lon = offset_latlon(HOME[0], HOME[1], 1_000_000.0, 0.0)  # 1000 km north
             orders = [
                 [Takeoff(step=0, alt=9999.0)],
-                [Takeoff(step=0, alt=5.0), Goto(step=1, lat=far_lat, lon=far_lon, alt=5.0)],
+                # Refused at its first action: nothing of it flies (a batch is flown up to the
+                # first action that would cross; tests/protocol_v2/test_agent_limits.py).
+                [Goto(step=0, lat=far_lat, lon=far_lon, alt=5.0), Takeoff(step=1, alt=5.0)],
                 [Hold(step=0, seconds=86_000.0)],
                 [Hold(step=i, seconds=1.0) for i in range(51)],
             ]
