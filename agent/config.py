@@ -60,6 +60,11 @@ class SanityLimits(BaseModel):
     min_alt_m: float = Field(
         default=-500.0, ge=-1000.0, le=0.0, description="metres relative to home (below home: negative)"
     )
+    check_geofence: bool = Field(
+        default=True,
+        description="refuse orders that lead outside the geofence the daemon installed (false: the "
+        "fence is enforced in flight only, by its breach reaction)",
+    )
     max_queue_actions: int = Field(default=20_000, ge=1, le=1_000_000)
     min_hold_s: float = Field(default=0.0, ge=0.0)
     max_hold_s: float = Field(default=3600.0, gt=0.0, le=86_400.0)

@@ -143,8 +143,11 @@ def first_crossing(
     """The first of ``actions`` (applied in order from ``start``) that would cross a limit, or None.
 
     ``home`` (lat, lon) is where horizontal distances are measured from; None (no home yet):
-    distances unchecked, altitudes and the geofence still are.
+    distances unchecked, altitudes and the geofence still are. ``fence``: the installed geofence,
+    ignored when ``limits.check_geofence`` is off.
     """
+    if not limits.check_geofence:
+        fence = None
     place = start
     for index, action in enumerate(actions):
         why = _order_refusal(action, place, limits, home, fence)

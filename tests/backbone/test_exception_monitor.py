@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from agent.config import AgentSettings
+from agent.config import AgentSettings, SanityLimits
 from protocol.actions import Goto, Hold, Takeoff
 from protocol.geo import offset_latlon
 from protocol.packets import FenceCircle, Geofence
@@ -46,7 +46,9 @@ async def test_low_battery_makes_the_agent_return_to_launch(tmp_path: Path) -> N
 async def test_fence_breach_triggers_the_fence_action(tmp_path: Path) -> None:
     key = new_key()
     async with running_daemon(tmp_path, key) as daemon:
-        running = start_agent("wanderer", daemon.listen_port, key)
+        # The mission leads out of the fence on purpose: the agent's own limits would refuse it.
+        fly_out = SanityLimits(check_geofence=False)
+        running = start_agent("wanderer", daemon.listen_port, key, limits=fly_out)
         try:
             await wait_for(lambda: daemon.agents.session("wanderer") is not None, 10, "agent joins")
             fence = Geofence(

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from agent.config import AgentSettings
+from agent.config import AgentSettings, SanityLimits
 from gcs.cooperation.config import ConnectivityConfig, CooperationConfig, DivergenceConfig
 from gcs.cooperation.divergence import leg_error
 from gcs.cooperation.legs import Leg
@@ -105,7 +105,9 @@ async def test_fence_breach_acted_on_by_agent_and_daemon(tmp_path: Path) -> None
         ],
         "breach",
     )
-    async with rig(tmp_path, 1) as r:
+    # The goto leads out of the fence on purpose: the agent's own limits would refuse it.
+    fly_out = {"limits": SanityLimits(check_geofence=False)}
+    async with rig(tmp_path, 1, agent_options=fly_out) as r:
         fence = Geofence(circle=FenceCircle(lat=HOME[0], lon=HOME[1], radius_m=30.0), breach_action="rtl")
         assert await r.daemon.set_geofence(fence) == ["drone-1"]
         assert r.daemon.geofences["drone-1"] == fence

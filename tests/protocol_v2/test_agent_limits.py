@@ -77,6 +77,8 @@ def test_a_geofence_is_crossed_where_the_orders_lead_out_of_it() -> None:
     refusal = first_crossing(orders, ON_THE_GROUND, LIMITS, HOME_LL, fence)
     assert refusal is not None and refusal.index == 4
     assert "outside the geofence" in refusal.reason and "radius 300.0 m" in refusal.reason
+    flown_out = SanityLimits(check_geofence=False)  # the fence enforced in flight only
+    assert first_crossing(orders, ON_THE_GROUND, flown_out, HOME_LL, fence) is None
     climb = first_crossing([Takeoff(step=0, alt=80.0)], ON_THE_GROUND, LIMITS, HOME_LL, fence)
     assert climb is not None and "ceiling 60.0 m" in climb.reason
     # A waypoint leg is checked point by point.

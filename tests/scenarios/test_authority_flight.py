@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from agent.config import SanityLimits
 from gcs.api_planning import SearchPlanRequest, plan
 from gcs.cooperation.config import CollisionConfig, CooperationConfig
 from protocol.actions import Goto, Hold, Land, Takeoff
@@ -151,7 +152,9 @@ async def test_battery_failsafe_during_a_collision_hold_still_lands(tmp_path: Pa
 
 async def test_fence_emergency_hold_survives_a_collision_escape(tmp_path: Path) -> None:
     """drone-2 is held by a fence breach; drone-1 flies at it: drone-1 must be the one to give way."""
-    async with rig(tmp_path, 2, COOP) as r:
+    # drone-2's takeoff climbs through the fence ceiling on purpose: the agents' own limits would refuse it.
+    fly_out = {"limits": SanityLimits(check_geofence=False)}
+    async with rig(tmp_path, 2, COOP, agent_options=fly_out) as r:
         fence = Geofence(max_alt_m=8.0, breach_action="hold")
         assert await r.daemon.set_geofence(fence, ["drone-2"]) == ["drone-2"]
         here2 = r.status("drone-2").position
