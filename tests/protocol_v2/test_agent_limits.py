@@ -25,7 +25,7 @@ from protocol.actions import (
     Waypoints,
 )
 from protocol.geo import distance_m, offset_latlon
-from protocol.packets import Capabilities, FenceCircle, Geofence
+from protocol.packets import Capabilities, FenceCircle, Geofence, PerformActions
 from protocol.taskfile import AgentPlan, TaskFile
 from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent, wait_for
 
@@ -176,5 +176,42 @@ async def test_a_daemon_task_of_split_legs_is_refused_at_the_first_crossing_leg(
             progress = daemon.missions.progress(mission_id)
             assert progress is not None and progress.state == "aborted", progress
             assert progress.result is not None and "refused by the agent" in progress.result
+        finally:
+            await running.kill()
+
+
+async def test_an_action_is_checked_again_from_the_actual_position_before_it_starts(tmp_path: Path) -> None:
+    """Accepted from home, a go_by is refused when it starts from where the vehicle really is."""
+    key = new_key()
+    limits = SanityLimits(max_distance_from_home_m=1000.0)
+    async with running_daemon(tmp_path, key) as daemon:
+        running = start_agent("drifter", daemon.listen_port, key, speedup=1.0, limits=limits)
+        try:
+            await wait_for(lambda: (s := daemon.agents.session("drifter")) and s.status, 10, "joined")
+            plan: list[Action] = [
+                Takeoff(step=0, alt=5.0),
+                Hold(step=1, seconds=3.0),
+                GoBy(step=2, north=600.0, east=0.0),  # 600 m from home, as planned: accepted
+                Land(step=3),
+            ]
+            daemon.agents.post("drifter", PerformActions(mission_id="drift", mode="replace", actions=plan))
+            queue = running.agent.queue
+            await wait_for(lambda: queue.current_step == 1, 20, "holding")
+            assert queue.depth == 2  # the go_by and the land: nothing was refused
+            t = running.autopilot.telemetry()  # carried 500 m north (a gust, a bad fix) during the hold
+            t.lat, t.lon = offset_latlon(HOME[0], HOME[1], 500.0, 0.0)
+
+            def refused() -> bool:
+                s = daemon.agents.session("drifter")
+                return bool(s and s.status and s.status.failure and s.status.failure.step == 2)
+
+            await wait_for(refused, 20, "the go_by refused as it starts")
+            session = daemon.agents.session("drifter")
+            assert session is not None and session.status is not None and session.status.failure is not None
+            reason = session.status.failure.reason
+            assert "refused by the agent" in reason and "max_distance_from_home_m 1000" in reason, reason
+            assert queue.depth == 0 and running.autopilot.telemetry().armed  # holding in the air
+            now = running.autopilot.telemetry()
+            assert distance_m(HOME[0], HOME[1], now.lat, now.lon) < 1000.0
         finally:
             await running.kill()
