@@ -466,7 +466,13 @@ class MavsdkAutopilot(Autopilot):
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
 
         self.ensure_link(what)
+        # JSON has no NaN and MavlinkDirect turns a "NaN" string into 0 (measured). Our only NaN is
+        # param4, the yaw ("keep heading") of NAV_TAKEOFF and DO_REPOSITION: send the heading instead.
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        if not math.isfinite(p[3]):
+            p[3] = self.telemetry().heading_deg
+        if not all(math.isfinite(x) for x in p):
+            raise ValueError(f"{what}: non-finite command parameter {params!r}")
         fields: dict[str, Any] = {
             "target_system": self._sysid,
             "target_component": self._compid,
