@@ -140,6 +140,7 @@ class MavlinkAutopilot(Autopilot):
         self._settler = HoldSettler()  # PX4: the second step of a reposition hold
         self._streams_ready = False
         self._stream_requested_at: dict[str, float] = {}
+        self._refused_streams: set[str] = set()  # SET_MESSAGE_INTERVAL refused: never re-asserted
         self._last_full_reassert = 0.0
         self._last_home_request = 0.0
         self._connected = False
@@ -188,6 +189,7 @@ class MavlinkAutopilot(Autopilot):
 
     async def _setup_streams(self) -> None:
         """SET_MESSAGE_INTERVAL per message; REQUEST_DATA_STREAM when the vehicle does not take it."""
+        refused = 0
         fallback = False
         for name, msg_id, hz in self._stream_plan():
             try:
@@ -199,13 +201,16 @@ class MavlinkAutopilot(Autopilot):
                 )
                 self._stream_requested_at[name] = time.monotonic()
             except CommandRefused as exc:
-                log.info("SET_MESSAGE_INTERVAL %s refused (%s)", name, exc.reason)
-                fallback = True
+                # PX4 refuses MISSION_CURRENT (it streams it anyway): not re-asserted, no fallback
+                # while other intervals are taken.
+                log.debug("SET_MESSAGE_INTERVAL %s refused (%s)", name, exc.reason)
+                self._refused_streams.add(name)
+                refused += 1
             except CommandTimeout:
                 log.info("SET_MESSAGE_INTERVAL unanswered; falling back to REQUEST_DATA_STREAM")
                 fallback = True
                 break
-        if fallback:
+        if fallback or (refused and refused == len(self._stream_plan())):
             self._request_data_streams()
         self._last_full_reassert = time.monotonic()
         self._streams_ready = True
@@ -236,6 +241,8 @@ class MavlinkAutopilot(Autopilot):
         """Re-send interval requests, fire-and-forget (the vehicle may have reverted them)."""
         now = time.monotonic()
         for name, msg_id, hz in self._stream_plan():
+            if name in self._refused_streams:
+                continue
             if only_stale:
                 last = self._link.last_seen.get(name, 0.0)
                 stale_after = max(3.0 / hz, 2.0)

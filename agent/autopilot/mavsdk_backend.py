@@ -174,6 +174,7 @@ class MavsdkAutopilot(Autopilot):
         self._shown = ShownMode()  # PX4: GUIDED while our reposition leg is flown, LOITER once held
         self._settler = HoldSettler()  # PX4: the second step of a reposition hold
         self._leg_speed: float | None = None  # PX4: the last speed asked for, sent with each reposition
+        self._param_is_int: dict[str, bool] = {}
         self._mission_seq = -1
         self._mission_offset = 0
         self._landed_state = 0
@@ -653,7 +654,23 @@ class MavsdkAutopilot(Autopilot):
     # ================================================================== fence, mission, params
 
     async def set_param(self, name: str, value: float) -> None:
-        """Write a parameter (float, falling back to int for integer parameters)."""
+        """Write a parameter (float, falling back to int for integer parameters).
+
+        PX4 ignores a REAL32 PARAM_SET of an INT32 parameter (MAVSDK then times out after 10 s),
+        so with a flavour whose integers travel byte-wise the type is read first.
+        """
+        if self.flavour.params_bytewise:
+            if name not in self._param_is_int:
+                try:
+                    await self._call(f"get {name}", self._param.get_param_int, name)
+                    self._param_is_int[name] = True
+                except (CommandRefused, CommandTimeout):
+                    self._param_is_int[name] = False
+            if self._param_is_int[name]:
+                await self._call(f"set {name}", self._param.set_param_int, name, round(value))
+            else:
+                await self._call(f"set {name}", self._param.set_param_float, name, float(value))
+            return
         try:
             await self._call(f"set {name}", self._param.set_param_float, name, float(value))
         except CommandRefused:
