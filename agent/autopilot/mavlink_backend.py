@@ -623,6 +623,8 @@ class MavlinkAutopilot(Autopilot):
         flavour = self.flavour
         tel = self.telemetry()
         if flavour.hold_by_reposition and tel.armed and not tel.landed and tel.position_known:
+            if self._settler.running:
+                return  # already stopping (a collision hold is re-sent every 2 s): do not re-aim back
             await self._reposition("hold", tel.lat, tel.lon, tel.alt_amsl, None)
             self._set_leg_active(False)
             self._settler.start(self.telemetry, self._settle_reposition)
