@@ -1,4 +1,4 @@
-"""The pymavlink backend: ArduPilot (ArduCopter first) and generic MAVLink autopilots, PX4 modes decoded.
+"""The pymavlink backend: ArduPilot (ArduCopter first), PX4 and generic MAVLink autopilots.
 
 Identity: by default the agent speaks as the *vehicle's own system id* with component
 ``MAV_COMP_ID_ONBOARD_COMPUTER`` (191), the way companion computers do, so it never takes a system
@@ -69,6 +69,8 @@ def decode_mode(autopilot: int, mav_type: int, base_mode: int, custom_mode: int)
 
 class MavlinkAutopilot(Autopilot):
     """An :class:`Autopilot` over a pymavlink connection (serial, UDP or TCP), MAVLink 2.
+
+    Firmware differences (ArduPilot, PX4) come from :attr:`flavour`, picked from the heartbeat.
 
     Args:
         connection: ``/dev/ttyAMA0:921600``, ``/dev/serial0,921600``, ``udpin:0.0.0.0:14550``,
