@@ -613,7 +613,10 @@ class MavlinkAutopilot(Autopilot):
             raise ValueError(f"return altitude must be a positive number, not {alt_rel_m!r}")
         if alt_rel_m is not None:
             # The return altitude layer: ArduCopter RTL_ALT in cm, PX4 RTL_RETURN_ALT in m.
-            await self.set_param(flavour.return_alt_param, flavour.return_alt_value(alt_rel_m))
+            try:
+                await self.set_param(flavour.return_alt_param, flavour.return_alt_value(alt_rel_m))
+            except (CommandRefused, CommandTimeout) as exc:  # a return must not fail for its altitude
+                log.warning("return altitude %.1f m not set (%s); returning at the vehicle's", alt_rel_m, exc)
         await self.set_mode("RTL")
 
     async def hold(self) -> None:
