@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import ipaddress
 import logging
 import time
 from collections.abc import Awaitable, Callable, Coroutine
@@ -89,6 +90,10 @@ loop for one service, and its loop time is counted without what ran in between."
 READ_BUFFER_BYTES = 256 << 10
 """Every served connection reads into the manager's one buffer of this size (asyncio's own read size)."""
 HANDSHAKE_READ_LIMIT = 1 << 16  # a connection's StreamReader during the handshake (flow control)
+BUSY_RETRY_S = 1.0
+"""The wait a ``busy`` (handshake slots full) answer names: slots free up within a handshake."""
+ENROLLMENT_SOURCES = 4096
+"""Source addresses whose enrollment allowance is remembered; refilled ones are forgotten first."""
 FREEZE_MIN_AGENTS = 200  # smaller fleets: full collections are short anyway (and tests run many daemons)
 _SLOW_FLAGS = HAS_TAIL | BUFFERED  # a compact body with these is decoded at once (rare packets)
 
@@ -118,6 +123,15 @@ class TokenBucket:
             return False
         self.tokens -= 1.0
         return True
+
+    def wait(self, now: float) -> float:
+        """Seconds until the next token (0 if one is there)."""
+        tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
+        return max(0.0, (1.0 - tokens) / self.rate)
+
+    def refilled(self, now: float) -> bool:
+        """Full again: nothing spent that still counts (the bucket can be forgotten)."""
+        return self.tokens + (now - self.stamp) * self.rate >= self.burst
 
 
 @dataclass(eq=False, slots=True)
@@ -264,6 +278,8 @@ class AgentManager:
         self.ingest_probe: Callable[[bytes], None] | None = None  # benchmarks: sees each table write
         self._hooks_closed = False
         self._pending_handshakes = 0
+        self._pre_auth: dict[str, int] = {}  # handshakes in progress per source address
+        self._enrollments: dict[str, TokenBucket] = {}  # enrollment allowance per source address
         self.ingest_frames = 0  # frames recorded by the frame loops
         self.ingest_busy_s = 0.0  # event-loop time recording them took (checks, record, publish)
         self.tick_count = 0
@@ -345,18 +361,16 @@ class AgentManager:
         # Before the agent is known a frame is small: a handshake packet is well under 1 KiB.
         stream = FramedStream(reader, writer, max_body=PRE_AUTH_MAX_BODY, version=PROTOCOL_VERSION)
         handshake = ServerHandshake(self._keys.key_for)
+        source = source_of(writer.get_extra_info("peername"))
         served = False
         try:
-            if self._pending_handshakes >= self.config.max_handshakes:
-                self.busy_refusals += 1
-                raise Refused(Code.BUSY, f"{self.config.max_handshakes} handshakes in progress; retry later")
-            self._pending_handshakes += 1
+            self._take_handshake_slot(source)
             try:
                 await asyncio.wait_for(
-                    self._handshake(stream, handshake, conn, peer), self.config.handshake_timeout_s
+                    self._handshake(stream, handshake, conn, peer, source), self.config.handshake_timeout_s
                 )
             finally:
-                self._pending_handshakes -= 1
+                self._release_handshake_slot(source)
             served = True
             self._serve(conn, stream)
             return
@@ -371,6 +385,65 @@ class AgentManager:
                     await self._disconnected(conn.session)
                 with contextlib.suppress(Exception):
                     writer.close()
+
+    def _take_handshake_slot(self, source: str) -> None:
+        """A pre-authentication slot for a connection from ``source``, or Refused ``busy``.
+
+        At most ``max_handshakes_per_source`` of the ``max_handshakes`` slots go to one source
+        address (an IPv6 /64), so one host holding silent connections cannot keep agents from
+        other addresses out; its extra connections are answered ``busy`` with a short wait.
+        """
+        per_source = self.config.max_handshakes_per_source
+        held = self._pre_auth.get(source, 0)
+        if held >= per_source:
+            self.busy_refusals += 1
+            raise Refused(
+                Code.BUSY, f"{per_source} handshakes in progress from {source}; retry later", BUSY_RETRY_S
+            )
+        if self._pending_handshakes >= self.config.max_handshakes:
+            self.busy_refusals += 1
+            raise Refused(
+                Code.BUSY, f"{self.config.max_handshakes} handshakes in progress; retry later", BUSY_RETRY_S
+            )
+        self._pending_handshakes += 1
+        self._pre_auth[source] = held + 1
+
+    def _release_handshake_slot(self, source: str) -> None:
+        self._pending_handshakes -= 1
+        held = self._pre_auth.get(source, 0) - 1
+        if held > 0:
+            self._pre_auth[source] = held
+        else:
+            self._pre_auth.pop(source, None)
+
+    def _check_enrollment_rate(self, request: RequestCid, source: str) -> None:
+        """A new identity from ``source`` within the enrollment rate, or Refused ``busy`` with the wait.
+
+        Identities the database knows are never counted: only enrollment (a new CID) is limited.
+        """
+        if request.probe or self._store.cid_of(request.identity) is not None:
+            return
+        now = time.monotonic()
+        bucket = self._enrollments.get(source)
+        if bucket is None:
+            if len(self._enrollments) >= ENROLLMENT_SOURCES:  # forget sources whose allowance refilled
+                full = [k for k, b in self._enrollments.items() if b.refilled(now)]
+                for key in full:
+                    del self._enrollments[key]
+                if len(self._enrollments) >= ENROLLMENT_SOURCES:
+                    self._enrollments.clear()
+            bucket = self._enrollments[source] = TokenBucket(
+                self.config.enroll_per_s, self.config.enroll_burst
+            )
+        if not bucket.take(now):
+            self.busy_refusals += 1
+            wait = bucket.wait(now)
+            raise Refused(
+                Code.BUSY,
+                f"more than {self.config.enroll_per_s:g} new identities/s (burst {self.config.enroll_burst}) "
+                f"enrolled from {source}; retry later",
+                round(wait + 0.05, 2),
+            )
 
     async def _refuse(
         self,
@@ -465,21 +538,23 @@ class AgentManager:
             raise Refused(Code.CID_EXHAUSTED, str(exc), 300.0) from None
 
     async def _handshake(
-        self, stream: FramedStream, handshake: ServerHandshake, conn: _Connection, peer: str
+        self, stream: FramedStream, handshake: ServerHandshake, conn: _Connection, peer: str, source: str
     ) -> AgentSession:
         hello = (await stream.read_frame()).body
         challenge = handshake.on_hello(hello)
         stream.version = handshake.version
-        assert isinstance(hello, RequestCid)
-        self._admit(hello, stream.writer)
         await stream.send(challenge)
         authenticated = handshake.on_proof((await stream.read_frame()).body)
         request = authenticated.request
+        # Decided only now, once the agent proved its key, so the refusal can be proved in turn
+        # (refusal_proof): the agent stops for good only on a refusal it can check.
+        self._admit(request, stream.writer)
         if authenticated.probe:  # authenticated only: no CID, no session, never a member
             answer = handshake.accept(None, self._parameters(), time.time())
             await stream.send(answer, close_for(Code.NORMAL, "probe answered"))
             self._events.publish("agent_probe", f"{request.identity} probed from {peer}")
             raise ProbeAnswered(request.identity)
+        self._check_enrollment_rate(request, source)
         if self.assign_cid is not None:  # cluster mode: the shared registry assigns CIDs once
             await self.assign_cid(request.identity)
         cid = self._allocate_cid(request)
@@ -1109,6 +1184,24 @@ def certificate_identities(peercert: object) -> set[str] | None:
     return names
 
 
+def source_of(peername: object) -> str:
+    """The source a connection counts against: its IPv4 address, or the /64 of an IPv6 address.
+
+    One host of an IPv6 network usually holds a whole /64, so per-address limits would not bind.
+    """
+    if not isinstance(peername, tuple) or not peername:
+        return str(peername)
+    try:
+        address = ipaddress.ip_address(str(peername[0]).split("%", 1)[0])
+    except ValueError:
+        return str(peername[0])
+    if isinstance(address, ipaddress.IPv6Address):
+        if address.ipv4_mapped is not None:
+            return str(address.ipv4_mapped)
+        return str(ipaddress.IPv6Network((address, 64), strict=False))
+    return str(address)
+
+
 def _peer_name(writer: asyncio.StreamWriter) -> str:
     peer = writer.get_extra_info("peername")
     if isinstance(peer, tuple) and len(peer) >= 2:
@@ -1116,4 +1209,4 @@ def _peer_name(writer: asyncio.StreamWriter) -> str:
     return str(peer)
 
 
-__all__ = ["AgentManager", "AgentSession", "PacketType", "certificate_identities"]
+__all__ = ["AgentManager", "AgentSession", "PacketType", "certificate_identities", "source_of"]
