@@ -67,10 +67,12 @@ async def test_forged_unproved_refusals_leave_the_agent_reconnecting_on_v2(tmp_p
         )
         running = start_agent("drone-1", proxy.port, key)
         try:
-            await wait_for(
-                lambda: daemon.agents.session("drone-1") is not None, 15, "the agent to get through"
-            )
             link = running.agent.link
+            await wait_for(
+                lambda: daemon.agents.session("drone-1") is not None and link.connected,
+                15,
+                "the agent through",
+            )
             assert proxy.forging == 0 and proxy.stats["forged"] == 5
             assert link.stopped is None and link.unproved_refusals == 4
             assert link.version == 2 and link.versions == [1, 2]
