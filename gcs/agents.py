@@ -6,7 +6,10 @@ with an urgent lane, written by a task that runs only while there is work). The 
 frames through the shared :class:`protocol.stream.FramedStream` and is
 :class:`protocol.session.ServerHandshake` (versions negotiated, refusals with codes). A
 connection must complete it within ``handshake_timeout_s`` with frames under 1 KiB, and at
-most ``max_handshakes`` run at once; until then no other packet is accepted. Any protocol
+most ``max_handshakes`` run at once, ``max_handshakes_per_source`` from one address
+(:class:`PreAuthLimits`, which also rate-limits enrollment); until then no other packet is
+accepted. Refusals that do not depend on the key are decided after the agent's proof, so
+the session layer proves them to the agent (``refusal_proof``). Any protocol
 error closes only that connection (type 6 ``protocol_error`` first), never the daemon or
 other agents.
 
@@ -132,6 +135,70 @@ class TokenBucket:
     def refilled(self, now: float) -> bool:
         """Full again: nothing spent that still counts (the bucket can be forgotten)."""
         return self.tokens + (now - self.stamp) * self.rate >= self.burst
+
+
+class PreAuthLimits:
+    """What one source address may hold or do before it is known: handshake slots and enrollments.
+
+    At most ``max_handshakes_per_source`` of the ``max_handshakes`` slots go to one source (an
+    IPv6 /64), so one host holding silent connections cannot keep agents from other addresses
+    out; its extra connections are answered ``busy`` with a short wait. New identities (a new
+    CID) are limited to ``enroll_per_s`` per source with a burst of ``enroll_burst``.
+    """
+
+    def __init__(self, config: DaemonConfig) -> None:
+        self.config = config
+        self.pending = 0  # handshakes in progress, every source
+        self.busy_refusals = 0
+        self._held: dict[str, int] = {}  # handshakes in progress per source
+        self._enrollments: dict[str, TokenBucket] = {}  # enrollment allowance per source
+
+    def take_slot(self, source: str) -> None:
+        """A handshake slot for a connection from ``source``, or Refused ``busy``."""
+        per_source = self.config.max_handshakes_per_source
+        held = self._held.get(source, 0)
+        if held >= per_source:
+            self.busy_refusals += 1
+            raise Refused(
+                Code.BUSY, f"{per_source} handshakes in progress from {source}; retry later", BUSY_RETRY_S
+            )
+        if self.pending >= self.config.max_handshakes:
+            self.busy_refusals += 1
+            raise Refused(
+                Code.BUSY, f"{self.config.max_handshakes} handshakes in progress; retry later", BUSY_RETRY_S
+            )
+        self.pending += 1
+        self._held[source] = held + 1
+
+    def release_slot(self, source: str) -> None:
+        self.pending -= 1
+        held = self._held.get(source, 0) - 1
+        if held > 0:
+            self._held[source] = held
+        else:
+            self._held.pop(source, None)
+
+    def enroll(self, source: str) -> None:
+        """One new identity from ``source`` within the enrollment rate, or Refused ``busy`` with the wait."""
+        now = time.monotonic()
+        bucket = self._enrollments.get(source)
+        if bucket is None:
+            if len(self._enrollments) >= ENROLLMENT_SOURCES:  # forget sources whose allowance refilled
+                for key in [k for k, b in self._enrollments.items() if b.refilled(now)]:
+                    del self._enrollments[key]
+                if len(self._enrollments) >= ENROLLMENT_SOURCES:
+                    self._enrollments.clear()
+            bucket = self._enrollments[source] = TokenBucket(
+                self.config.enroll_per_s, self.config.enroll_burst
+            )
+        if not bucket.take(now):
+            self.busy_refusals += 1
+            raise Refused(
+                Code.BUSY,
+                f"more than {self.config.enroll_per_s:g} new identities/s (burst {self.config.enroll_burst}) "
+                f"enrolled from {source}; retry later",
+                round(bucket.wait(now) + 0.05, 2),
+            )
 
 
 @dataclass(eq=False, slots=True)
@@ -277,14 +344,11 @@ class AgentManager:
         self._frozen_at = 0  # fleet size at the last gc.freeze() (0: none by this manager)
         self.ingest_probe: Callable[[bytes], None] | None = None  # benchmarks: sees each table write
         self._hooks_closed = False
-        self._pending_handshakes = 0
-        self._pre_auth: dict[str, int] = {}  # handshakes in progress per source address
-        self._enrollments: dict[str, TokenBucket] = {}  # enrollment allowance per source address
+        self.pre_auth = PreAuthLimits(config)  # handshake slots and enrollments per source address
         self.ingest_frames = 0  # frames recorded by the frame loops
         self.ingest_busy_s = 0.0  # event-loop time recording them took (checks, record, publish)
         self.tick_count = 0
         self.tick_busy_s = 0.0  # event-loop time of the status ticks (decode dirty rows, publish)
-        self.busy_refusals = 0
         self.accepting = True  # False: handshakes are refused with code `starting`
         # Cluster mode (gcs/cluster): agents linked to other daemons, and the shared CID registry.
         self.remote: dict[str, AgentSession] = {}
@@ -364,13 +428,13 @@ class AgentManager:
         source = source_of(writer.get_extra_info("peername"))
         served = False
         try:
-            self._take_handshake_slot(source)
+            self.pre_auth.take_slot(source)
             try:
                 await asyncio.wait_for(
                     self._handshake(stream, handshake, conn, peer, source), self.config.handshake_timeout_s
                 )
             finally:
-                self._release_handshake_slot(source)
+                self.pre_auth.release_slot(source)
             served = True
             self._serve(conn, stream)
             return
@@ -385,65 +449,6 @@ class AgentManager:
                     await self._disconnected(conn.session)
                 with contextlib.suppress(Exception):
                     writer.close()
-
-    def _take_handshake_slot(self, source: str) -> None:
-        """A pre-authentication slot for a connection from ``source``, or Refused ``busy``.
-
-        At most ``max_handshakes_per_source`` of the ``max_handshakes`` slots go to one source
-        address (an IPv6 /64), so one host holding silent connections cannot keep agents from
-        other addresses out; its extra connections are answered ``busy`` with a short wait.
-        """
-        per_source = self.config.max_handshakes_per_source
-        held = self._pre_auth.get(source, 0)
-        if held >= per_source:
-            self.busy_refusals += 1
-            raise Refused(
-                Code.BUSY, f"{per_source} handshakes in progress from {source}; retry later", BUSY_RETRY_S
-            )
-        if self._pending_handshakes >= self.config.max_handshakes:
-            self.busy_refusals += 1
-            raise Refused(
-                Code.BUSY, f"{self.config.max_handshakes} handshakes in progress; retry later", BUSY_RETRY_S
-            )
-        self._pending_handshakes += 1
-        self._pre_auth[source] = held + 1
-
-    def _release_handshake_slot(self, source: str) -> None:
-        self._pending_handshakes -= 1
-        held = self._pre_auth.get(source, 0) - 1
-        if held > 0:
-            self._pre_auth[source] = held
-        else:
-            self._pre_auth.pop(source, None)
-
-    def _check_enrollment_rate(self, request: RequestCid, source: str) -> None:
-        """A new identity from ``source`` within the enrollment rate, or Refused ``busy`` with the wait.
-
-        Identities the database knows are never counted: only enrollment (a new CID) is limited.
-        """
-        if request.probe or self._store.cid_of(request.identity) is not None:
-            return
-        now = time.monotonic()
-        bucket = self._enrollments.get(source)
-        if bucket is None:
-            if len(self._enrollments) >= ENROLLMENT_SOURCES:  # forget sources whose allowance refilled
-                full = [k for k, b in self._enrollments.items() if b.refilled(now)]
-                for key in full:
-                    del self._enrollments[key]
-                if len(self._enrollments) >= ENROLLMENT_SOURCES:
-                    self._enrollments.clear()
-            bucket = self._enrollments[source] = TokenBucket(
-                self.config.enroll_per_s, self.config.enroll_burst
-            )
-        if not bucket.take(now):
-            self.busy_refusals += 1
-            wait = bucket.wait(now)
-            raise Refused(
-                Code.BUSY,
-                f"more than {self.config.enroll_per_s:g} new identities/s (burst {self.config.enroll_burst}) "
-                f"enrolled from {source}; retry later",
-                round(wait + 0.05, 2),
-            )
 
     async def _refuse(
         self,
@@ -460,7 +465,8 @@ class AgentManager:
             )
             await stream.close(close_for(Code.HANDSHAKE_TIMEOUT, "handshake timeout"))
         elif isinstance(exc, Refused):
-            if exc.code != Code.BUSY or self.busy_refusals == 1 or self.busy_refusals % 100 == 0:
+            busy = self.pre_auth.busy_refusals
+            if exc.code != Code.BUSY or busy == 1 or busy % 100 == 0:
                 self._events.publish("agent_refused", f"{peer}: {exc} ({exc.code})", severity="warning")
             known = {c.value for c in Code}
             code = Code(exc.code) if exc.code in known else Code.PROTOCOL_ERROR
@@ -554,7 +560,8 @@ class AgentManager:
             await stream.send(answer, close_for(Code.NORMAL, "probe answered"))
             self._events.publish("agent_probe", f"{request.identity} probed from {peer}")
             raise ProbeAnswered(request.identity)
-        self._check_enrollment_rate(request, source)
+        if not request.probe and self._store.cid_of(request.identity) is None:  # known ones are not counted
+            self.pre_auth.enroll(source)
         if self.assign_cid is not None:  # cluster mode: the shared registry assigns CIDs once
             await self.assign_cid(request.identity)
         cid = self._allocate_cid(request)

@@ -158,12 +158,12 @@ async def test_pre_auth_flood_from_one_source_lets_a_genuine_agent_join(tmp_path
         flood = [asyncio.create_task(_hold_slots(daemon.listen_port, stop_at, answers)) for _ in range(64)]
         running = None
         try:
-            await wait_for(lambda: daemon.agents._pending_handshakes >= 16, 5, "the flood to hold slots")
+            await wait_for(lambda: daemon.agents.pre_auth.pending >= 16, 5, "the flood to hold slots")
             await asyncio.sleep(0.5)  # the flood has settled
             running = start_agent("genuine", daemon.listen_port, key)
             await wait_for(lambda: daemon.agents.session("genuine") is not None, 5, "the genuine agent")
             assert answers and all(a.code == Code.BUSY and a.retry_after_s for a in answers)
-            assert daemon.agents.busy_refusals > 0
+            assert daemon.agents.pre_auth.busy_refusals > 0
         finally:
             if running is not None:
                 await running.kill()
