@@ -18,6 +18,7 @@ import pytest
 
 from agent.config import AgentConfig
 from agent.link import DaemonLink
+from gcs.agents import source_of
 from protocol import auth
 from protocol.packets import Close, CloseReason, RequestCid, ResponseCid
 from protocol.session import ClientHandshake, Code, Refused, ServerHandshake, refusal
@@ -264,3 +265,12 @@ def test_only_a_refusal_after_the_proof_is_proved_and_it_covers_code_wait_and_te
             with pytest.raises(Refused) as caught:
                 checker.on_answer(tampered)
             assert caught.value.authenticated is (tampered is answer)
+
+
+def test_sources_are_addresses_and_ipv6_counts_per_64() -> None:
+    assert source_of(("127.0.0.2", 5000)) == "127.0.0.2"
+    assert source_of(("::ffff:10.0.0.7", 5000, 0, 0)) == "10.0.0.7"
+    assert source_of(("2001:db8:1:2:aaaa::1", 1, 0, 0)) == source_of(("2001:db8:1:2:bbbb::9", 2, 0, 0))
+    assert source_of(("2001:db8:1:2::1", 1, 0, 0)) == "2001:db8:1:2::/64"
+    assert source_of(("2001:db8:1:3::1", 1, 0, 0)) != source_of(("2001:db8:1:2::1", 1, 0, 0))
+    assert source_of(("fe80::1%eth0", 1, 0, 2)) == "fe80::/64"
