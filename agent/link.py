@@ -12,10 +12,20 @@ report, all before its first status period. The daemon counts replayed reports a
 frames (its replay allowance has a burst of 400), so a long outage never trips the rate limit.
 
 Refusal and close codes decide what happens next (:data:`protocol.session.ACTIONS`): ``retry``
-waits the daemon's ``retry_after_s`` (at least ``REFUSED_BACKOFF_S``), ``reconnect`` uses the
-normal backoff (``replaced`` waits ``REPLACED_BACKOFF_S`` so two agents with one identity do not
-take turns kicking each other off), ``stop`` ends the link (wrong key, banned...) until restart;
-the agent keeps flying its queue and applies its lost-link failsafe.
+waits the daemon's ``retry_after_s`` (``REFUSED_BACKOFF_S`` when it names none; an unproved wait
+is capped at ``UNPROVED_RETRY_MAX_S``), ``reconnect`` uses the normal backoff (``replaced`` waits
+``REPLACED_BACKOFF_S`` so two agents with one identity do not take turns kicking each other off).
+``stop`` (wrong key, banned...) ends the link until restart only when the daemon proved the
+refusal with our key (``refusal_proof``, :attr:`protocol.session.Refused.final`): anything else
+before ``accepted`` may have been forged by an on-path party without the key, so it is logged
+as an error and retried with a backoff doubling to ``UNPROVED_STOP_MAX_S``. A stopped agent keeps
+flying its queue and applies its lost-link failsafe.
+
+Version fallback: a code-less refusal of the v2 hello that names the versions (what a version-1
+daemon answers) is unproved too; the agent falls back to version 1 only after
+``V1_FALLBACK_AFTER`` such answers in a row (a WARNING), and offers version 2 again at its first
+connection ``V2_RETRY_S`` later. A bad frame from the daemon is answered with a type-6 close
+(code ``protocol_error``) before the connection is dropped.
 """
 
 from __future__ import annotations
@@ -42,14 +52,19 @@ from protocol.packets import (
     StatusReport,
     SyncSignal,
 )
-from protocol.session import V1_DAEMON, ClientHandshake, Code, Refused
+from protocol.session import V1_DAEMON, ClientHandshake, Code, Refused, close_for
 from protocol.stream import FramedStream, client_handshake
 from protocol.wire import Frame, ProtocolError
 
 log = logging.getLogger("agent.link")
 
 REPLACED_BACKOFF_S = 30.0
-REFUSED_BACKOFF_S = 10.0
+REFUSED_BACKOFF_S = 10.0  # a retry code without retry_after_s, or a code-less (v1) refusal
+UNPROVED_RETRY_MAX_S = 30.0  # the longest retry_after_s an unproved refusal may impose
+PROVED_RETRY_MAX_S = 600.0  # ... and a refusal the daemon proved with our key
+UNPROVED_STOP_MAX_S = 10.0  # the backoff after unproved stop codes doubles up to this
+V1_FALLBACK_AFTER = 3  # v1-daemon answers in a row before the agent speaks version 1
+V2_RETRY_S = 300.0  # on version 1 this long: offer version 2 again at the next connection
 
 
 def client_tls_context(config: AgentConfig) -> ssl.SSLContext | None:
@@ -139,7 +154,13 @@ class DaemonLink:
         self.sessions = 0
         self.last_error: str | None = None
         self.last_code: str | None = None  # code of the last refusal or close the daemon sent
-        self.stopped: str | None = None  # why the link gave up for good (a `stop` code)
+        self.stopped: str | None = None  # why the link gave up for good (a proved `stop` code)
+        self.unproved_refusals = 0  # stop codes the daemon did not prove with our key (retried)
+        self.v1_fallback_after = V1_FALLBACK_AFTER
+        self.v2_retry_s = V2_RETRY_S
+        self._v1_answers = 0  # v1-daemon answers to our v2 hello in a row
+        self._v1_since: float | None = None  # when the link fell back to version 1
+        self._unproved_delay = config.reconnect_min_s
         self.was_lost = False  # the daemon said it had marked us lost (v2 `accepted.lost`)
         self.compact_status = False  # the daemon accepted the compact binary status body (v2)
         self.offer_release_beacon = False  # the agent listens for release beacons (agent/beacon.py)
@@ -189,6 +210,7 @@ class DaemonLink:
         delay = self.config.reconnect_min_s
         while not self._stopping:
             backoff: float | None = None
+            self._maybe_offer_v2()
             host, port = self._addresses[self._address % len(self._addresses)]
             self._address += 1  # a cluster: the next attempt goes to the next daemon
             try:
@@ -201,15 +223,19 @@ class DaemonLink:
             except (OSError, TimeoutError) as exc:  # ssl.SSLError is an OSError
                 self.last_error = f"cannot reach daemon {host}:{port}: {exc!r}"
             else:
+                stream = FramedStream(reader, writer)
                 try:
-                    await self._session(FramedStream(reader, writer))
+                    await self._session(stream)
                     delay = self.config.reconnect_min_s
                 except Refused as exc:
                     backoff = self._refused(exc)
                     if self.stopped is not None:
                         return
+                except ProtocolError as exc:  # the daemon broke the protocol: say so, then drop it
+                    self.last_error = f"link error: {exc}"
+                    log.warning("daemon link lost: %s", exc)
+                    await stream.close(close_for(Code.PROTOCOL_ERROR, f"bad frame from the daemon: {exc}"))
                 except (
-                    ProtocolError,
                     ConnectionError,
                     OSError,
                     TimeoutError,
@@ -236,25 +262,73 @@ class DaemonLink:
         self.last_error = str(exc)
         self.last_code = exc.code
         if exc.code == V1_DAEMON and self.versions != [1]:
-            log.warning("the daemon speaks protocol version 1 only; falling back to it")
-            self.versions = [1]
-            return self.config.reconnect_min_s
+            return self._v1_answer(exc)
         action = exc.action
         if exc.code is None:  # a version-1 daemon: no codes, retry later as before
             log.error("%s", exc)
             return REFUSED_BACKOFF_S
-        if action == "stop":
+        if exc.final:
             self.stopped = f"{exc.code}: {exc.message}"
-            log.error("daemon refused us for good (%s); not reconnecting until restarted", self.stopped)
+            log.error(
+                "daemon refused us for good, proved with our key (%s); not reconnecting until restarted",
+                self.stopped,
+            )
             return None
+        if action == "stop":  # unproved: a forged answer looks the same, so never final
+            self.unproved_refusals += 1
+            wait = self._unproved_delay * (0.75 + 0.5 * random.random())
+            self._unproved_delay = min(UNPROVED_STOP_MAX_S, self._unproved_delay * 2)
+            log.error(
+                "%s (code %s, not proved with our key: check the key and the daemon's configuration, "
+                "or someone on the path forged it); retrying in %.1f s",
+                exc,
+                exc.code,
+                wait,
+            )
+            return wait
         if action == "retry":
-            log.warning("%s; retrying later", exc)
-            return max(REFUSED_BACKOFF_S, exc.retry_after_s or 0.0) * (0.75 + 0.5 * random.random())
+            cap = PROVED_RETRY_MAX_S if exc.authenticated else UNPROVED_RETRY_MAX_S
+            wanted = REFUSED_BACKOFF_S if exc.retry_after_s is None else exc.retry_after_s
+            wait = min(cap, max(self.config.reconnect_min_s, wanted)) * (0.75 + 0.5 * random.random())
+            log.warning("%s; retrying in %.1f s", exc, wait)
+            return wait
         if exc.code == Code.REPLACED:
             log.error("%s", exc)
             return REPLACED_BACKOFF_S
         log.warning("%s; reconnecting", exc)
         return None
+
+    def _v1_answer(self, exc: Refused) -> float | None:
+        """A version-1 daemon's answer to our v2 hello: unproved, so fall back only if it repeats."""
+        self._v1_answers += 1
+        if self._v1_answers < self.v1_fallback_after:
+            log.warning(
+                "the daemon answered our version-2 hello as a version-1 daemon would (%d of %d before "
+                "falling back; unproved, it may be forged): %s",
+                self._v1_answers,
+                self.v1_fallback_after,
+                exc,
+            )
+            return None
+        log.warning(
+            "FALLING BACK to protocol version 1: %d version-1 answers in a row to our version-2 hello; "
+            "version 2 is offered again in %g s",
+            self._v1_answers,
+            self.v2_retry_s,
+        )
+        self.versions = [1]
+        self._v1_since = time.monotonic()
+        return self.config.reconnect_min_s
+
+    def _maybe_offer_v2(self) -> None:
+        """After ``v2_retry_s`` on a fallback to version 1, the next connection offers version 2 again."""
+        since = self._v1_since
+        if since is None or time.monotonic() - since < self.v2_retry_s:
+            return
+        log.warning("offering protocol version 2 again (on version 1 for %.0f s)", time.monotonic() - since)
+        self.versions = list(SUPPORTED_VERSIONS)
+        self._v1_since = None
+        self._v1_answers = 0
 
     async def stop(self, reason: CloseReason = CloseReason.NORMAL) -> None:
         self._stopping = True
@@ -273,6 +347,9 @@ class DaemonLink:
             timeout=self.config.handshake_timeout_s,
         )
         self.cid, self.version, self.was_lost = accepted.cid, accepted.version, accepted.lost
+        self._unproved_delay = self.config.reconnect_min_s
+        if accepted.version >= 2:
+            self._v1_answers = 0
         self.compact_status = accepted.compact_status  # client_handshake set the stream to match
         if accepted.parameters is not None:
             await self._on_parameters(SetParameters(parameters=accepted.parameters))

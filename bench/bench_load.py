@@ -183,6 +183,8 @@ async def _server(
         overrides: dict[str, Any] = {}
         if "max_frames_per_s" in DaemonConfig.model_fields:  # the flood trial must not be rate limited
             overrides.update(max_frames_per_s=1e9, frame_burst=1_000_000_000)
+        if "enroll_burst" in DaemonConfig.model_fields:  # every bench client connects from 127.0.0.1
+            overrides.update(max_handshakes_per_source=64, enroll_burst=1_000_000)
         overrides.update(extra)  # --daemon-config, e.g. to switch a service off and see what it costs
         if "release_beacon" not in DaemonConfig.model_fields:  # a tree before the beacon: TCP only
             overrides.pop("release_beacon", None)

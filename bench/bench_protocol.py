@@ -131,6 +131,8 @@ async def bench_ingest(agents: int, rate_hz: float, seconds: float) -> dict[str,
                 fleet_key_hex=key_hex,
                 max_agents=agents + 10,
                 max_handshakes=agents + 10,  # every bench agent connects at once
+                max_handshakes_per_source=agents + 10,  # ... from 127.0.0.1
+                enroll_burst=agents + 10,
                 lost_after_periods=1000,
             )
         )

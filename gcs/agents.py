@@ -6,7 +6,10 @@ with an urgent lane, written by a task that runs only while there is work). The 
 frames through the shared :class:`protocol.stream.FramedStream` and is
 :class:`protocol.session.ServerHandshake` (versions negotiated, refusals with codes). A
 connection must complete it within ``handshake_timeout_s`` with frames under 1 KiB, and at
-most ``max_handshakes`` run at once; until then no other packet is accepted. Any protocol
+most ``max_handshakes`` run at once, ``max_handshakes_per_source`` from one address
+(:class:`PreAuthLimits`, which also rate-limits enrollment); until then no other packet is
+accepted. Refusals that do not depend on the key are decided after the agent's proof, so
+the session layer proves them to the agent (``refusal_proof``). Any protocol
 error closes only that connection (type 6 ``protocol_error`` first), never the daemon or
 other agents.
 
@@ -30,6 +33,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import ipaddress
 import logging
 import time
 from collections.abc import Awaitable, Callable, Coroutine
@@ -89,6 +93,10 @@ loop for one service, and its loop time is counted without what ran in between."
 READ_BUFFER_BYTES = 256 << 10
 """Every served connection reads into the manager's one buffer of this size (asyncio's own read size)."""
 HANDSHAKE_READ_LIMIT = 1 << 16  # a connection's StreamReader during the handshake (flow control)
+BUSY_RETRY_S = 1.0
+"""The wait a ``busy`` (handshake slots full) answer names: slots free up within a handshake."""
+ENROLLMENT_SOURCES = 4096
+"""Source addresses whose enrollment allowance is remembered; refilled ones are forgotten first."""
 FREEZE_MIN_AGENTS = 200  # smaller fleets: full collections are short anyway (and tests run many daemons)
 _SLOW_FLAGS = HAS_TAIL | BUFFERED  # a compact body with these is decoded at once (rare packets)
 
@@ -118,6 +126,79 @@ class TokenBucket:
             return False
         self.tokens -= 1.0
         return True
+
+    def wait(self, now: float) -> float:
+        """Seconds until the next token (0 if one is there)."""
+        tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
+        return max(0.0, (1.0 - tokens) / self.rate)
+
+    def refilled(self, now: float) -> bool:
+        """Full again: nothing spent that still counts (the bucket can be forgotten)."""
+        return self.tokens + (now - self.stamp) * self.rate >= self.burst
+
+
+class PreAuthLimits:
+    """What one source address may hold or do before it is known: handshake slots and enrollments.
+
+    At most ``max_handshakes_per_source`` of the ``max_handshakes`` slots go to one source (an
+    IPv6 /64), so one host holding silent connections cannot keep agents from other addresses
+    out; its extra connections are answered ``busy`` with a short wait. New identities (a new
+    CID) are limited to ``enroll_per_s`` per source with a burst of ``enroll_burst``.
+    """
+
+    def __init__(self, config: DaemonConfig) -> None:
+        self.config = config
+        self.pending = 0  # handshakes in progress, every source
+        self.busy_refusals = 0
+        self._held: dict[str, int] = {}  # handshakes in progress per source
+        self._enrollments: dict[str, TokenBucket] = {}  # enrollment allowance per source
+
+    def take_slot(self, source: str) -> None:
+        """A handshake slot for a connection from ``source``, or Refused ``busy``."""
+        per_source = self.config.max_handshakes_per_source
+        held = self._held.get(source, 0)
+        if held >= per_source:
+            self.busy_refusals += 1
+            raise Refused(
+                Code.BUSY, f"{per_source} handshakes in progress from {source}; retry later", BUSY_RETRY_S
+            )
+        if self.pending >= self.config.max_handshakes:
+            self.busy_refusals += 1
+            raise Refused(
+                Code.BUSY, f"{self.config.max_handshakes} handshakes in progress; retry later", BUSY_RETRY_S
+            )
+        self.pending += 1
+        self._held[source] = held + 1
+
+    def release_slot(self, source: str) -> None:
+        self.pending -= 1
+        held = self._held.get(source, 0) - 1
+        if held > 0:
+            self._held[source] = held
+        else:
+            self._held.pop(source, None)
+
+    def enroll(self, source: str) -> None:
+        """One new identity from ``source`` within the enrollment rate, or Refused ``busy`` with the wait."""
+        now = time.monotonic()
+        bucket = self._enrollments.get(source)
+        if bucket is None:
+            if len(self._enrollments) >= ENROLLMENT_SOURCES:  # forget sources whose allowance refilled
+                for key in [k for k, b in self._enrollments.items() if b.refilled(now)]:
+                    del self._enrollments[key]
+                if len(self._enrollments) >= ENROLLMENT_SOURCES:
+                    self._enrollments.clear()
+            bucket = self._enrollments[source] = TokenBucket(
+                self.config.enroll_per_s, self.config.enroll_burst
+            )
+        if not bucket.take(now):
+            self.busy_refusals += 1
+            raise Refused(
+                Code.BUSY,
+                f"more than {self.config.enroll_per_s:g} new identities/s (burst {self.config.enroll_burst}) "
+                f"enrolled from {source}; retry later",
+                round(bucket.wait(now) + 0.05, 2),
+            )
 
 
 @dataclass(eq=False, slots=True)
@@ -263,12 +344,11 @@ class AgentManager:
         self._frozen_at = 0  # fleet size at the last gc.freeze() (0: none by this manager)
         self.ingest_probe: Callable[[bytes], None] | None = None  # benchmarks: sees each table write
         self._hooks_closed = False
-        self._pending_handshakes = 0
+        self.pre_auth = PreAuthLimits(config)  # handshake slots and enrollments per source address
         self.ingest_frames = 0  # frames recorded by the frame loops
         self.ingest_busy_s = 0.0  # event-loop time recording them took (checks, record, publish)
         self.tick_count = 0
         self.tick_busy_s = 0.0  # event-loop time of the status ticks (decode dirty rows, publish)
-        self.busy_refusals = 0
         self.accepting = True  # False: handshakes are refused with code `starting`
         # Cluster mode (gcs/cluster): agents linked to other daemons, and the shared CID registry.
         self.remote: dict[str, AgentSession] = {}
@@ -345,18 +425,16 @@ class AgentManager:
         # Before the agent is known a frame is small: a handshake packet is well under 1 KiB.
         stream = FramedStream(reader, writer, max_body=PRE_AUTH_MAX_BODY, version=PROTOCOL_VERSION)
         handshake = ServerHandshake(self._keys.key_for)
+        source = source_of(writer.get_extra_info("peername"))
         served = False
         try:
-            if self._pending_handshakes >= self.config.max_handshakes:
-                self.busy_refusals += 1
-                raise Refused(Code.BUSY, f"{self.config.max_handshakes} handshakes in progress; retry later")
-            self._pending_handshakes += 1
+            self.pre_auth.take_slot(source)
             try:
                 await asyncio.wait_for(
-                    self._handshake(stream, handshake, conn, peer), self.config.handshake_timeout_s
+                    self._handshake(stream, handshake, conn, peer, source), self.config.handshake_timeout_s
                 )
             finally:
-                self._pending_handshakes -= 1
+                self.pre_auth.release_slot(source)
             served = True
             self._serve(conn, stream)
             return
@@ -387,7 +465,8 @@ class AgentManager:
             )
             await stream.close(close_for(Code.HANDSHAKE_TIMEOUT, "handshake timeout"))
         elif isinstance(exc, Refused):
-            if exc.code != Code.BUSY or self.busy_refusals == 1 or self.busy_refusals % 100 == 0:
+            busy = self.pre_auth.busy_refusals
+            if exc.code != Code.BUSY or busy == 1 or busy % 100 == 0:
                 self._events.publish("agent_refused", f"{peer}: {exc} ({exc.code})", severity="warning")
             known = {c.value for c in Code}
             code = Code(exc.code) if exc.code in known else Code.PROTOCOL_ERROR
@@ -465,21 +544,24 @@ class AgentManager:
             raise Refused(Code.CID_EXHAUSTED, str(exc), 300.0) from None
 
     async def _handshake(
-        self, stream: FramedStream, handshake: ServerHandshake, conn: _Connection, peer: str
+        self, stream: FramedStream, handshake: ServerHandshake, conn: _Connection, peer: str, source: str
     ) -> AgentSession:
         hello = (await stream.read_frame()).body
         challenge = handshake.on_hello(hello)
         stream.version = handshake.version
-        assert isinstance(hello, RequestCid)
-        self._admit(hello, stream.writer)
         await stream.send(challenge)
         authenticated = handshake.on_proof((await stream.read_frame()).body)
         request = authenticated.request
+        # Decided only now, once the agent proved its key, so the refusal can be proved in turn
+        # (refusal_proof): the agent stops for good only on a refusal it can check.
+        self._admit(request, stream.writer)
         if authenticated.probe:  # authenticated only: no CID, no session, never a member
             answer = handshake.accept(None, self._parameters(), time.time())
             await stream.send(answer, close_for(Code.NORMAL, "probe answered"))
             self._events.publish("agent_probe", f"{request.identity} probed from {peer}")
             raise ProbeAnswered(request.identity)
+        if not request.probe and self._store.cid_of(request.identity) is None:  # known ones are not counted
+            self.pre_auth.enroll(source)
         if self.assign_cid is not None:  # cluster mode: the shared registry assigns CIDs once
             await self.assign_cid(request.identity)
         cid = self._allocate_cid(request)
@@ -1109,6 +1191,24 @@ def certificate_identities(peercert: object) -> set[str] | None:
     return names
 
 
+def source_of(peername: object) -> str:
+    """The source a connection counts against: its IPv4 address, or the /64 of an IPv6 address.
+
+    One host of an IPv6 network usually holds a whole /64, so per-address limits would not bind.
+    """
+    if not isinstance(peername, tuple) or not peername:
+        return str(peername)
+    try:
+        address = ipaddress.ip_address(str(peername[0]).split("%", 1)[0])
+    except ValueError:
+        return str(peername[0])
+    if isinstance(address, ipaddress.IPv6Address):
+        if address.ipv4_mapped is not None:
+            return str(address.ipv4_mapped)
+        return str(ipaddress.IPv6Network((address, 64), strict=False))
+    return str(address)
+
+
 def _peer_name(writer: asyncio.StreamWriter) -> str:
     peer = writer.get_extra_info("peername")
     if isinstance(peer, tuple) and len(peer) >= 2:
@@ -1116,4 +1216,4 @@ def _peer_name(writer: asyncio.StreamWriter) -> str:
     return str(peer)
 
 
-__all__ = ["AgentManager", "AgentSession", "PacketType", "certificate_identities"]
+__all__ = ["AgentManager", "AgentSession", "PacketType", "certificate_identities", "source_of"]

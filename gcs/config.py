@@ -68,6 +68,17 @@ class DaemonConfig(BaseModel):
         ge=1,
         description="connections allowed to be in the handshake at once; more are refused busy",
     )
+    max_handshakes_per_source: int = Field(
+        default=16,
+        ge=1,
+        description="of those, held by one source address (IPv6: one /64); more are refused busy at once",
+    )
+    enroll_per_s: float = Field(
+        default=10.0, gt=0.0, description="new identities one source address may enroll per second"
+    )
+    enroll_burst: int = Field(
+        default=200, ge=1, description="new identities one source may enroll at once; more are refused busy"
+    )
     enroll_new_agents: bool = Field(
         default=True,
         description="give a CID to identities the database has never seen; off = only known identities join",

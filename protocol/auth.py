@@ -33,6 +33,24 @@ def daemon_proof(key: bytes, identity: str, client_nonce: str, server_nonce: str
     return _mac(key, "fleetgcs-daemon-v1", identity, client_nonce, server_nonce)
 
 
+def refusal_proof(
+    key: bytes,
+    identity: str,
+    client_nonce: str,
+    server_nonce: str,
+    code: str,
+    retry_after_s: float | None,
+    reason: str,
+) -> str:
+    """What a version-2 daemon adds to a refusal once the agent proved its key (``refusal_proof``).
+
+    It covers both nonces (fresh, this connection only), the code, the wait and the text, so an
+    on-path party without the key can neither forge a final refusal nor stretch a genuine one's wait.
+    """
+    wait = "" if retry_after_s is None else f"{retry_after_s:.3f}"
+    return _mac(key, "fleetgcs-refusal-v2", identity, client_nonce, server_nonce, code, wait, reason)
+
+
 def proofs_equal(a: str, b: str) -> bool:
     """Constant-time comparison of two hex proofs."""
     return hmac.compare_digest(a.encode("ascii", "replace"), b.encode("ascii", "replace"))

@@ -175,6 +175,10 @@ class ResponseCid(_Body):
     compact_status: bool | None = Field(
         default=None, description="v2: with accepted, the agent may send the compact status body (0x82)"
     )
+    refusal_proof: HexMac | None = Field(
+        default=None,
+        description="v2: with refused, after the agent proved its key: the daemon proves the refusal",
+    )
 
 
 # --- type 2: status report ---------------------------------------------------------------------
@@ -392,7 +396,9 @@ Body = RequestCid | ResponseCid | StatusReport | SetParameters | PerformActions 
 V2_FIELDS: dict[type[_Body], frozenset[str]] = {
     RequestCid: frozenset({"versions", "compact_status", "release_beacon"}),
     PerformActions: frozenset({"release_anchor"}),
-    ResponseCid: frozenset({"protocol_version", "code", "retry_after_s", "lost", "compact_status"}),
+    ResponseCid: frozenset(
+        {"protocol_version", "code", "retry_after_s", "lost", "compact_status", "refusal_proof"}
+    ),
     Close: frozenset({"code"}),
 }
 """Fields added in version 2: never sent to a version-1 peer, which forbids unknown fields."""

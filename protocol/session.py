@@ -21,6 +21,11 @@ Server::
     auth = hs.on_proof(receive())                # Authenticated(request, version, ...)
     send(hs.accept(cid=..., parameters=...))     # or hs.refusal(code, reason)
 
+Authenticated refusals (version 2): a refusal sent after the agent proved its key carries
+``refusal_proof`` (:func:`protocol.auth.refusal_proof`, over both nonces, the code, the wait and
+the text); :class:`ClientHandshake` checks it and sets ``Refused.authenticated``. Nothing else a
+daemon sends before ``accepted`` is proved, so an agent never stops for good on it.
+
 Capabilities (version 2 only): ``compact_status`` (the binary status body, type byte 0x82) is
 offered by ``ClientHandshake(compact_status=True)`` in the packet with the proof, granted by a
 ``ServerHandshake(compact_status=True)`` in ``accepted``, and in force when ``Accepted.compact_status``
@@ -99,7 +104,9 @@ ACTIONS: dict[str, Action] = {
 }
 """What an agent does on each code: ``retry`` = reconnect after a longer backoff (the daemon
 cannot take it now), ``reconnect`` = reconnect with the usual backoff (``replaced`` waits 30 s),
-``stop`` = do not reconnect until an operator fixes the configuration. Unknown codes: ``retry``."""
+``stop`` = do not reconnect until an operator fixes the configuration, but only when the daemon
+proved the refusal with the agent's key (:attr:`Refused.final`): an unauthenticated ``stop`` code
+(a forged one looks the same) is retried with backoff. Unknown codes: ``retry``."""
 
 CLOSE_REASON: dict[str, CloseReason] = {
     Code.REPLACED: CloseReason.REPLACED,
@@ -127,17 +134,33 @@ class Refused(Exception):
     """A handshake ended in a refusal (either side), or a session was closed with a code.
 
     ``code`` is None when the peer is a version-1 daemon, which sends no codes.
+    ``authenticated`` (client side): the daemon proved this refusal with the agent's key
+    (``refusal_proof``, version 2). Only such a refusal may end an agent's link for good; any
+    other answer before or after the handshake could have been forged by an on-path party.
     """
 
-    def __init__(self, code: str | None, message: str, retry_after_s: float | None = None) -> None:
+    def __init__(
+        self,
+        code: str | None,
+        message: str,
+        retry_after_s: float | None = None,
+        *,
+        authenticated: bool = False,
+    ) -> None:
         super().__init__(message)
         self.code = code
         self.message = message
         self.retry_after_s = retry_after_s
+        self.authenticated = authenticated
 
     @property
     def action(self) -> Action:
         return action_for(self.code)
+
+    @property
+    def final(self) -> bool:
+        """A ``stop`` code the daemon proved with the key: the agent stops until restarted."""
+        return self.authenticated and self.action == "stop"
 
 
 def choose_version(offered: Sequence[int], supported: Sequence[int] = SUPPORTED_VERSIONS) -> int | None:
@@ -263,12 +286,35 @@ class ClientHandshake:
             code = body.code
             if code is None and max(self.versions) >= 2 and self.state == "challenge":
                 code = _v1_daemon_code(body.reason or "")
-            raise Refused(code, f"daemon refused {self.identity}: {body.reason}", body.retry_after_s)
+            raise Refused(
+                code,
+                f"daemon refused {self.identity}: {body.reason}",
+                body.retry_after_s,
+                authenticated=self._proved(body),
+            )
         if isinstance(body, Close):
             code = body.code
             if code is None and max(self.versions) >= 2 and self.state == "challenge":
                 code = _v1_daemon_code(body.message)
             raise Refused(code, f"daemon closed: {body.reason.value} {body.message}".strip())
+
+    def _proved(self, body: ResponseCid) -> bool:
+        """Whether a refusal carries a ``refusal_proof`` made with our key for this connection."""
+        server_nonce = self.server_nonce or body.server_nonce
+        if body.refusal_proof is None or body.code is None or server_nonce is None:
+            return False
+        if body.server_nonce is not None and body.server_nonce != server_nonce:
+            return False
+        expected = auth.refusal_proof(
+            self._key,
+            self.identity,
+            self.client_nonce,
+            server_nonce,
+            body.code,
+            body.retry_after_s,
+            body.reason or "",
+        )
+        return auth.proofs_equal(body.refusal_proof, expected)
 
 
 V1_DAEMON = "v1_daemon"
@@ -391,9 +437,27 @@ class ServerHandshake:
         )
 
     def refusal(self, code: Code, reason: str, retry_after_s: float | None = None) -> list[Body]:
-        """The type-1 refusal and type-6 close that end a refused handshake."""
+        """The type-1 refusal and type-6 close that end a refused handshake.
+
+        Once the agent has proved its key (version 2), the refusal carries ``refusal_proof``: the
+        agent can tell it from one forged by an on-path party, and only then may stop for good.
+        """
+        signable = self.state == "decide" and self.version >= 2
         self.state = "done"
-        return refusal(code, reason, retry_after_s)
+        bodies = refusal(code, reason, retry_after_s)
+        answer = bodies[0]
+        if signable and self.hello is not None and self._key is not None and isinstance(answer, ResponseCid):
+            proof = auth.refusal_proof(
+                self._key,
+                self.hello.identity,
+                self.hello.client_nonce,
+                self.server_nonce,
+                code.value,
+                answer.retry_after_s,
+                answer.reason or "",
+            )
+            bodies[0] = answer.model_copy(update={"server_nonce": self.server_nonce, "refusal_proof": proof})
+        return bodies
 
 
 def refusal(code: Code, reason: str, retry_after_s: float | None = None) -> list[Body]:

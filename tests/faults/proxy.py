@@ -24,6 +24,11 @@ Faults (change them at any time from the test, they apply to every connection):
   close); ``blackhole`` discards them; ``reset`` aborts every connection (RST) and refuses new
   ones until the partition ends.
 
+An on-path forger without the key: ``impersonate(script, ...)`` has the proxy itself answer the
+next connections, one script each, instead of the daemon: a script is a list of answers, one per
+frame the client sends (each answer a list of bodies), after which the connection is closed. Later
+connections reach the daemon again.
+
 Every loop is bounded in count (``MAX_READS``) and every wait in time (``max_stall_s``).
 """
 
@@ -37,7 +42,8 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Literal
 
-from protocol.wire import DEFAULT_MAX_BODY, HEADER, HEADER_SIZE, MAGIC, Frame, decode_one
+from protocol.packets import Body
+from protocol.wire import DEFAULT_MAX_BODY, HEADER, HEADER_SIZE, MAGIC, Frame, decode_one, encode
 
 Direction = Literal["up", "down"]
 PartitionMode = Literal["stall", "blackhole", "reset"]
@@ -123,6 +129,7 @@ class FrameSplitter:
         return out
 
 
+Script = list[list[Body]]  # per frame the client sends, the bodies the forger answers with
 Queued = tuple[float, int, int, bytes]  # (arrival time, packet type, seq, bytes); None = end of stream
 
 
@@ -175,6 +182,7 @@ class FaultProxy:
         self._partition: PartitionMode | None = None
         self._partition_timer: asyncio.TimerHandle | None = None
         self._handlers: set[asyncio.Task[None]] = set()
+        self._scripts: deque[Script] = deque()
         self.port = 0
 
     # --- lifecycle ------------------------------------------------------------------------------
@@ -252,6 +260,15 @@ class FaultProxy:
             conn.abort()
         self.stats["resets"] += 1
 
+    def impersonate(self, *scripts: Script) -> None:
+        """The next ``len(scripts)`` connections are answered by the proxy (a forger), one script each."""
+        self._scripts.extend(scripts)
+
+    @property
+    def forging(self) -> int:
+        """Scripts not played yet."""
+        return len(self._scripts)
+
     def inject(self, direction: Direction, data: bytes) -> int:
         """Write ``data`` into every open connection in ``direction`` (between frames); returns how many."""
         count = 0
@@ -297,6 +314,9 @@ class FaultProxy:
                 self._handlers.discard(task)
 
     async def _serve_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if self._scripts:
+            await self._forge(self._scripts.popleft(), reader, writer)
+            return
         if self._partition == "reset" or len(self.connections) >= self.max_connections:
             self.stats["refused"] += 1
             writer.transport.abort()
@@ -328,6 +348,32 @@ class FaultProxy:
                 with contextlib.suppress(Exception):
                     w.close()
             self.connections.pop(conn.id, None)
+
+    async def _forge(
+        self, script: Script, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ) -> None:
+        """Answer the client with ``script`` (frame for frame), then close: the daemon never hears of it."""
+        self._next_id += 1
+        conn, splitter, seq = self._next_id, FrameSplitter(), 0
+        self.stats["forged"] += 1
+        try:
+            for answer in script:
+                for _ in range(64):  # reads until one whole frame from the client
+                    frames = splitter.feed(await asyncio.wait_for(reader.read(READ_CHUNK), self.max_stall_s))
+                    for ptype, fseq, raw in frames:
+                        self._record(conn, "up", ptype, fseq, raw, "swallowed")
+                    if frames:
+                        break
+                for body in answer:
+                    seq += 1
+                    data = encode(body, seq, 2)
+                    writer.write(data)
+                    self._record(conn, "down", data[3], seq, data, "injected")
+                await asyncio.wait_for(writer.drain(), 5.0)
+        except (ConnectionError, OSError, TimeoutError):
+            pass
+        finally:
+            writer.close()
 
     async def _direction(
         self,

@@ -87,7 +87,10 @@ async def one_listener(
         if versions is not None:
             running.agent.link.versions = versions  # before its first connection (its task has not run)
         try:
-            await until(lambda: daemon.agents.session(name) is not None, "joined")
+            # both ends: the daemon registers the session before the agent has read `accepted`
+            await until(
+                lambda: daemon.agents.session(name) is not None and running.agent.link.connected, "joined"
+            )
             yield daemon, running, port
         finally:
             await running.kill()

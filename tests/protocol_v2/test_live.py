@@ -104,8 +104,10 @@ async def test_refusal_codes_and_what_the_agent_does(tmp_path: Path) -> None:
     key = new_key()
     async with running_daemon(tmp_path, key, banned_agents=["rogue"], max_agents=1) as daemon:
         port = daemon.listen_port
-        assert (await _refusal(port, "someone", bytes.fromhex(new_key()))).code == Code.WRONG_KEY
-        assert (await _refusal(port, "rogue", bytes.fromhex(key))).code == Code.BANNED
+        wrong = await _refusal(port, "someone", bytes.fromhex(new_key()))
+        assert wrong.code == Code.WRONG_KEY and not wrong.authenticated and not wrong.final
+        banned = await _refusal(port, "rogue", bytes.fromhex(key))  # decided after the proof: proved
+        assert banned.code == Code.BANNED and banned.authenticated and banned.final
         daemon.agents.accepting = False
         starting = await _refusal(port, "early", bytes.fromhex(key))
         assert starting.code == Code.STARTING and starting.action == "retry" and starting.retry_after_s
@@ -125,11 +127,18 @@ async def test_refusal_codes_and_what_the_agent_does(tmp_path: Path) -> None:
         assert close is not None and close.code == Code.REPLACED  # type: ignore[attr-defined]
         await first.close()
         await second.close()
-        # the project's agent stops for good on a stop code, and keeps its process alive
+        # a wrong key cannot be proved by the daemon: the agent keeps retrying with backoff
         running = start_agent("intruder", port, new_key())
         try:
+            await wait_for(lambda: running.agent.link.unproved_refusals >= 3, 10, "unproved refusals")
+            assert running.agent.link.last_code == Code.WRONG_KEY and running.agent.link.stopped is None
+        finally:
+            await running.kill()
+        # the project's agent stops for good on a proved stop code, and keeps its process alive
+        running = start_agent("rogue", port, key)
+        try:
             await wait_for(lambda: running.agent.link.stopped is not None, 10, "link stopped")
-            assert running.agent.link.last_code == Code.WRONG_KEY and not running.task.done()
+            assert running.agent.link.last_code == Code.BANNED and not running.task.done()
         finally:
             await running.kill()
 
