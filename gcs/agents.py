@@ -764,8 +764,8 @@ class AgentManager:
         cols = table.columns(rows)
         changed = table.changed(rows)
         keep, sessions, reports = self._screen(rows, cols)
-        if len(keep) != len(rows):
-            cols, changed, rows = cols[keep], changed[keep], rows[keep]
+        if len(keep) != len(rows):  # (whole rows: cols[keep] would drop mode and mission)
+            cols, changed, rows = table.pick(cols, keep), changed[keep], rows[keep]
         # On the ground and disarmed the authority drops automatic holds with every report, as
         # before (a hold placed on a landed drone ends at its next report, not at a change).
         changed |= (cols["flags"] & (LANDED | ARMED)) == LANDED

@@ -154,6 +154,13 @@ class StatusTable:
         picked = raw.copy() if rows is None else raw[rows]
         return picked.view(ROW_DTYPE).reshape(-1)
 
+    @staticmethod
+    def pick(cols: np.ndarray[Any, Any], keep: list[int]) -> np.ndarray[Any, Any]:
+        """Rows ``keep`` of ``cols`` (``ROW_DTYPE``), whole: indexing the structured array itself
+        would copy only its fields and drop the bytes after them (mode, mission, body length)."""
+        raw = cols.view(np.uint8).reshape(-1, ROW_BYTES)
+        return raw[keep].view(ROW_DTYPE).reshape(-1)
+
     def arrivals(self, rows: np.ndarray[Any, np.dtype[np.intp]]) -> np.ndarray[Any, np.dtype[np.float64]]:
         """Wall time the newest report of each of ``rows`` arrived."""
         return np.frombuffer(self.rx, dtype=np.float64)[rows]

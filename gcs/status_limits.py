@@ -68,10 +68,10 @@ def refusal(
     skew = report.time - received
     if not math.isfinite(skew) or skew > lim.max_clock_skew_s:
         bound = lim.max_clock_skew_s
-        return f"time {report.time!r} is {skew:.0f} s ahead of the daemon's clock (bound {bound:g} s)"
+        return f"time {report.time!r} is {skew:.4g} s ahead of the daemon's clock (bound {bound:g} s)"
     behind = lim.max_clock_skew_s + (REPLAY_MAX_AGE_S if replayed else 0.0)
     if -skew > behind:
-        return f"time {report.time!r} is {-skew:.0f} s behind the daemon's clock (bound {behind:g} s)"
+        return f"time {report.time!r} is {-skew:.4g} s behind the daemon's clock (bound {behind:g} s)"
     p = report.position
     if p is not None:
         low, high = lim.alt_rel_m
