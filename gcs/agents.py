@@ -13,10 +13,13 @@ other agents.
 Nothing is awaited on the read path. After the handshake the connection's frames are handled
 in its protocol's ``buffer_updated`` from the manager's one shared read buffer (no read task, no
 allocation per read; a partial frame waits in the connection's decoder): a compact status
-body (``compact_status``, negotiated by the session layer) is only CRC- and rate-checked and
-copied as it is into the agent's row of the fleet status table (gcs/agents_table.py). The status
-tick (at most every ``STATUS_TICK_S``) checks the dirty rows as NumPy columns and hands the
-newest report of each agent to the hook consumers (gcs/dispatch.py): as columns to
+body (``compact_status``, negotiated by the session layer) is CRC- and rate-checked, its layout
+checked whole (``status_binary.check_layout``: lengths, UTF-8, no stray bytes; a bad one closes
+the session) and copied as it is into the agent's row of the fleet status table
+(gcs/agents_table.py). The status tick (at most every ``STATUS_TICK_S``) checks the dirty rows'
+fixed fields as NumPy columns (the schema's ranges and the plausibility bounds of
+gcs/status_limits.py; a row that fails is looked at on its own) and hands the newest report of
+each agent to the hook consumers (gcs/dispatch.py): as columns to
 ``on_status_tick`` (a ``StatusTick``, reports built on demand), the reports whose state changed
 to ``on_status_changes``, and every report to ``on_status`` (built only if such hooks exist);
 consumers run these and ``on_join`` / ``on_sync`` / ``on_lost`` in one task per hook owner. JSON

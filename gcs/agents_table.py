@@ -2,8 +2,10 @@
 
 Why: at 10 Hz from thousands of agents, building a validated ``StatusReport`` (and a hook call
 per service) for every report costs the event loop ~50 us a report. Here the ingest of a compact
-status body (gcs/agents.py, in the connection's ``buffer_updated``) only copies the body's bytes
-into the agent's row and marks the row dirty; no Python object is made per report. Once per
+status body (gcs/agents.py, in the connection's ``buffer_updated``) checks the body's layout
+(``status_binary.check_layout``: a few byte reads) and copies its bytes into the agent's row and
+marks the row dirty; no Python object is made per report, and a row's variable part (mode,
+mission) is always sound. Once per
 status tick the agent manager takes the dirty rows, reads their fixed fields as NumPy columns
 (:data:`ROW_DTYPE`, the little-endian layout of ``protocol.status_binary``) and turns only the
 rows that are needed into reports (:meth:`report`).
