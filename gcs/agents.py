@@ -16,10 +16,13 @@ other agents.
 Nothing is awaited on the read path. After the handshake the connection's frames are handled
 in its protocol's ``buffer_updated`` from the manager's one shared read buffer (no read task, no
 allocation per read; a partial frame waits in the connection's decoder): a compact status
-body (``compact_status``, negotiated by the session layer) is only CRC- and rate-checked and
-copied as it is into the agent's row of the fleet status table (gcs/agents_table.py). The status
-tick (at most every ``STATUS_TICK_S``) checks the dirty rows as NumPy columns and hands the
-newest report of each agent to the hook consumers (gcs/dispatch.py): as columns to
+body (``compact_status``, negotiated by the session layer) is CRC- and rate-checked, its layout
+checked whole (``status_binary.check_layout``: lengths, UTF-8, no stray bytes; a bad one closes
+the session) and copied as it is into the agent's row of the fleet status table
+(gcs/agents_table.py). The status tick (at most every ``STATUS_TICK_S``) checks the dirty rows'
+fixed fields as NumPy columns (the schema's ranges and the plausibility bounds of
+gcs/status_limits.py; a row that fails is looked at on its own) and hands the newest report of
+each agent to the hook consumers (gcs/dispatch.py): as columns to
 ``on_status_tick`` (a ``StatusTick``, reports built on demand), the reports whose state changed
 to ``on_status_changes``, and every report to ``on_status`` (built only if such hooks exist);
 consumers run these and ``on_join`` / ``on_sync`` / ``on_lost`` in one task per hook owner. JSON
@@ -35,6 +38,7 @@ import contextlib
 import gc
 import ipaddress
 import logging
+import math
 import time
 from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass, field
@@ -48,6 +52,7 @@ from gcs.dispatch import ConsumerStats, HookDispatcher, HookKind, HookList
 from gcs.events import EventBus
 from gcs.keys import KeyRing
 from gcs.outbox import Outbox
+from gcs.status_limits import ImplausibleStatus, StatusLimits, refusal
 from gcs.store import CidExhausted, Store
 from protocol.packets import (
     PROTOCOL_VERSION,
@@ -66,7 +71,7 @@ from protocol.packets import (
     packet_type_of,
 )
 from protocol.session import Code, Refused, ServerHandshake, close_for
-from protocol.status_binary import ARMED, BUFFERED, HAS_TAIL, LANDED, StatusBodyError
+from protocol.status_binary import ARMED, BUFFERED, HAS_TAIL, LANDED, StatusBodyError, check_layout
 from protocol.stream import FramedStream
 from protocol.wire import (
     COMPACT,
@@ -98,7 +103,10 @@ BUSY_RETRY_S = 1.0
 ENROLLMENT_SOURCES = 4096
 """Source addresses whose enrollment allowance is remembered; refilled ones are forgotten first."""
 FREEZE_MIN_AGENTS = 200  # smaller fleets: full collections are short anyway (and tests run many daemons)
-_SLOW_FLAGS = HAS_TAIL | BUFFERED  # a compact body with these is decoded at once (rare packets)
+_SLOW_FLAGS = 0x80 | HAS_TAIL | BUFFERED  # a compact body with these is decoded at once (rare or bad)
+REFUSAL_EVENT_S = 10.0
+"""At most one ``status_refused`` event per agent this often (the first at once): an agent whose
+every report is implausible must not fill the event log at its status rate."""
 
 
 class ProbeAnswered(ConnectionError):
@@ -227,6 +235,9 @@ class AgentSession:
     exception_budget: TokenBucket | None = None
     exceptions_suppressed: int = 0
     compact_status: bool = False  # negotiated: status may come as the compact binary body
+    refused_count: int = 0  # implausible status reports dropped (gcs/status_limits.py)
+    refused_reported: int = 0  # of them, counted in a status_refused event already
+    refused_event_at: float = -math.inf  # monotonic time of its last status_refused event
     release_beacon: bool = False  # v2 offer: the agent listens for release beacons (protocol/beacon.py)
     row: int = -1  # its row in the manager's status table while the session is served
     table: StatusTable | None = field(default=None, repr=False)
@@ -237,7 +248,7 @@ class AgentSession:
         reports only for the hooks that want objects), cached until the next report."""
         table = self.table
         if table is not None and table.buf[self.row * ROW_BYTES + MAX_BODY]:
-            with contextlib.suppress(StatusBodyError):  # the tick cuts the session off for it
+            with contextlib.suppress(StatusBodyError, ImplausibleStatus):  # the tick refuses it
                 self._status = table.report(self.row)
         return self._status
 
@@ -337,7 +348,8 @@ class AgentManager:
         self._tasks: set[asyncio.Task[None]] = set()  # handshakes and session ends under way
         self._serving = 0  # sessions whose frames are served (their end is still to come)
         self._read_buffer = memoryview(bytearray(READ_BUFFER_BYTES))  # every connection reads into it
-        self.table = StatusTable()  # every served session's newest status (gcs/agents_table.py)
+        limits = StatusLimits(max_clock_skew_s=config.max_clock_skew_s)
+        self.table = StatusTable(limits=limits)  # every served session's newest status (gcs/agents_table.py)
         self.status_tick_s = STATUS_TICK_S
         self._tick_due = False
         self._last_tick = 0.0
@@ -705,6 +717,10 @@ class AgentManager:
                     session.last_rx = now
                     if not conn.live.take(now):
                         raise self._over_budget(replayed=False)
+                    try:  # the whole variable part, before a byte reaches the table (fixed: the tick)
+                        check_layout(payload)
+                    except StatusBodyError as exc:
+                        raise conn.decoder.fail(ProtocolError(str(exc), packet_type=ptype)) from None
                     row = session.row
                     start = row * ROW_BYTES
                     buf = table.buf
@@ -739,6 +755,11 @@ class AgentManager:
         if isinstance(body, StatusReport):
             if frame.compact and not session.compact_status:
                 raise ProtocolError("compact status body (type 0x82) sent without negotiating it")
+            reason = refusal(body, time.time(), self.table.limits, replayed=body.buffered)
+            if reason is not None:
+                session.status_count += 1
+                self._refused(session, reason)
+                return
             self._exception_events(session, body)
             session.status_count += 1
             if body.buffered:  # history: it never overwrites the newer live state; in order, at once
@@ -817,7 +838,8 @@ class AgentManager:
 
     def tick(self) -> int:
         """Hand the newest report of every agent that sent one since the last tick to the status
-        hooks, as one batch; how many. A body that breaks the protocol's ranges ends its session.
+        hooks, as one batch; how many. Rows are screened first (:meth:`_screen`): a body that breaks
+        the protocol's ranges ends its session, an implausible report is dropped, the rest go on.
         """
         started = time.perf_counter()
         table = self.table
@@ -825,28 +847,10 @@ class AgentManager:
         if not len(rows):
             return 0
         cols = table.columns(rows)
-        ok = table.check(cols)
         changed = table.changed(rows)
-        owners, objects = table.owners, table.objects
-        keep: list[int] = []
-        sessions: list[AgentSession] = []
-        reports: list[StatusReport | None] = []
-        for i, (row, passed) in enumerate(zip(rows.tolist(), ok.tolist(), strict=True)):
-            conn = owners[row]
-            if conn is None:
-                continue
-            report = objects[row]  # came decoded (JSON), or an API call decoded it already
-            if not passed and report is None:
-                try:  # the reference decoder names what is wrong
-                    report = table.report(row)
-                except StatusBodyError as exc:
-                    conn.finish(ProtocolError(str(exc), packet_type=PacketType.STATUS))
-                    continue
-            keep.append(i)
-            sessions.append(conn.session)
-            reports.append(report)
-        if len(keep) != len(rows):
-            cols, changed, rows = cols[keep], changed[keep], rows[keep]
+        keep, sessions, reports = self._screen(rows, cols)
+        if len(keep) != len(rows):  # (whole rows: cols[keep] would drop mode and mission)
+            cols, changed, rows = table.pick(cols, keep), changed[keep], rows[keep]
         # On the ground and disarmed the authority drops automatic holds with every report, as
         # before (a hold placed on a landed drone ends at its next report, not at a change).
         changed |= (cols["flags"] & (LANDED | ARMED)) == LANDED
@@ -867,6 +871,62 @@ class AgentManager:
         self.tick_count += 1
         self.tick_busy_s += time.perf_counter() - started
         return len(sessions)
+
+    def _screen(
+        self, rows: np.ndarray[Any, np.dtype[np.intp]], cols: np.ndarray[Any, Any]
+    ) -> tuple[list[int], list[AgentSession], list[StatusReport | None]]:
+        """Which of a tick's ``rows`` go to the hooks: their indexes, sessions and reports (None:
+        built on demand from the columns).
+
+        Every row is checked at once on the columns (the schema's ranges, ``StatusTable.check``,
+        and the plausibility bounds, gcs/status_limits.py); only a row that fails is looked at on
+        its own (the reference decoder and :func:`~gcs.status_limits.refusal` name what is wrong),
+        so one bad row costs only itself: a body out of the protocol's ranges closes that session
+        (``protocol_error``), an implausible report is dropped with a ``status_refused`` event.
+        """
+        table = self.table
+        ok = table.check(cols) & table.plausible(cols, rows)
+        owners, objects = table.owners, table.objects
+        keep: list[int] = []
+        sessions: list[AgentSession] = []
+        reports: list[StatusReport | None] = []
+        for i, (row, passed) in enumerate(zip(rows.tolist(), ok.tolist(), strict=True)):
+            conn = owners[row]
+            if conn is None:
+                continue
+            report = objects[row]  # came decoded and checked (JSON), or an API call decoded it already
+            if not passed and report is None:
+                try:  # the reference decoder and the plausibility bounds name what is wrong
+                    report = table.report(row)
+                except StatusBodyError as exc:
+                    conn.finish(ProtocolError(str(exc), packet_type=PacketType.STATUS))
+                    continue
+                except ImplausibleStatus as exc:
+                    table.unsee(row)  # its next accepted report counts as a change
+                    self._refused(conn.session, str(exc))
+                    continue
+            keep.append(i)
+            sessions.append(conn.session)
+            reports.append(report)
+        return keep, sessions, reports
+
+    def _refused(self, session: AgentSession, reason: str) -> None:
+        """An implausible status report of ``session`` was dropped: counted, and a ``status_refused``
+        event (warning) naming the agent and the reason, at most one per :data:`REFUSAL_EVENT_S`."""
+        session.refused_count += 1
+        now = time.monotonic()
+        if now - session.refused_event_at < REFUSAL_EVENT_S:
+            return
+        since = session.refused_count - session.refused_reported
+        session.refused_event_at, session.refused_reported = now, session.refused_count
+        more = f" ({since} refused since the last such event)" if since > 1 else ""
+        self._events.publish(
+            "status_refused",
+            f"status report refused: {reason}{more}",
+            severity="warning",
+            agent=session.identity,
+            data={"refused": session.refused_count},
+        )
 
     def _freeze_fleet_heap(self, agents: int) -> None:
         """Keep the per-agent state of a large fleet out of the full garbage collections.
@@ -897,6 +957,9 @@ class AgentManager:
             report = table.report(session.row)
         except StatusBodyError as exc:
             raise ProtocolError(str(exc), packet_type=PacketType.STATUS) from None
+        except ImplausibleStatus as exc:
+            self._refused(session, str(exc))
+            return
         session._status = report
         self._hand_over([(session, report)])
 

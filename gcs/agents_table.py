@@ -2,8 +2,10 @@
 
 Why: at 10 Hz from thousands of agents, building a validated ``StatusReport`` (and a hook call
 per service) for every report costs the event loop ~50 us a report. Here the ingest of a compact
-status body (gcs/agents.py, in the connection's ``buffer_updated``) only copies the body's bytes
-into the agent's row and marks the row dirty; no Python object is made per report. Once per
+status body (gcs/agents.py, in the connection's ``buffer_updated``) checks the body's layout
+(``status_binary.check_layout``: a few byte reads) and copies its bytes into the agent's row and
+marks the row dirty; no Python object is made per report, and a row's variable part (mode,
+mission) is always sound. Once per
 status tick the agent manager takes the dirty rows, reads their fixed fields as NumPy columns
 (:data:`ROW_DTYPE`, the little-endian layout of ``protocol.status_binary``) and turns only the
 rows that are needed into reports (:meth:`report`).
@@ -21,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from gcs.status_limits import ImplausibleStatus, StatusLimits, plausible, refusal
 from protocol import status_binary
 from protocol.packets import StatusReport
 from protocol.status_binary import StatusBodyError
@@ -58,10 +61,11 @@ class StatusTable:
     everything else goes through the methods.
     """
 
-    __slots__ = ("_free", "_used", "buf", "capacity", "dirty", "objects", "owners", "rx", "seen")
+    __slots__ = ("_free", "_used", "buf", "capacity", "dirty", "limits", "objects", "owners", "rx", "seen")
 
-    def __init__(self, capacity: int = 64) -> None:
+    def __init__(self, capacity: int = 64, limits: StatusLimits | None = None) -> None:
         self.capacity = max(1, capacity)
+        self.limits = limits or StatusLimits()  # what a report must keep to be plausible
         self.buf = bytearray(self.capacity * ROW_BYTES)
         self.dirty = bytearray(self.capacity)  # 1: a report came since the last tick
         self.rx = array.array("d", bytes(8 * self.capacity))  # wall time the newest report arrived
@@ -113,7 +117,10 @@ class StatusTable:
         self.seen = self.seen + bytes(old * len(STATE_BYTES))
 
     def put(self, row: int, body: bytes, now: float) -> None:
-        """Store a compact body (at most :data:`MAX_BODY` bytes) as the row's newest report."""
+        """Store a compact body (at most :data:`MAX_BODY` bytes, no tail) as the row's newest report;
+        ``StatusBodyError`` if its layout is not sound (``status_binary.check_layout``, as the
+        daemon's ingest checks it), so a row's variable part is always sound."""
+        status_binary.check_layout(body)
         start = row * ROW_BYTES
         self.buf[start : start + len(body)] = body
         self.buf[start + MAX_BODY] = len(body)
@@ -148,6 +155,13 @@ class StatusTable:
         raw = np.frombuffer(self.buf, dtype=np.uint8, count=self._used * ROW_BYTES).reshape(-1, ROW_BYTES)
         picked = raw.copy() if rows is None else raw[rows]
         return picked.view(ROW_DTYPE).reshape(-1)
+
+    @staticmethod
+    def pick(cols: np.ndarray[Any, Any], keep: list[int]) -> np.ndarray[Any, Any]:
+        """Rows ``keep`` of ``cols`` (``ROW_DTYPE``), whole: indexing the structured array itself
+        would copy only its fields and drop the bytes after them (mode, mission, body length)."""
+        raw = cols.view(np.uint8).reshape(-1, ROW_BYTES)
+        return raw[keep].view(ROW_DTYPE).reshape(-1)
 
     def arrivals(self, rows: np.ndarray[Any, np.dtype[np.intp]]) -> np.ndarray[Any, np.dtype[np.float64]]:
         """Wall time the newest report of each of ``rows`` arrived."""
@@ -215,50 +229,49 @@ class StatusTable:
             )
         return ok
 
-    def reports(self, rows: np.ndarray[Any, np.dtype[np.intp]]) -> list[StatusReport | StatusBodyError]:
-        """The newest report of each of ``rows``, or why its body is refused.
+    def plausible(
+        self, cols: np.ndarray[Any, Any], rows: np.ndarray[Any, np.dtype[np.intp]]
+    ) -> np.ndarray[Any, np.dtype[np.bool_]]:
+        """Which rows of ``cols`` (the columns of ``rows``) keep the plausibility bounds
+        (gcs/status_limits.py), against the time each report arrived; one vectorised check."""
+        return plausible(cols, self.arrivals(rows), self.limits)
 
-        The fixed fields of all rows are range-checked at once on NumPy columns; a row that
-        passes is assembled without a second check (``status_binary.from_checked``), a row that
-        does not goes through ``status_binary.decode``, which names the problem.
+    def reports(
+        self, rows: np.ndarray[Any, np.dtype[np.intp]]
+    ) -> list[StatusReport | StatusBodyError | ImplausibleStatus]:
+        """The newest report of each of ``rows``, or why it is refused (what a tick does, as objects).
+
+        The fixed fields of all rows are checked at once on NumPy columns (ranges and
+        plausibility); a row that passes is assembled without a second check
+        (``status_binary.from_checked``: its variable part was checked when it was stored), a row
+        that does not goes through :meth:`report`, which names the problem.
         """
-        cols = np.frombuffer(self.buf, dtype=ROW_DTYPE, count=self._used)[rows]
-        ok = self.check(cols)
-        fields = list(zip(*(cols[name].tolist() for name, _ in status_binary.FIXED_FIELDS), strict=True))
-        buf, objects, fixed = self.buf, self.objects, status_binary.FIXED_SIZE
-        out: list[StatusReport | StatusBodyError] = []
+        cols = self.columns(rows)
+        ok = self.check(cols) & self.plausible(cols, rows)
+        out: list[StatusReport | StatusBodyError | ImplausibleStatus] = []
         for i, (row, passed) in enumerate(zip(rows.tolist(), ok.tolist(), strict=True)):
-            report = objects[row]
-            if report is None and passed:
-                start = row * ROW_BYTES
-                size = buf[start + MAX_BODY]
-                mode_end = fixed + 1 + buf[start + fixed]
-                if fixed + 2 <= size and mode_end < size and mode_end + 1 + buf[start + mode_end] == size:
-                    try:
-                        mode = buf[start + fixed + 1 : start + mode_end].decode()
-                        mission = buf[start + mode_end + 1 : start + size].decode() or None
-                    except UnicodeDecodeError:
-                        mode, mission = "", ""
-                    if len(mode) <= 32 and (mission is None or 0 < len(mission) <= 64):
-                        report = objects[row] = status_binary.from_checked(fields[i], mode, mission)
-            if report is None:
-                try:
-                    report = self.report(row)
-                except StatusBodyError as exc:
-                    out.append(exc)
-                    continue
-            out.append(report)
+            try:
+                if self.objects[row] is None and passed:
+                    self.objects[row] = row_report(cols[i : i + 1].tobytes())
+                out.append(self.report(row))
+            except (StatusBodyError, ImplausibleStatus) as exc:
+                out.append(exc)
         return out
 
     def report(self, row: int) -> StatusReport:
         """The newest report of ``row`` as a ``StatusReport`` (decoded now unless it came decoded).
 
         Raises ``protocol.status_binary.StatusBodyError`` for a body that breaks the protocol's
-        ranges (the ingest only copies bytes; the check happens here, within one tick).
+        ranges and :class:`~gcs.status_limits.ImplausibleStatus` for one beyond the plausibility
+        bounds (the ingest only copies bytes; the checks happen here or in the tick).
         """
         report = self.objects[row]
         if report is None:
-            report = self.objects[row] = status_binary.decode(self.body(row))
+            report = status_binary.decode(self.body(row))
+            reason = refusal(report, self.rx[row], self.limits)
+            if reason is not None:
+                raise ImplausibleStatus(reason)
+            self.objects[row] = report
         return report
 
 

@@ -101,6 +101,12 @@ class DaemonConfig(BaseModel):
         default=4 << 20, ge=64 << 10, description="bytes queued towards one agent before it counts as stuck"
     )
     status_period_s: float = Field(default=0.5, ge=0.02, le=60.0)
+    max_clock_skew_s: float = Field(
+        default=3600.0,
+        ge=1.0,
+        le=1e9,
+        description="a status report whose time is further than this from the daemon's clock is refused",
+    )
     lost_after_periods: float = Field(default=6.0, ge=1.0)
     send_timeout_s: float = Field(default=5.0, gt=0.0)
     keepalive_s: float = Field(

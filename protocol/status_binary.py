@@ -86,6 +86,7 @@ FIXED_SIZE = FIXED.size  # 124
 assert FIXED_SIZE == 124
 
 ARMED, LANDED, PAUSED, AUTOPILOT_LINK, BUFFERED, HAS_POSITION, HAS_TAIL = (1 << i for i in range(7))
+_UNKNOWN_OR_TAIL = 0x80 | HAS_TAIL
 _I32_MIN, _I32_MAX, _U32_MAX = -(1 << 31), (1 << 31) - 1, (1 << 32) - 1
 _NAN = math.nan
 
@@ -208,13 +209,80 @@ def _bad(field: str, value: object) -> StatusBodyError:
     return StatusBodyError(f"compact status body: {field} {value!r} out of range")
 
 
+MODE_MAX_CHARS = 32  # StatusReport.mode max_length
+MISSION_MAX_CHARS = 64  # MissionId max_length
+
+
+def check_layout(payload: bytes) -> None:
+    """Everything about a body but its fixed fields' ranges; :class:`StatusBodyError` (one line) if bad.
+
+    Length at least the fixed part and both length bytes, layout version, flag bits, ``mode`` and
+    ``mission_id`` inside the body, UTF-8 and within the schema's lengths (32 and 64 characters),
+    and bytes after ``mission_id`` exactly when the tail flag is set. The daemon runs this on every
+    compact body before it copies it into its fleet table (gcs/agents.py), so a row only ever holds
+    a body whose variable part is sound; cheap (byte checks, no decode for ASCII, well under 1 us).
+    """
+    size = len(payload)
+    if size >= FIXED_SIZE + 2:  # the daemon's hot path: a sound tail-less ASCII body, in a few byte reads
+        mode_len = payload[FIXED_SIZE]
+        mode_end = FIXED_SIZE + 1 + mode_len
+        if (
+            mode_end < size
+            and mode_end + 1 + payload[mode_end] == size
+            and payload[0] == LAYOUT_VERSION
+            and not payload[1] & _UNKNOWN_OR_TAIL
+            and mode_len <= MODE_MAX_CHARS
+            and payload[mode_end] <= MISSION_MAX_CHARS
+            and payload[FIXED_SIZE + 1 : size].isascii()
+        ):
+            return
+    else:
+        raise StatusBodyError(f"compact status body of {size} bytes is shorter than {FIXED_SIZE + 2}")
+    if payload[0] != LAYOUT_VERSION:
+        raise StatusBodyError(f"compact status layout {payload[0]} not supported (this side reads 1)")
+    flags = payload[1]
+    if flags >> 7:
+        raise StatusBodyError(f"compact status body: unknown flag bits {flags:#04x}")
+    mode_end = FIXED_SIZE + 1 + payload[FIXED_SIZE]
+    if mode_end >= size:
+        raise StatusBodyError(
+            f"compact status body truncated in mode ({payload[FIXED_SIZE]} bytes from offset "
+            f"{FIXED_SIZE + 1} in a body of {size})"
+        )
+    mission_end = mode_end + 1 + payload[mode_end]
+    if mission_end > size:
+        raise StatusBodyError(
+            f"compact status body truncated in mission_id ({payload[mode_end]} bytes from offset "
+            f"{mode_end + 1} in a body of {size})"
+        )
+    has_tail = bool(flags & HAS_TAIL)
+    if has_tail != (mission_end < size):
+        raise StatusBodyError(
+            f"compact status body: {size - mission_end} bytes after mission_id, tail flag {has_tail}"
+        )
+    if payload[FIXED_SIZE + 1 : mission_end].isascii():  # the usual case: bytes are characters
+        mode_chars, mission_chars = mode_end - FIXED_SIZE - 1, payload[mode_end]
+    else:
+        try:
+            mode_chars = len(payload[FIXED_SIZE + 1 : mode_end].decode())
+            mission_chars = len(payload[mode_end + 1 : mission_end].decode())
+        except UnicodeDecodeError:
+            raise StatusBodyError("compact status body: mode or mission_id is not UTF-8") from None
+    if mode_chars > MODE_MAX_CHARS:
+        raise StatusBodyError(
+            f"compact status body: mode of {mode_chars} characters (at most {MODE_MAX_CHARS})"
+        )
+    if mission_chars > MISSION_MAX_CHARS:
+        raise StatusBodyError(
+            f"compact status body: mission_id of {mission_chars} characters (at most {MISSION_MAX_CHARS})"
+        )
+
+
 def decode(payload: bytes) -> StatusReport:
     """The :class:`StatusReport` of a compact body; :class:`StatusBodyError` (one line) if malformed."""
-    size = len(payload)
-    if size < FIXED_SIZE + 2:
-        raise StatusBodyError(f"compact status body of {size} bytes is shorter than {FIXED_SIZE + 2}")
+    check_layout(payload)
     (
-        version,
+        _version,
         flags,
         fix,
         _sats,
@@ -236,26 +304,11 @@ def decode(payload: bytes) -> StatusReport:
         _queue_depth,
         waiting,
     ) = fields = FIXED.unpack_from(payload)
-    if version != LAYOUT_VERSION:
-        raise StatusBodyError(f"compact status layout {version} not supported (this side reads 1)")
-    if flags >> 7:
-        raise StatusBodyError(f"compact status body: unknown flag bits {flags:#04x}")
     mode_end = FIXED_SIZE + 1 + payload[FIXED_SIZE]
-    if mode_end + 1 > size:
-        raise StatusBodyError("compact status body truncated in mode")
     mission_end = mode_end + 1 + payload[mode_end]
-    if mission_end > size:
-        raise StatusBodyError("compact status body truncated in mission_id")
-    try:
-        mode = payload[FIXED_SIZE + 1 : mode_end].decode()
-        mission = payload[mode_end + 1 : mission_end].decode() or None
-    except UnicodeDecodeError:
-        raise StatusBodyError("compact status body: mode or mission_id is not UTF-8") from None
+    mode = payload[FIXED_SIZE + 1 : mode_end].decode()
+    mission = payload[mode_end + 1 : mission_end].decode() or None
     has_tail = bool(flags & HAS_TAIL)
-    if has_tail != (mission_end < size):
-        raise StatusBodyError(
-            f"compact status body: {size - mission_end} bytes after mission_id, tail flag {has_tail}"
-        )
     isfinite = math.isfinite
     # The fast path: the same constraints pydantic would check (protocol/packets.py), by hand.
     checked = (
@@ -273,8 +326,6 @@ def decode(payload: bytes) -> StatusReport:
         and step >= -1
         and completed >= -1
         and waiting >= -1
-        and len(mode) <= 32
-        and (mission is None or len(mission) <= 64)
         and (
             not flags & HAS_POSITION
             or (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and isfinite(alt_rel) and isfinite(alt_amsl))
@@ -365,7 +416,10 @@ __all__ = [
     "FIXED_FIELDS",
     "FIXED_SIZE",
     "LAYOUT_VERSION",
+    "MISSION_MAX_CHARS",
+    "MODE_MAX_CHARS",
     "StatusBodyError",
+    "check_layout",
     "decode",
     "encode",
     "from_checked",

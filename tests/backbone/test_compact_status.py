@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 from gcs.daemon import Daemon
@@ -23,9 +24,12 @@ async def _joined(
     return client, accepted
 
 
+T0 = time.time()  # report times near the daemon's clock (it refuses others)
+
+
 def _report(t: float) -> StatusReport:
     return StatusReport(
-        time=t, position=Position(lat=47.3, lon=8.5, alt_rel=10.0, alt_amsl=500.0), mode="GUIDED"
+        time=T0 + t, position=Position(lat=47.3, lon=8.5, alt_rel=10.0, alt_amsl=500.0), mode="GUIDED"
     )
 
 

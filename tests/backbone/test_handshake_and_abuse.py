@@ -7,6 +7,7 @@ import contextlib
 import json
 import math
 import secrets
+import time
 from pathlib import Path
 
 import pytest
@@ -336,4 +337,4 @@ async def test_peer_that_never_reads_is_cut_off(tmp_path: Path) -> None:
 
 
 def build_status_report() -> StatusReport:
-    return StatusReport(time=0.0, position=Position(lat=47.0, lon=8.0, alt_rel=0.0, alt_amsl=400.0))
+    return StatusReport(time=time.time(), position=Position(lat=47.0, lon=8.0, alt_rel=0.0, alt_amsl=400.0))

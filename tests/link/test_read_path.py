@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ssl
+import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
@@ -18,10 +19,14 @@ from tests.backbone.test_handshake_and_abuse import RawClient
 from tests.backbone.test_tls import make_pki
 from tests.link.common import BIG_FENCE, stall_outbox
 
+T0 = time.time()  # report times near the daemon's clock (it refuses others)
+
 
 def _report(t: float) -> StatusReport:
     return StatusReport(
-        time=t, position=Position(lat=47.3, lon=8.5 + t * 1e-6, alt_rel=10.0, alt_amsl=500.0), mode="GUIDED"
+        time=T0 + t,
+        position=Position(lat=47.3, lon=8.5 + t * 1e-6, alt_rel=10.0, alt_amsl=500.0),
+        mode="GUIDED",
     )
 
 

@@ -7,6 +7,7 @@ import json
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -100,7 +101,7 @@ async def test_exception_events_are_bounded_per_agent(tmp_path: Path) -> None:
             )
             for i in range(50):  # 50 reports, each with 32 names never seen before: 1600 "new" exceptions
                 names = [f"n{i}_{j}: x" for j in range(32)]
-                await stream.send(StatusReport(time=float(i), exceptions=names))
+                await stream.send(StatusReport(time=time.time(), exceptions=names))
             session = daemon.agents.session("noisy")
             await wait_for(lambda: session is not None and session.status_count == 50, 10, "reports in")
             assert session is not None and session.open

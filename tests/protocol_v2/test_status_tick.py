@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from gcs.agents_table import StatusTable, StatusTick
+from gcs.status_limits import UNBOUNDED
 from gcs.telemetry import TickRows, status_row
 from protocol.packets import StatusReport
 from tests.backbone.helpers import new_key, running_daemon, wait_for
@@ -25,7 +26,7 @@ def _same(a: tuple[object, ...], b: tuple[object, ...]) -> bool:
 @settings(max_examples=200, deadline=None)
 @given(st.lists(reports, min_size=1, max_size=6))
 def test_a_tick_gives_the_reports_and_telemetry_rows_of_its_rows(batch: list[StatusReport]) -> None:
-    table = StatusTable(capacity=2)
+    table = StatusTable(capacity=2, limits=UNBOUNDED)  # random values
     owners = [type("Owner", (), {"identity": f"a-{i}"})() for i in range(len(batch))]
     rows = [table.attach(owner) for owner in owners]
     for row, report in zip(rows, batch, strict=True):
