@@ -343,7 +343,8 @@ def create_app(daemon: Daemon) -> FastAPI:
             with contextlib.suppress(BaseException):
                 await reader
             with contextlib.suppress(Exception):  # already closed by either side: nothing to do
-                await websocket.close()
+                async with asyncio.timeout(1.0):  # a peer that reads nothing gets no longer
+                    await websocket.close()
 
     @app.get("/metrics", include_in_schema=False)
     async def metrics() -> Response:

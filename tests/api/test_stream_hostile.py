@@ -19,6 +19,7 @@ import httpx
 import pytest
 import websockets
 
+from gcs.live import StreamClient
 from protocol.actions import Action, Goto, Hold, Takeoff
 from protocol.geo import offset_latlon
 from protocol.taskfile import AgentPlan, TaskFile
@@ -206,3 +207,13 @@ async def test_stream_connections_are_bounded(tmp_path: Path) -> None:
                     await third.recv()
         async with websockets.connect(url) as again:  # a slot is free once a client leaves
             assert json.loads(await asyncio.wait_for(again.recv(), 10))[0]["type"] == "hello"
+
+
+async def test_a_stream_clients_queue_is_bounded_in_bytes() -> None:
+    client = StreamClient(max_bytes=1000)
+    for index in range(100):
+        client.offer(f'"{index:03d}' + "x" * 95 + '"')  # a JSON string of 100 characters
+    assert client.queued_bytes <= 1000 and client.dropped == 90
+    batch = json.loads(await client.next_batch())  # the newest ten, oldest first
+    assert [text[:3] for text in batch] == [f"{i:03d}" for i in range(90, 100)]
+    assert client.queued_bytes == 0
