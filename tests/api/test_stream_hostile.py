@@ -58,7 +58,7 @@ def _hover(names: list[str]) -> TaskFile:
 
 def _start(tmp_path: Path) -> tuple[subprocess.Popen[bytes], list[subprocess.Popen[bytes]], int, Path]:
     data_dir, ready = tmp_path / "gcs", tmp_path / "ready"
-    options: list[str | Path] = ["--status-period", "0.2", "--lost-after", "10", "--ready-file", ready]
+    options: list[str | Path] = ["--status-period", "0.2", "--lost-after", "25", "--ready-file", ready]
     serve = subprocess.Popen(
         [
             BIN / "gcs",

@@ -201,7 +201,7 @@ async def _stop(agents: list[StrictV1Agent], runs: list[asyncio.Future[None]]) -
 
 async def test_three_strict_v1_agents_fly_a_synchronized_mission(tmp_path: Path) -> None:
     key = new_key()
-    async with running_daemon(tmp_path, key) as daemon:
+    async with running_daemon(tmp_path, key, lost_after_periods=30.0) as daemon:
         agents = [
             StrictV1Agent(daemon.listen_port, f"v1-{i}", key, home=(HOME[0], HOME[1] + 0.0001 * i, HOME[2]))
             for i in range(3)
@@ -235,7 +235,7 @@ async def test_a_rejoining_v1_agent_waits_at_its_barrier(tmp_path: Path) -> None
     """A v1 agent that lost its queue at an unreleased barrier gets ``await_release`` as a v1 sync
     hold: it runs nothing of the next step before the barrier is released."""
     key = new_key()
-    async with running_daemon(tmp_path, key) as daemon:
+    async with running_daemon(tmp_path, key, lost_after_periods=30.0) as daemon:
         agents = [
             StrictV1Agent(daemon.listen_port, f"re-{i}", key, home=(HOME[0], HOME[1] + 0.0001 * i, HOME[2]))
             for i in range(3)

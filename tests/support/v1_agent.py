@@ -56,6 +56,7 @@ class StrictV1Agent:
         self.gates: dict[int, threading.Event] = {}  # step -> event the action waits for (tests)
         self.stop = threading.Event()
         self.restart_wanted = threading.Event()
+        self.reconnects = 0
         self.sock: socket.socket | None = None
         self._forget()
 
@@ -81,13 +82,22 @@ class StrictV1Agent:
         """Connect and run the version-1 handshake; the ``accepted`` body."""
         self.sock = socket.create_connection(("127.0.0.1", self.port), timeout=5)
         nonce = secrets.token_hex(16)
-        hello = {
+        hello: dict[str, Any] = {
             "identity": self.identity,
             "protocol_version": 1,
             "client_nonce": nonce,
             "capabilities": {"vehicle_kind": "multicopter", "max_speed_mps": self.speed},
             "home": {"lat": self.home[0], "lon": self.home[1], "alt_amsl": self.home[2]},
         }
+        if self.mission is not None:  # what it still holds, so the daemon resumes it (v1 ``resume``)
+            resume: dict[str, Any] = {
+                "mission_id": self.mission,
+                "completed_step": self.completed,
+                "queue_depth": len(self.queue),
+            }
+            if self.waiting is not None:
+                resume["waiting_step"] = self.waiting
+            hello["resume"] = resume
         self._send(0, hello)
         challenge = self._receive(5.0)
         assert challenge is not None and challenge[1]["outcome"] == "challenge", challenge
@@ -181,10 +191,16 @@ class StrictV1Agent:
                 self.violations.append(str(exc))
                 self._reject(str(exc))
                 raise
-            except OSError:
+            except OSError:  # the daemon dropped us (lost under load, restarted): reconnect
                 if self.stop.is_set():
                     return
-                time.sleep(0.05)  # the socket is being replaced (restart) or the daemon left
+                self.reconnects += 1
+                time.sleep(0.2)
+                with contextlib.suppress(OSError, AssertionError):
+                    if self.sock is not None:
+                        self.sock.close()
+                    self.seq, self.buffer = 0, b""
+                    self.connect()
 
     def _reject(self, why: str) -> None:
         """What a version-1 agent does with a body it cannot parse: close with protocol_error."""
