@@ -1,7 +1,8 @@
 """HTTP/WebSocket API of the daemon and the dashboard's server (FastAPI; schema from pydantic models).
 
-Reads are open on the configured (default loopback) address; every mutating call needs
-``Authorization: Bearer <token>``. Errors are ``application/problem+json`` with a reason.
+Reads are open on a loopback address and need the token (or the read-only token) on any other;
+every mutating call needs ``Authorization: Bearer <token>`` (gcs/http_guard.py). Errors are
+``application/problem+json`` with a reason.
 ``/api/v1/stream`` is a WebSocket of status reports and events (each frame a JSON array of
 messages), ``/metrics`` is Prometheus text, ``/`` is the dashboard (static files, no CDN).
 See docs/api.md.
@@ -66,6 +67,8 @@ log = logging.getLogger("gcs.api")
 WEB_DIR = Path(__file__).parent / "web"
 PLAN_TIMEOUT_S = 60.0
 MAX_ID = 2**62
+STREAM_SUBPROTOCOL = "fleetgcs"
+"""Chosen when offered (a browser offers it beside ``bearer.<token>``, gcs/http_guard.py)."""
 MAX_HISTORY_LIMIT = 10_000
 """Samples one history page may return."""
 MAX_HISTORY_SCAN = 1_000_000
@@ -131,6 +134,8 @@ def create_app(daemon: Daemon) -> FastAPI:
         max_body_bytes=daemon.config.max_api_body_bytes,
         listen_host=daemon.config.http_host,
         allowed_hosts=daemon.config.http_allowed_hosts,
+        read_token=lambda: daemon.config.api_read_token,
+        reads_need_token=True if daemon.config.http_reads_need_token == "always" else None,
     )
 
     @app.exception_handler(ApiProblem)
@@ -271,6 +276,8 @@ def create_app(daemon: Daemon) -> FastAPI:
         rows = daemon.events.history(since_id, kind, agent, limit if not (mission_id or severity) else 10_000)
         return [e for e in rows if keep(e)][:limit]
 
+    stream_open = [0]  # WebSocket stream connections now (counted before any await: no race)
+
     @app.websocket("/api/v1/stream")
     async def stream(
         websocket: WebSocket,
@@ -279,12 +286,35 @@ def create_app(daemon: Daemon) -> FastAPI:
         agents: str | None = None,
         max_rate_hz: float = 0.0,
     ) -> None:
-        """Push status reports and events; the first frame is a snapshot of the fleet."""
-        await websocket.accept()
+        """Push status reports and events; the first frame is a snapshot of the fleet.
+
+        Output only: a client that sends anything is closed (1008). At most
+        ``stream_max_clients`` at once (more are refused before the upgrade); each client's
+        queue is bounded in bytes (oldest dropped) and a client that does not read for
+        ``stream_send_timeout_s`` is closed.
+        """
+        if stream_open[0] >= daemon.config.stream_max_clients:
+            await websocket.close(code=1013, reason="too many stream clients; retry later")
+            return
+        stream_open[0] += 1
+        try:
+            await _serve_stream(websocket, status, events, agents, max_rate_hz)
+        finally:
+            stream_open[0] -= 1
+
+    async def _serve_stream(
+        websocket: WebSocket, status: bool, events: bool, agents: str | None, max_rate_hz: float
+    ) -> None:
+        offered = websocket.scope.get("subprotocols") or []
+        await websocket.accept(subprotocol=STREAM_SUBPROTOCOL if STREAM_SUBPROTOCOL in offered else None)
         names = frozenset(a for a in agents.split(",") if a) if agents else None
         rate = max_rate_hz if 0 < max_rate_hz < 1e6 else 0.0
         client = StreamClient(
-            status=status, events=events, agents=names, min_interval_s=1.0 / rate if rate else 0.0
+            status=status,
+            events=events,
+            agents=names,
+            min_interval_s=1.0 / rate if rate else 0.0,
+            max_bytes=daemon.config.stream_client_buffer_bytes,
         )
         snapshot = {
             "type": "hello",
@@ -292,23 +322,29 @@ def create_app(daemon: Daemon) -> FastAPI:
             "agents": [_agent_view(daemon, s).model_dump(mode="json") for s in _fleet_sessions(daemon)],
         }
         hub.subscribe(client)
-        reader = asyncio.create_task(_drain_incoming(websocket))
+        reader = asyncio.create_task(_refuse_input(websocket))
+        timeout = daemon.config.stream_send_timeout_s
         try:
-            await websocket.send_json([snapshot])
+            async with asyncio.timeout(timeout):
+                await websocket.send_json([snapshot])
             while not reader.done():
                 batch = asyncio.create_task(client.next_batch())
                 await asyncio.wait({batch, reader}, return_when=asyncio.FIRST_COMPLETED)
                 if not batch.done():
                     batch.cancel()
                     break
-                await websocket.send_text(batch.result())
-        except (WebSocketDisconnect, RuntimeError, OSError):
+                async with asyncio.timeout(timeout):  # a client that does not read is closed
+                    await websocket.send_text(batch.result())
+        except (WebSocketDisconnect, RuntimeError, OSError, TimeoutError):
             pass
         finally:
             hub.unsubscribe(client)
             reader.cancel()
             with contextlib.suppress(BaseException):
                 await reader
+            with contextlib.suppress(Exception):  # already closed by either side: nothing to do
+                async with asyncio.timeout(1.0):  # a peer that reads nothing gets no longer
+                    await websocket.close()
 
     @app.get("/metrics", include_in_schema=False)
     async def metrics() -> Response:
@@ -643,10 +679,10 @@ def _covered_pct(
     return round(100.0 * poly.intersection(seen).area / poly.area, 2)
 
 
-async def _drain_incoming(websocket: WebSocket) -> None:
-    """Read (and ignore) what the client sends, so a closed socket is noticed at once."""
+async def _refuse_input(websocket: WebSocket) -> None:
+    """The stream takes no input: the first message a client sends closes it (1008), so nothing
+    it sends is kept; returns when the client left or was closed."""
     with contextlib.suppress(WebSocketDisconnect, RuntimeError, OSError):
-        while True:
-            message = await websocket.receive()
-            if message.get("type") == "websocket.disconnect":
-                return
+        message = await websocket.receive()
+        if message.get("type") == "websocket.receive":
+            await websocket.close(code=1008, reason="this stream is output only: send nothing")

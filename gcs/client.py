@@ -166,7 +166,8 @@ class FleetClient:
         if agents:
             query += "&agents=" + ",".join(agents)
         url = self.base_url.replace("http", "ws", 1) + "/api/v1/stream?" + query
-        async with websockets.connect(url, max_size=None) as ws:
+        headers = {"Authorization": f"Bearer {self.token}"} if self.token else None  # reads beyond loopback
+        async with websockets.connect(url, max_size=None, additional_headers=headers) as ws:
             async for frame in ws:
                 for message in json.loads(frame):
                     kind = message.get("type")

@@ -41,6 +41,24 @@ class DaemonConfig(BaseModel):
         default_factory=list,
         description="DNS names the API may be addressed by besides loopback and http_host (Host, Origin)",
     )
+    ws_max_message_bytes: int = Field(
+        default=4096,
+        ge=128,
+        le=1 << 20,
+        description="largest WebSocket message a client may send (the stream takes none; bigger closes it)",
+    )
+    stream_max_clients: int = Field(
+        default=100, ge=1, le=10_000, description="WebSocket stream connections at once; more are refused"
+    )
+    stream_client_buffer_bytes: int = Field(
+        default=1 << 20, ge=4096, description="messages queued for one stream client; the oldest are dropped"
+    )
+    stream_send_timeout_s: float = Field(
+        default=10.0,
+        gt=0.0,
+        le=300.0,
+        description="a stream client that does not read for this long is closed",
+    )
     max_api_body_bytes: int = Field(
         default=16 << 20, ge=1024, description="largest HTTP request body, enforced while reading"
     )
@@ -55,6 +73,16 @@ class DaemonConfig(BaseModel):
         default=True, description="with per-agent keys, also accept other identities that hold the fleet key"
     )
     api_token: str | None = Field(default=None, description="default: DATA_DIR/api.token")
+    api_read_token: str | None = Field(
+        default=None,
+        min_length=16,
+        description="optional read-only token: reads (GET, the stream) accept it as well as api_token",
+    )
+    http_reads_need_token: Literal["beyond_loopback", "always"] = Field(
+        default="beyond_loopback",
+        description="when reads need a token: only when http_host is not a loopback address (default), or "
+        "always (e.g. behind a reverse proxy on loopback)",
+    )
     handshake_timeout_s: float = Field(default=5.0, gt=0.0)
     tls_cert: Path | None = Field(default=None, description="PEM certificate: serve the agent link over TLS")
     tls_key: Path | None = Field(default=None, description="PEM private key of tls_cert")

@@ -287,6 +287,11 @@ class Daemon:
             port=self.config.http_port,
             log_level="warning",
             lifespan="off",
+            # WebSocket input: the stream takes none, so a client's message is tiny or it is cut off
+            # from its frame header (no 16 MiB default, no queue of them, no decompression bombs)
+            ws_max_size=self.config.ws_max_message_bytes,
+            ws_max_queue=1,
+            ws_per_message_deflate=False,
         )
         server = _QuietServer(server_config)
         self._http_server = server

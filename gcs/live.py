@@ -87,19 +87,24 @@ class StreamClient:
     agents: frozenset[str] | None = None
     min_interval_s: float = 0.0
     queue_size: int = 5000
+    max_bytes: int = 1 << 20
     queue: asyncio.Queue[str] = field(init=False)
     dropped: int = 0
+    queued_bytes: int = 0
     _last_sent: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.queue = asyncio.Queue(self.queue_size)
 
     def offer(self, text: str) -> None:
-        if self.queue.full():  # drop the oldest: a live view wants the newest state
-            with contextlib.suppress(asyncio.QueueEmpty):
-                self.queue.get_nowait()
+        # Bounded in count and bytes; drop the oldest: a live view wants the newest state.
+        while self.queue.full() or (
+            self.queued_bytes + len(text) > self.max_bytes and not self.queue.empty()
+        ):
+            self.queued_bytes -= len(self.queue.get_nowait())
             self.dropped += 1
         self.queue.put_nowait(text)
+        self.queued_bytes += len(text)
 
     def wants_status(self, identity: str, now: float) -> bool:
         """Whether this client gets ``identity``'s report received at ``now`` (filters, rate)."""
@@ -116,6 +121,7 @@ class StreamClient:
         items = [await self.queue.get()]
         while len(items) < max_items and not self.queue.empty():
             items.append(self.queue.get_nowait())
+        self.queued_bytes -= sum(len(item) for item in items)
         return "[" + ",".join(items) + "]"
 
 

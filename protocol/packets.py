@@ -3,8 +3,8 @@
 Each body travels as a UTF-8 JSON object inside one frame (see :mod:`protocol.wire`). Models
 forbid unknown fields so that a typo in *our* code is an error; on the wire, the decoder drops
 unknown fields outside commands before validating (docs/protocol.md, "must ignore"), so that
-adding an optional field is not a breaking change. Fields that a version-1 peer does not know
-are listed in :data:`V2_FIELDS` and left out when encoding for a version-1 session.
+adding an optional field is not a breaking change. What a version-1 peer gets of each body is
+decided in one place, :mod:`protocol.versions` (its list of the version-1 fields).
 Units: degrees (lat/lon/heading), metres, m/s, seconds, volts, amperes, percent.
 """
 
@@ -393,16 +393,6 @@ BODY_MODELS: dict[PacketType, type[_Body]] = {
 Body = RequestCid | ResponseCid | StatusReport | SetParameters | PerformActions | SyncSignal | Close
 
 
-V2_FIELDS: dict[type[_Body], frozenset[str]] = {
-    RequestCid: frozenset({"versions", "compact_status", "release_beacon"}),
-    PerformActions: frozenset({"release_anchor"}),
-    ResponseCid: frozenset(
-        {"protocol_version", "code", "retry_after_s", "lost", "compact_status", "refusal_proof"}
-    ),
-    Close: frozenset({"code"}),
-}
-"""Fields added in version 2: never sent to a version-1 peer, which forbids unknown fields."""
-
 MUST_UNDERSTAND: dict[PacketType, tuple[str, ...]] = {
     PacketType.PERFORM_ACTIONS: ("actions",),
     PacketType.SET_PARAMETERS: ("geofence",),
@@ -423,7 +413,6 @@ __all__ = [
     "MUST_UNDERSTAND",
     "PROTOCOL_VERSION",
     "SUPPORTED_VERSIONS",
-    "V2_FIELDS",
     "Action",
     "ActionFailure",
     "AgentParameters",

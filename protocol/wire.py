@@ -36,12 +36,12 @@ from protocol.packets import (
     BODY_MODELS,
     MUST_UNDERSTAND,
     PROTOCOL_VERSION,
-    V2_FIELDS,
     Body,
     PacketType,
     StatusReport,
     packet_type_of,
 )
+from protocol.versions import render
 
 MAGIC = b"FG"
 HEADER = struct.Struct(">2sBBIII")
@@ -77,8 +77,9 @@ class Frame:
 def encode(body: Body, seq: int, version: int = PROTOCOL_VERSION, *, compact: bool = False) -> bytes:
     """Serialise ``body`` into one frame with sequence number ``seq`` (taken modulo 2**32).
 
-    ``version`` is the session's protocol version: for a version-1 peer the fields it does not
-    know (:data:`~protocol.packets.V2_FIELDS`) are left out, because it rejects unknown fields.
+    ``version`` is the session's protocol version: the body is rendered for it by
+    :func:`protocol.versions.render` (a version-1 peer gets only version-1 fields, because it
+    rejects unknown ones).
     ``compact`` sends a status report in the binary layout (type byte 0x82); only a version-2
     session whose ``accepted`` said ``compact_status`` may use it.
     """
@@ -86,8 +87,7 @@ def encode(body: Body, seq: int, version: int = PROTOCOL_VERSION, *, compact: bo
         payload = status_binary.encode(body)
         ptype = STATUS_COMPACT
     else:
-        exclude = V2_FIELDS.get(type(body)) if version < 2 else None
-        payload = body.model_dump_json(exclude_none=True, exclude=set(exclude) if exclude else None).encode()
+        payload = render(body, version)
         ptype = packet_type_of(body)
     return (
         HEADER.pack(MAGIC, FRAME_VERSION, ptype, seq % SEQ_MODULO, len(payload), zlib.crc32(payload))

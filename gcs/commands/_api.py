@@ -42,6 +42,14 @@ def api_token(args: argparse.Namespace) -> str:
         raise CommandError(f"no API token: cannot read {path}: {exc.strerror} (pass --token)") from None
 
 
+def optional_token(args: argparse.Namespace) -> str | None:
+    """The token when there is one: reads send it too (a daemon beyond loopback requires it)."""
+    try:
+        return api_token(args)
+    except CommandError:
+        return None
+
+
 def unreachable(api: str, exc: Exception) -> CommandError:
     why = str(exc) or type(exc).__name__
     return CommandError(f"cannot reach the daemon at {api} ({why}); is `gcs serve` running?", 3)
@@ -51,7 +59,8 @@ def call(args: argparse.Namespace, request: Callable[[FleetClient], Awaitable[T]
     """Run one client call against ``--api``; unreachable daemon and refusals become CommandError."""
 
     async def go() -> T:
-        async with FleetClient(args.api, api_token(args) if token else None, timeout=15.0) as client:
+        key = api_token(args) if token else optional_token(args)
+        async with FleetClient(args.api, key, timeout=15.0) as client:
             return await request(client)
 
     try:

@@ -153,7 +153,11 @@ function onEvent(ev) {
 // --- stream -----------------------------------------------------------------------------------------
 function connect() {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
-  const ws = new WebSocket(`${proto}//${location.host}/api/v1/stream?max_rate_hz=10`);
+  // A browser cannot set headers on a WebSocket: the token (needed when the daemon listens beyond
+  // loopback) travels as the subprotocol "bearer.<token>" beside "fleetgcs" (gcs/http_guard.py).
+  const token = $("token").value.trim();
+  const ws = new WebSocket(`${proto}//${location.host}/api/v1/stream?max_rate_hz=10`,
+    token ? ["fleetgcs", "bearer." + token] : undefined);
   S.ws = ws;
   ws.onopen = () => { S.connected = true; setLinkState(); };
   ws.onclose = () => { S.connected = false; setLinkState(); setTimeout(connect, 1000); };
