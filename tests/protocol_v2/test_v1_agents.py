@@ -92,8 +92,17 @@ def _daemon_bodies() -> list[Body]:
         bodies.append(challenge := server.on_hello(hello))
         assert challenge.server_nonce is not None
         proof = agent_proof(KEY, "drone-1", challenge.server_nonce, nonce)
-        server.on_proof(hello.model_copy(update={"proof": proof, "compact_status": True}))
+        proved = hello.model_copy(update={"proof": proof, "compact_status": True})
+        server.on_proof(proved)
         bodies.append(server.accept(7, parameters, 1.7e9, lost=True))
+        # a refusal decided after the proof carries refusal_proof (v2): stripped for v1 too
+        refusing = ServerHandshake(lambda _: KEY)
+        other = refusing.on_hello(hello)
+        assert other.server_nonce is not None
+        refusing.on_proof(
+            proved.model_copy(update={"proof": agent_proof(KEY, "drone-1", other.server_nonce, nonce)})
+        )
+        bodies += refusing.refusal(Code.BANNED, "banned", None)
     for code in Code:
         bodies += refusal(code, f"refused: {code.value}", 30.0)
         bodies.append(close_for(code, f"closed: {code.value}"))
