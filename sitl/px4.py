@@ -20,7 +20,8 @@ import threading
 from collections.abc import Mapping
 
 from sitl.dialect import mavlink as mav
-from sitl.mission import MissionProtocol
+from sitl.mission import MISSION as MISSION_TYPE
+from sitl.mission import MissionItem, MissionProtocol
 from sitl.params import INT32, ParamStore
 from sitl.physics import latlon_to_local
 from sitl.px4_params import ENGINE_FIXED, PX4_DEFAULTS, TO_ENGINE, int_to_wire, wire_to_int
@@ -113,9 +114,33 @@ PX4_DEFAULT_STREAMS: dict[int, float] = {
 
 class Px4MissionProtocol(MissionProtocol):
     """PX4's upload quirks: MISSION_REQUEST until the GCS has answered with MISSION_ITEM_INT once, and a
-    return-to-launch item outside MAV_FRAME_MISSION refused (MAV_MISSION_UNSUPPORTED, upload ended)."""
+    return-to-launch item outside MAV_FRAME_MISSION refused (MAV_MISSION_UNSUPPORTED, upload ended).
+
+    PX4 keeps no home at seq 0: its item 0 is the first mission item. The engine's stored list keeps
+    ArduPilot's layout (a home placeholder at 0, added by :meth:`Px4Vehicle._mission_stored`), so
+    MISSION counts and downloads here are shifted by one.
+    """
 
     int_items_seen = False
+
+    def count(self, mission_type: int) -> int:
+        """PX4's count: no home item in a MISSION download."""
+        if mission_type == MISSION_TYPE:
+            return max(0, len(self.stores[MISSION_TYPE]) - 1)
+        return super().count(mission_type)
+
+    def download_item(self, mission_type: int, seq: int) -> MissionItem | None:
+        """PX4's item ``seq`` (the engine's ``seq + 1``) of a MISSION download."""
+        if mission_type != MISSION_TYPE:
+            return super().download_item(mission_type, seq)
+        items = self.stores[MISSION_TYPE]
+        if not 0 <= seq < len(items) - 1:
+            return None
+        it = items[seq + 1]
+        return MissionItem(
+            seq, it.frame, it.command, it.current, it.autocontinue,
+            it.param1, it.param2, it.param3, it.param4, it.x, it.y, it.z, it.mission_type,
+        )  # fmt: skip
 
     def _request(self, seq: int, mission_type: int) -> None:
         self.legacy_request = not self.int_items_seen
@@ -438,11 +463,24 @@ class Px4Vehicle(SimVehicle):
         if f.kind == "battery":
             self.sim_bat_pct = self.battery.remaining_pct
 
-    def _auto_advance(self, reached: bool = True) -> None:
-        seq = self.mis_idx
-        super()._auto_advance(reached)
-        if reached:
-            self.reached = (seq, self.t, self.t + 1.0)
+    # ------------------------------------------------------------------ missions (PX4 seq = engine seq - 1)
+    def _item_reached(self, seq: int) -> None:
+        super()._item_reached(seq - 1)
+        self.reached = (seq - 1, self.t, self.t + 1.0)
+
+    def _mission_stored(self, mission_type: int) -> None:
+        if mission_type == MISSION_TYPE and self.mission.stores[MISSION_TYPE]:
+            self.mission.stores[MISSION_TYPE].insert(0, self._home_item())
+        super()._mission_stored(mission_type)
+
+    def _set_mission_current(self, seq: int) -> bool:
+        return super()._set_mission_current(seq + 1)
+
+    def msg_mission_current(self) -> mav.MAVLink_message:
+        """MISSION_CURRENT in PX4's numbering (no home item)."""
+        msg = super().msg_mission_current()
+        msg.seq = max(0, msg.seq - 1)
+        return msg
 
     # ------------------------------------------------------------------ messages and commands
     def handle(self, msg: mav.MAVLink_message, wall_now: float) -> None:

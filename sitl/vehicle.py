@@ -848,9 +848,13 @@ class SimVehicle:
         d = self._alt_to_d(it.frame, it.z) if (it.z != 0 or it.frame in GLOBAL_FRAMES_AMSL) else b[2]
         return n, e, d
 
+    def _item_reached(self, seq: int) -> None:
+        """MISSION_ITEM_REACHED for stored item ``seq``."""
+        self.send(mav.MAVLink_mission_item_reached_message(seq))
+
     def _auto_advance(self, reached: bool = True) -> None:
         if reached:
-            self.send(mav.MAVLink_mission_item_reached_message(self.mis_idx))
+            self._item_reached(self.mis_idx)
         self.mis_idx += 1
         self.mis_started = False
         self.mis_hold_until = None
