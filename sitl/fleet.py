@@ -168,7 +168,6 @@ class SimFleet:
         """Bind every endpoint, then run the simulation in a daemon thread; returns once all listen."""
         if self._thread is not None:
             raise RuntimeError("fleet already started")
-        cfg = self.cfg
         try:
             for i, v in enumerate(self._vehicles):
                 self._endpoints.append(self._endpoint(i, v))

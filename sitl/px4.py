@@ -631,5 +631,3 @@ class Px4Vehicle(SimVehicle):
         return mav.MAVLink_autopilot_version_message(
             caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.sysid, [0] * 18
         )
-
-

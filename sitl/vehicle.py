@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import math
 import random
-from operator import methodcaller
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from operator import methodcaller
 from typing import Protocol
 
 from sitl.dialect import mavlink as mav
@@ -457,7 +457,7 @@ class SimVehicle:
         return self.mode
 
     def default_streams(self) -> dict[int, float]:
-        """Messages (id -> interval in sim s) a fresh link gets unasked: ArduPilot's HEARTBEAT + SYS_STATUS."""
+        """Messages (id -> interval, sim s) a fresh link gets unasked: ArduPilot's HEARTBEAT + SYS_STATUS."""
         return DEFAULT_STREAMS
 
     # ------------------------------------------------------------------ Python API (other threads)
