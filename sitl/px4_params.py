@@ -90,7 +90,9 @@ _DLL_ACT = {0: 0, 2: 1, 3: 5}
 # engine (ArduCopter) parameter -> function of the PX4 table giving its value.
 TO_ENGINE: dict[str, Callable[[Callable[[str], float]], float]] = {
     "WPNAV_SPEED": lambda p: p("MPC_XY_CRUISE") * 100.0,
-    "WPNAV_ACCEL": lambda p: p("MPC_ACC_HOR") * 100.0,
+    # Effective, not nominal: PX4's jerk-limited trajectory (MPC_JERK_AUTO) brakes from 4.5 m/s over
+    # 6.9 m and is below 0.5 m/s only after about 3 s (measured on v1.16 SIH), i.e. about 1.5 m/s^2.
+    "WPNAV_ACCEL": lambda p: p("MPC_ACC_HOR") * 50.0,
     "WPNAV_SPEED_UP": lambda p: p("MPC_Z_VEL_MAX_UP") * 100.0,
     "WPNAV_SPEED_DN": lambda p: p("MPC_Z_VEL_MAX_DN") * 100.0,
     "WPNAV_ACCEL_Z": lambda p: p("MPC_ACC_DOWN_MAX") * 100.0,

@@ -7,7 +7,7 @@ is what the agent does right on PX4; ``tests/ardupilot``'s rig runs the daemon s
 
 from __future__ import annotations
 
-import math
+import asyncio
 import time
 from typing import Any
 
@@ -17,8 +17,9 @@ from agent.autopilot.mavlink_backend import MavlinkAutopilot
 from protocol.actions import Goto, Land, Takeoff
 from protocol.geo import distance_m, offset_latlon
 from sitl.fleet import FleetConfig, SimFleet
+from tests.ardupilot import rig as rig_module
 from tests.ardupilot.rig import HOME as RIG_HOME
-from tests.ardupilot.rig import PARAMS, SPACING_M, SPEEDUP, VEHICLES, Rig, at
+from tests.ardupilot.rig import SPACING_M, VEHICLES, Rig, at
 from tests.ardupilot.test_missions import task
 from tests.backends.conftest import HOME, closing, sim_fleet, wait_until
 
@@ -31,7 +32,7 @@ async def test_agent_backend_takeoff_goto_land_on_px4(sim_fleet: Any, closing: A
     fleet = sim_fleet(flavour="px4", speedup=10.0)
     ap = closing(MavlinkAutopilot(fleet.endpoints[0], telemetry_hz=10.0))
     await ap.connect(timeout=10.0)
-    assert ap.is_px4
+    assert ap.flavour.name == "px4"  # told by the heartbeat
     await wait_until(ap, lambda t: t.has_position, "3D fix and home position")
     await ap.arm(deadline_s=20.0)
     await ap.takeoff(8.0)  # AMSL on PX4: home + 8 m
@@ -46,7 +47,7 @@ async def test_agent_backend_takeoff_goto_land_on_px4(sim_fleet: Any, closing: A
         peak = max(peak, st.groundspeed)
         if distance_m(st.lat, st.lon, lat, lon) < 1.0 and st.groundspeed < 0.3:
             break
-        await _sleep(0.02)
+        await asyncio.sleep(0.02)
     st = fleet.vehicle(0).state
     assert distance_m(st.lat, st.lon, lat, lon) < 1.0, "goto not reached"
     assert 2.5 < peak <= 3.2, f"leg flown at {peak:.1f} m/s, asked 3"  # the speed reached PX4
@@ -58,10 +59,9 @@ async def test_agent_backend_takeoff_goto_land_on_px4(sim_fleet: Any, closing: A
     assert st.mode == "AUTO.LOITER"
 
 
-async def _sleep(seconds: float) -> None:
-    import asyncio
-
-    await asyncio.sleep(seconds)
+# The pause is judged in vehicle (sim) seconds, and every wall-clock latency of daemon and agent counts
+# SPEEDUP times over: a slow clock keeps the 3 s of the requirement close to what a real PX4 sees.
+PAUSE_SPEEDUP = 2.0
 
 
 class Px4Rig(Rig):
@@ -73,7 +73,7 @@ class Px4Rig(Rig):
                 vehicles=VEHICLES,
                 home=RIG_HOME,
                 base_port=0,
-                speedup=SPEEDUP,
+                speedup=rig_module.SPEEDUP,
                 seed=7,
                 spacing_m=SPACING_M,
                 # PX4 SITL drains the battery 100 %/min (SIM_BAT_DRAIN 60) down to 50 %: the daemon's
@@ -92,16 +92,16 @@ class Px4Rig(Rig):
 
 
 @pytest.mark.timeout(240)
-def test_daemon_pause_stops_a_px4_drone(tmp_path: Any) -> None:
+def test_daemon_pause_stops_a_px4_drone(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
     """Mission pause mid-leg: each PX4 drone below 0.5 m/s within 3 s (sim time), then within 3 m for 10 s."""
-    assert PARAMS  # the ArduCopter battery override does not apply: PX4 has no BATT_CAPACITY
+    monkeypatch.setattr(rig_module, "SPEEDUP", PAUSE_SPEEDUP)  # the fleet and the daemon's time scale
     rig = Px4Rig("ours", None, tmp_path).start()
     try:
         fleet = rig.fleet
         assert isinstance(fleet, SimFleet)
         plans: dict[str, list[object]] = {}
         for i, name in enumerate(rig.names):
-            far = at(120.0, 0.0, i)
+            far = at(70.0, 0.0, i)
             plans[name] = [
                 Takeoff(step=0, alt=8.0 + 2 * i, sync=True),
                 Goto(step=1, lat=far[0], lon=far[1], alt=8.0 + 2 * i, speed=4.0, sync=True),
@@ -141,7 +141,6 @@ def test_daemon_pause_stops_a_px4_drone(tmp_path: Any) -> None:
             time.sleep(0.01)
         assert fleet.sim_time - t1 >= 10.0
         assert drift < 3.0, f"drifted {drift:.1f} m while paused"
-        assert all(math.isfinite(v) for v in stopped.values())
         rig.call(rig.d.missions.resume(mission_id, "test resume"))
         progress = rig.finish(mission_id, 150.0)
         assert progress.state == "completed", progress
