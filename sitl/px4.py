@@ -313,8 +313,9 @@ class Px4Vehicle(SimVehicle):
 
     def _start_mission(self) -> None:
         if len(self.mission.mission_items()) <= 1:
-            self.statustext(SEV_CRITICAL, "Mission rejected: no valid mission available")
-            return  # stays in (or falls back to) Hold
+            # ACCEPTED, then refused (PX4's mode manager: the heartbeat stays in Hold)
+            self.statustext(SEV_CRITICAL, "Switching to Mission is currently not available")
+            return
         armed = self.armed
         self.armed = False  # PX4 needs no takeoff item check on the ground: enter Mission as disarmed
         ok = super().set_mode(AUTO)
