@@ -197,6 +197,7 @@ class Px4Vehicle(SimVehicle):
             self.sysid, self.send, self._home_item, self._can_clear, self._mission_stored, False
         )
         self.px4_mode = HOLD
+        self.shown_only = False  # px4_mode was taken while disarmed but cannot run (nothing flies)
         self.mode = LOITER  # PX4 boots in Hold
         self.flew = False  # airborne since arming: decides COM_DISARM_LAND against COM_DISARM_PRFLT
         self.takeoff_pending: float | None = None  # AMSL target of a take-off sent while disarmed
@@ -270,6 +271,7 @@ class Px4Vehicle(SimVehicle):
         if not super().set_mode(mode, reason):
             return False
         self.px4_mode = _FROM_ENGINE.get(mode, HOLD)
+        self.shown_only = False
         self.cruise = None
         self.takeoff_pending = None
         return True
@@ -282,40 +284,50 @@ class Px4Vehicle(SimVehicle):
         """DO_SET_MODE / SET_MODE as PX4 v1.16 answers them (main, sub)."""
         if main == 4:
             sub = sub or MISSION[1]  # AUTO with sub 0 is Mission: an ArduCopter "GUIDED" lands here
-            if (main, sub) == self.px4_mode:
-                return ACCEPTED, []  # Hold while holding (or flying a reposition) changes nothing
-            if sub == TAKEOFF[1]:
-                return self._takeoff(math.nan)
-            if sub == HOLD[1]:
-                self.set_mode(LOITER)
-            elif sub == MISSION[1]:
-                self._start_mission()
-            elif sub == RETURN[1]:
-                if self.armed and not self.landed:
-                    self.set_mode(RTL)
-            elif sub == LAND_MODE[1]:
-                if self.armed and not self.landed:
-                    self.set_mode(LAND)
-            else:
+            if (main, sub) not in PX4_MODE_NAMES:
                 return REJECTED, ["Unsupported auto mode"]
+        elif main not in _MANUAL_WORDS and main != OFFBOARD[0]:
+            return ACCEPTED, []  # unknown main modes (an ArduCopter LAND, 9...): nothing happens
+        wanted = (main, sub if main == 4 else 0)
+        if wanted == self.px4_mode:
+            return ACCEPTED, []  # Hold while holding (or flying a reposition) changes nothing
+        if wanted == TAKEOFF:
+            return self._takeoff(math.nan)
+        if wanted == HOLD:
+            self.set_mode(LOITER)
             return ACCEPTED, []
-        if main in _MANUAL_WORDS:
-            # COM_RC_IN_MODE: no stick input here, so the manual modes are never available; PX4
-            # answers ACCEPTED and the heartbeat keeps the mode it had.
-            return ACCEPTED, [f"Switching to {_MANUAL_WORDS[main]} is currently not available"]
-        if main == OFFBOARD[0]:
-            if self.t - self.last_setpoint_t > self.px4_params["COM_OF_LOSS_T"]:
-                return ACCEPTED, ["Switching to Offboard is currently not available"]
-            if self.mode != GUIDED:
-                self.set_mode(GUIDED)
-            return ACCEPTED, []
-        return ACCEPTED, []  # unknown main modes: nothing happens
+        refused = self._unavailable(wanted)
+        if refused is not None:
+            if not self.armed:
+                # PX4 always takes a mode while disarmed and shows it; nothing flies, arming is refused
+                if self.mode != LOITER:
+                    self.set_mode(LOITER)
+                self.px4_mode, self.shown_only = wanted, True
+                return ACCEPTED, []
+            return ACCEPTED, [refused]  # ACCEPTED, then refused: the heartbeat keeps the mode it had
+        if wanted == MISSION:
+            self._start_mission()
+        elif wanted == OFFBOARD:
+            self.set_mode(GUIDED)
+        elif wanted == RETURN:
+            self.set_mode(RTL)
+        elif wanted == LAND_MODE:
+            self.set_mode(LAND)
+        return ACCEPTED, []
+
+    def _unavailable(self, wanted: tuple[int, int]) -> str | None:
+        """PX4's refusal of a mode it cannot run now, or None."""
+        if wanted[0] in _MANUAL_WORDS:  # COM_RC_IN_MODE: no stick input here, never available
+            return f"Switching to {_MANUAL_WORDS[wanted[0]]} is currently not available"
+        if wanted == OFFBOARD and self.t - self.last_setpoint_t > self.px4_params["COM_OF_LOSS_T"]:
+            return "Switching to Offboard is currently not available"
+        if wanted == MISSION and len(self.mission.mission_items()) <= 1:
+            return "Switching to Mission is currently not available"
+        if wanted in (RETURN, LAND_MODE) and (not self.armed or self.landed):
+            return f"Switching to {'Return' if wanted == RETURN else 'Land'} is currently not available"
+        return None
 
     def _start_mission(self) -> None:
-        if len(self.mission.mission_items()) <= 1:
-            # ACCEPTED, then refused (PX4's mode manager: the heartbeat stays in Hold)
-            self.statustext(SEV_CRITICAL, "Switching to Mission is currently not available")
-            return
         armed = self.armed
         self.armed = False  # PX4 needs no takeoff item check on the ground: enter Mission as disarmed
         ok = super().set_mode(AUTO)
@@ -337,8 +349,8 @@ class Px4Vehicle(SimVehicle):
             return ACCEPTED, []
         if not force and self._prearm_failure() is not None:
             return REJECTED, [ARMING_DENIED]
-        if self.px4_mode in (RETURN, LAND_MODE):
-            return REJECTED, ["Arming denied: not in a mode that allows arming"]
+        if self.shown_only or self.px4_mode in (RETURN, LAND_MODE):
+            return REJECTED, [ARMING_DENIED]
         ok, why = self.arm(force=True)
         if not ok:
             return REJECTED, [why]
@@ -528,7 +540,7 @@ class Px4Vehicle(SimVehicle):
             return FAILED, []  # PX4 streams MISSION_CURRENT itself and refuses to change it
         if cmd == mav.MAV_CMD_MISSION_START:
             if len(self.mission.mission_items()) <= 1:
-                return FAILED, []
+                return mav.MAV_RESULT_DENIED, []
             self._start_mission()
             if int(p1) > 0:
                 self._set_mission_current(int(p1))

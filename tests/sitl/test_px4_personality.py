@@ -113,15 +113,24 @@ def test_heartbeat_is_px4_and_boots_in_hold(px4: Any) -> None:
 
 def test_set_mode_takes_main_and_sub_and_ardupilot_numbers_mean_px4_modes(px4: Any) -> None:
     _fleet, g = px4()
-    assert set_px4_mode(g, 4, 4) == ACCEPTED  # AUTO.MISSION without a mission: falls back to Hold
-    wait_mode(g, HOLD)
-    g.texts.clear()
+    g.wait("SYS_STATUS", lambda m: m.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK, 5)
+    # disarmed, PX4 takes any mode and shows it (probed: MANUAL, Mission without a mission, Return, Land)
     assert set_px4_mode(g, 4) == ACCEPTED  # ArduCopter GUIDED (4) = main AUTO, sub 0 = Mission
-    saw(g, "Switching to Mission is currently not available")
-    for main in (1, 2, 3, 7):  # manual modes: no stick input, never available
+    wait_mode(g, (4, 4))
+    assert g.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == REJECTED  # no mission to fly
+    for mode in ((1, 0), (4, 5), (4, 6)):
+        assert set_px4_mode(g, *mode) == ACCEPTED
+        wait_mode(g, mode)
+    assert g.command(mavlink.MAV_CMD_MISSION_START, 0, 0) == mavlink.MAV_RESULT_DENIED
+    assert g.command(mavlink.MAV_CMD_CONDITION_YAW, 90, 10, 1) == UNSUPPORTED
+    assert set_px4_mode(g, 4, 3) == ACCEPTED
+    wait_mode(g, HOLD)
+    # airborne: what cannot run is ACCEPTED, then refused (STATUSTEXT), and the mode stays
+    takeoff(g, 3.0)
+    for main, word in ((1, "Manual"), (2, "Altitude"), (3, "Position"), (7, "Stabilized"), (4, "Mission")):
         g.texts.clear()
         assert set_px4_mode(g, main) == ACCEPTED
-        saw(g, "is currently not available")
+        saw(g, f"Switching to {word} is currently not available")
         assert px4_mode(g.heartbeat_msg()) == HOLD
     assert set_px4_mode(g, 6) == ACCEPTED  # OFFBOARD without a setpoint stream
     saw(g, "Offboard is currently not available")
