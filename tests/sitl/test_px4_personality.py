@@ -229,6 +229,20 @@ def test_reposition_rules_speed_and_stop(px4: Any) -> None:
     assert fleet.vehicle(0).state.mode == "AUTO.LOITER"
 
 
+def test_change_speed_during_takeoff_is_lost_when_hold_takes_over(px4: Any) -> None:
+    """Issue 23: a DO_CHANGE_SPEED that reaches a drone still in AUTO.TAKEOFF is lost (PX4 resets the
+    cruise speed on the mode change to Hold): the next reposition without a speed flies MPC_XY_CRUISE."""
+    _fleet, g = px4(speedup=5.0)  # the speed must reach the drone during its 5 s (sim) climb
+    arm(g)
+    assert g.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, NAN, NAN, NAN, HOME[2] + 8.0) == ACCEPTED
+    wait_mode(g, TAKEOFF)
+    assert g.command(mavlink.MAV_CMD_DO_CHANGE_SPEED, 1, 2.0, -1) == ACCEPTED
+    wait_mode(g, HOLD, timeout=10)
+    assert reposition(g, *offset(HOME[0], HOME[1], 80.0, 0.0), HOME[2] + 8.0) == ACCEPTED
+    top = max(speed(m) for m in g.drain(2.0) if m.get_type() == "GLOBAL_POSITION_INT")
+    assert top > 4.5, f"flew {top:.1f} m/s: the take-off's speed survived into Hold"
+
+
 def test_pause_continue_unsupported_and_change_speed_accepted_on_the_ground(px4: Any) -> None:
     _fleet, g = px4()
     assert g.command(mavlink.MAV_CMD_DO_PAUSE_CONTINUE, 0) == UNSUPPORTED
