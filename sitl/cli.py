@@ -49,9 +49,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="LAT,LON[,ALT_AMSL] of vehicle 0 (default ArduPilot's CMAC)",
     )
     run.add_argument(
-        "--base-port", type=int, default=5760, help="vehicle i listens on BASE+10*i; 0 = ephemeral ports"
+        "--flavour",
+        choices=("ardupilot", "px4"),
+        default="ardupilot",
+        help="autopilot personality: ArduCopter (default) or PX4 v1.16 (UDP links as PX4 SITL's API link)",
     )
-    run.add_argument("--transport", choices=("tcp", "udp"), default="tcp")
+    run.add_argument(
+        "--base-port",
+        type=int,
+        default=None,
+        help="ardupilot: vehicle i listens on BASE+10*i (default 5760); px4: vehicle i sends to BASE+i and "
+        "listens on BASE+40+i (default 14540); 0 = ephemeral ports",
+    )
+    run.add_argument("--transport", choices=("tcp", "udp"), default=None, help="ardupilot only (default tcp)")
     run.add_argument("--host", default="127.0.0.1", help="address to bind (default loopback)")
     run.add_argument(
         "--speedup", type=float, default=1.0, help="sim seconds per wall second (0 = as fast as possible)"
@@ -180,9 +190,18 @@ def main(argv: list[str] | None = None) -> int:
     """Console entry point (``sitl = "sitl.cli:main"``)."""
     args = build_parser().parse_args(argv)
     stop = _StopSignal()
-    from sitl.fleet import DEFAULT_HOME, FleetConfig, SimFleet
+    from sitl.fleet import DEFAULT_HOME, PX4_BASE_PORT, PX4_HOME, FleetConfig, SimFleet
 
-    home = args.home if args.home is not None else DEFAULT_HOME
+    px4 = args.flavour == "px4"
+    if px4 and (args.ardupilot is not None or args.transport is not None):
+        flag = "--ardupilot" if args.ardupilot is not None else "--transport"
+        print(f"sitl: {flag} does not go with --flavour px4 (PX4 SITL links are UDP)", file=sys.stderr)
+        return 2
+    home = args.home if args.home is not None else (PX4_HOME if px4 else DEFAULT_HOME)
+    if args.base_port is None:
+        args.base_port = PX4_BASE_PORT if px4 else 5760
+    if args.transport is None:
+        args.transport = "tcp"
     if args.ardupilot is not None:
         return _run_ardupilot(args, home, stop)
 
@@ -202,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         physics_hz=args.physics_hz,
         params=dict(args.param),
         failures=list(args.fail),
+        flavour=args.flavour,
     )
     try:
         fleet = SimFleet(cfg)

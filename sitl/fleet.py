@@ -22,6 +22,8 @@ from types import TracebackType
 from sitl.failures import parse_failures
 from sitl.mavlink_link import Endpoint
 from sitl.physics import local_to_latlon
+from sitl.px4 import Px4Vehicle
+from sitl.px4_params import PX4_DEFAULTS
 from sitl.vehicle import SEV_WARNING, SimVehicle
 
 log = logging.getLogger("sitl")
@@ -29,6 +31,12 @@ OVERRUN_REPORT_S = 5.0  # at most one log line / STATUSTEXT about falling behind
 
 # ArduPilot's default SITL location (Canberra model flying club, "CMAC").
 DEFAULT_HOME = (-35.363262, 149.165237, 584.0)
+# PX4 SITL's (SIH) default home, Zurich.
+PX4_HOME = (47.397742, 8.545594, 489.4)
+FLAVOURS = ("ardupilot", "px4")
+# PX4 instance i's API link: it sends to PX4_BASE_PORT + i and listens on that + PX4_LOCAL_OFFSET.
+PX4_BASE_PORT = 14540
+PX4_LOCAL_OFFSET = 40
 
 
 @dataclass
@@ -51,6 +59,11 @@ class FleetConfig:
     physics_hz: float = 50.0
     params: dict[str, float] = field(default_factory=dict)
     failures: list[str] = field(default_factory=list)
+    # "ardupilot" (ArduCopter) or "px4" (PX4 v1.16: sitl/px4.py). PX4 links are always UDP laid out
+    # as PX4 SITL's API link (``transport`` is ignored): vehicle i sends to base_port + i (a client
+    # binds it: udpin) and listens on base_port + 40 + i; base_port 0 = an ephemeral listening port
+    # and no remote until the client speaks (udpout). ``params`` then holds PX4 names.
+    flavour: str = "ardupilot"
 
     def validate(self) -> None:
         """Raise ValueError for settings the simulator cannot honour."""
@@ -62,12 +75,22 @@ class FleetConfig:
             raise ValueError("transport must be 'tcp' or 'udp'")
         if self.physics_hz <= 0:
             raise ValueError("physics_hz must be positive")
-        if self.base_port and self.base_port + 10 * (self.vehicles - 1) > 65535:
+        if self.flavour not in FLAVOURS:
+            raise ValueError(f"flavour must be one of {', '.join(FLAVOURS)}, not {self.flavour!r}")
+        if self.flavour == "px4":
+            unknown = sorted(k for k in self.params if k.upper() not in PX4_DEFAULTS)
+            if unknown:
+                raise ValueError(f"unknown PX4 parameter(s): {', '.join(unknown)}")
+            if self.base_port and self.vehicles > PX4_LOCAL_OFFSET:
+                raise ValueError(f"px4 flavour: at most {PX4_LOCAL_OFFSET} vehicles with a fixed base port")
+            if self.base_port and self.base_port + PX4_LOCAL_OFFSET + self.vehicles - 1 > 65535:
+                raise ValueError("base_port + 40 + vehicles - 1 exceeds 65535")
+        elif self.base_port and self.base_port + 10 * (self.vehicles - 1) > 65535:
             raise ValueError("base_port + 10*(vehicles-1) exceeds 65535")
 
 
 class SimFleet:
-    """N simulated ArduCopters, each a MAVLink 2 endpoint on loopback (vehicle i on base_port + 10*i)."""
+    """N simulated copters (ArduCopter or PX4 personality), each a MAVLink 2 endpoint on loopback."""
 
     def __init__(self, cfg: FleetConfig | None = None) -> None:
         self.cfg = cfg = cfg if cfg is not None else FleetConfig()
@@ -76,10 +99,11 @@ class SimFleet:
         lat, lon = cfg.home[0], cfg.home[1]
         alt = cfg.home[2] if len(cfg.home) > 2 else 0.0
         self._vehicles: list[SimVehicle] = []
+        vehicle_cls = Px4Vehicle if cfg.flavour == "px4" else SimVehicle
         for i in range(cfg.vehicles):
             vlat, vlon = local_to_latlon(lat, lon, 0.0, i * cfg.spacing_m)
             self._vehicles.append(
-                SimVehicle(
+                vehicle_cls(
                     i,
                     (vlat, vlon, alt),
                     seed=cfg.seed,
@@ -144,11 +168,9 @@ class SimFleet:
         """Bind every endpoint, then run the simulation in a daemon thread; returns once all listen."""
         if self._thread is not None:
             raise RuntimeError("fleet already started")
-        cfg = self.cfg
         try:
             for i, v in enumerate(self._vehicles):
-                port = cfg.base_port + 10 * i if cfg.base_port else 0
-                self._endpoints.append(Endpoint(v, cfg.transport, cfg.host, port, self.dt))
+                self._endpoints.append(self._endpoint(i, v))
         except OSError:
             for ep in self._endpoints:
                 ep.close()
@@ -168,6 +190,16 @@ class SimFleet:
         if self._error is not None:
             raise RuntimeError("simulation thread failed") from self._error
         return self
+
+    def _endpoint(self, i: int, v: SimVehicle) -> Endpoint:
+        cfg = self.cfg
+        if cfg.flavour == "px4":
+            if not cfg.base_port:
+                return Endpoint(v, "udp", cfg.host, 0, self.dt)
+            local = cfg.base_port + PX4_LOCAL_OFFSET + i
+            return Endpoint(v, "udp", cfg.host, local, self.dt, remote=(cfg.host, cfg.base_port + i))
+        port = cfg.base_port + 10 * i if cfg.base_port else 0
+        return Endpoint(v, cfg.transport, cfg.host, port, self.dt)
 
     def stop(self) -> None:
         """Stop the simulation thread and close every socket (idempotent)."""

@@ -16,7 +16,7 @@ import socket
 from typing import TYPE_CHECKING
 
 from sitl.dialect import mavlink as mav
-from sitl.vehicle import BUILDERS, DEFAULT_STREAMS
+from sitl.vehicle import BUILDERS
 
 if TYPE_CHECKING:
     from sitl.vehicle import SimVehicle
@@ -30,15 +30,26 @@ class Endpoint:
     """A vehicle's MAVLink endpoint: socket(s), MAVLink framing and per-link stream scheduling."""
 
     def __init__(
-        self, vehicle: SimVehicle, transport: str, host: str, port: int, min_interval: float
+        self,
+        vehicle: SimVehicle,
+        transport: str,
+        host: str,
+        port: int,
+        min_interval: float,
+        remote: tuple[str, int] | None = None,
     ) -> None:
+        if remote is not None and transport != "udp":
+            raise ValueError("a remote address needs the udp transport")
         self.vehicle = vehicle
+        # PX4 layout: send to a fixed remote port from the start (the client binds it, ``udpin:``)
+        # and keep the stream settings when the client's address changes.
+        self.remote = remote
         self.transport = transport
         self.host = host
         self.min_interval = min_interval
         self.listener: socket.socket | None = None
         self.conn: socket.socket | None = None
-        self.peer: tuple[str, int] | None = None
+        self.peer: tuple[str, int] | None = remote
         if transport == "tcp":
             s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -70,6 +81,8 @@ class Endpoint:
         """pymavlink connection string a client uses for this endpoint."""
         if self.transport == "tcp":
             return f"tcp:{self.host}:{self.port}"
+        if self.remote is not None:
+            return f"udpin:{self.remote[0]}:{self.remote[1]}"
         return f"udpout:{self.host}:{self.port}"
 
     @property
@@ -86,7 +99,7 @@ class Endpoint:
     def reset_streams(self) -> None:
         """Back to ArduPilot's defaults for a fresh link."""
         t = self.vehicle.t
-        self.streams = {mid: [iv, t] for mid, iv in DEFAULT_STREAMS.items()}
+        self.streams = {mid: [iv, t] for mid, iv in self.vehicle.default_streams().items()}
         self.next_due = t
 
     def set_message_interval(self, msgid: int, interval_s: float | None) -> None:
@@ -198,7 +211,8 @@ class Endpoint:
                     return True
                 if addr != self.peer:
                     self.peer = addr
-                    self.reset_streams()
+                    if self.remote is None:
+                        self.reset_streams()
             else:
                 data = self.conn.recv(65536)
                 if not data:

@@ -64,10 +64,15 @@ DEFAULTS: dict[str, tuple[float, int]] = {
 class ParamStore:
     """Ordered parameter table with change callbacks (so e.g. SIM_WIND_* take effect immediately)."""
 
-    def __init__(self, overrides: Mapping[str, float] | None = None) -> None:
-        self._names: list[str] = list(DEFAULTS)
-        self._values: dict[str, float] = {k: float(v) for k, (v, _t) in DEFAULTS.items()}
-        self._types: dict[str, int] = {k: t for k, (_v, t) in DEFAULTS.items()}
+    def __init__(
+        self,
+        overrides: Mapping[str, float] | None = None,
+        defaults: Mapping[str, tuple[float, int]] | None = None,
+    ) -> None:
+        table = DEFAULTS if defaults is None else defaults  # another autopilot's table (sitl/px4_params.py)
+        self._names: list[str] = list(table)
+        self._values: dict[str, float] = {k: float(v) for k, (v, _t) in table.items()}
+        self._types: dict[str, int] = {k: t for k, (_v, t) in table.items()}
         self.on_change: Callable[[str, float], None] | None = None
         for k, v in (overrides or {}).items():
             self.define(k, float(v))

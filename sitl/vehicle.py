@@ -13,6 +13,7 @@ import random
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from operator import methodcaller
 from typing import Protocol
 
 from sitl.dialect import mavlink as mav
@@ -193,7 +194,14 @@ class Failure:
 
 
 class SimVehicle:
-    """ArduCopter behaviour toward a ground station for one simulated quadrotor."""
+    """ArduCopter behaviour toward a ground station for one simulated quadrotor.
+
+    Other autopilots' personalities (sitl/px4.py) subclass it and keep this engine for flight; the
+    hooks they override are the class attributes below, :meth:`mode_name`, :meth:`wire_custom_mode`
+    and :meth:`default_streams`.
+    """
+
+    armable_modes: frozenset[int] = frozenset(ARMABLE_MODES)
 
     def __init__(
         self,
@@ -440,6 +448,18 @@ class SimVehicle:
             return -(alt - self.origin[2])
         return -(alt + self.home[2] - self.origin[2])
 
+    def mode_name(self) -> str:
+        """The flight mode's name as this autopilot calls it (VehicleState.mode)."""
+        return MODE_NAMES.get(self.mode, str(self.mode))
+
+    def wire_custom_mode(self) -> int:
+        """HEARTBEAT.custom_mode of the current mode."""
+        return self.mode
+
+    def default_streams(self) -> dict[int, float]:
+        """Messages (id -> interval, sim s) a fresh link gets unasked: ArduPilot's HEARTBEAT + SYS_STATUS."""
+        return DEFAULT_STREAMS
+
     # ------------------------------------------------------------------ Python API (other threads)
     @property
     def state(self) -> VehicleState:
@@ -468,8 +488,8 @@ class SimVehicle:
                 groundspeed=math.hypot(gvn, gve),
                 heading_deg=math.degrees(self.heading) % 360.0,
                 armed=self.armed,
-                mode=MODE_NAMES.get(self.mode, str(self.mode)),
-                custom_mode=self.mode,
+                mode=self.mode_name(),
+                custom_mode=self.wire_custom_mode(),
                 landed=self.landed,
                 battery_pct=self.battery.remaining_pct,
                 voltage_v=self.battery.voltage_v,
@@ -828,9 +848,13 @@ class SimVehicle:
         d = self._alt_to_d(it.frame, it.z) if (it.z != 0 or it.frame in GLOBAL_FRAMES_AMSL) else b[2]
         return n, e, d
 
+    def _item_reached(self, seq: int) -> None:
+        """MISSION_ITEM_REACHED for stored item ``seq``."""
+        self.send(mav.MAVLink_mission_item_reached_message(seq))
+
     def _auto_advance(self, reached: bool = True) -> None:
         if reached:
-            self.send(mav.MAVLink_mission_item_reached_message(self.mis_idx))
+            self._item_reached(self.mis_idx)
         self.mis_idx += 1
         self.mis_started = False
         self.mis_hold_until = None
@@ -974,7 +998,7 @@ class SimVehicle:
         """Try to arm; returns (ok, reason)."""
         if self.armed:
             return True, ""
-        if self.mode not in ARMABLE_MODES:
+        if self.mode not in self.armable_modes:
             return False, "Arm: Mode not armable"
         if not force:
             why = self._prearm_failure()
@@ -1683,22 +1707,23 @@ def _pname(raw: str | bytes) -> str:
     return raw.split("\x00", 1)[0].strip().upper()
 
 
+# methodcaller: a personality's override (sitl/px4.py msg_heartbeat) is the one streamed.
 BUILDERS: dict[int, Callable[[SimVehicle], mav.MAVLink_message | None]] = {
-    mav.MAVLINK_MSG_ID_HEARTBEAT: SimVehicle.msg_heartbeat,
-    mav.MAVLINK_MSG_ID_SYS_STATUS: SimVehicle.msg_sys_status,
-    mav.MAVLINK_MSG_ID_SYSTEM_TIME: SimVehicle.msg_system_time,
-    mav.MAVLINK_MSG_ID_GPS_RAW_INT: SimVehicle.msg_gps_raw_int,
-    mav.MAVLINK_MSG_ID_ATTITUDE: SimVehicle.msg_attitude,
-    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: SimVehicle.msg_local_position_ned,
-    mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: SimVehicle.msg_global_position_int,
-    mav.MAVLINK_MSG_ID_MISSION_CURRENT: SimVehicle.msg_mission_current,
-    mav.MAVLINK_MSG_ID_NAV_CONTROLLER_OUTPUT: SimVehicle.msg_nav_controller_output,
-    mav.MAVLINK_MSG_ID_VFR_HUD: SimVehicle.msg_vfr_hud,
-    mav.MAVLINK_MSG_ID_BATTERY_STATUS: SimVehicle.msg_battery_status,
-    mav.MAVLINK_MSG_ID_HOME_POSITION: SimVehicle.msg_home_position,
-    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: SimVehicle.msg_extended_sys_state,
-    mav.MAVLINK_MSG_ID_FENCE_STATUS: SimVehicle.msg_fence_status,
-    mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: SimVehicle.msg_autopilot_version,
+    mav.MAVLINK_MSG_ID_HEARTBEAT: methodcaller("msg_heartbeat"),
+    mav.MAVLINK_MSG_ID_SYS_STATUS: methodcaller("msg_sys_status"),
+    mav.MAVLINK_MSG_ID_SYSTEM_TIME: methodcaller("msg_system_time"),
+    mav.MAVLINK_MSG_ID_GPS_RAW_INT: methodcaller("msg_gps_raw_int"),
+    mav.MAVLINK_MSG_ID_ATTITUDE: methodcaller("msg_attitude"),
+    mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: methodcaller("msg_local_position_ned"),
+    mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: methodcaller("msg_global_position_int"),
+    mav.MAVLINK_MSG_ID_MISSION_CURRENT: methodcaller("msg_mission_current"),
+    mav.MAVLINK_MSG_ID_NAV_CONTROLLER_OUTPUT: methodcaller("msg_nav_controller_output"),
+    mav.MAVLINK_MSG_ID_VFR_HUD: methodcaller("msg_vfr_hud"),
+    mav.MAVLINK_MSG_ID_BATTERY_STATUS: methodcaller("msg_battery_status"),
+    mav.MAVLINK_MSG_ID_HOME_POSITION: methodcaller("msg_home_position"),
+    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: methodcaller("msg_extended_sys_state"),
+    mav.MAVLINK_MSG_ID_FENCE_STATUS: methodcaller("msg_fence_status"),
+    mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION: methodcaller("msg_autopilot_version"),
 }
 
 DEFAULT_STREAMS: dict[int, float] = {
