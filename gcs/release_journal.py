@@ -9,23 +9,113 @@ beside the database (``<database>-releases``): no lock, no transaction, durable 
 ``kill -9`` like SQLite's own WAL at ``synchronous=NORMAL`` (the page cache survives the
 process; a power cut may lose the newest lines of either). The release row and its event go into
 SQLite right after the burst; a release journaled but not yet in the database is recovered when
-the store opens (:meth:`gcs.store.Store.recover_releases`).
+the store opens (:meth:`gcs.store.Store.recover_releases`), and only if the database agrees.
 
-Line format: ``{"m": mission_id, "s": step, "t": unix_time}`` as JSON, one per line. A torn
-last line (a power cut mid-write) is skipped when read.
+Line format, exactly as :meth:`ReleaseJournal.append` writes it (JSON without spaces)::
+
+    {"m":"<mission id>","s":<step>,"t":<unix time>}
+
+The journal is read as untrusted input (docs/security.md): a line is matched against that shape
+with a regular expression of bounded length, never handed to a JSON parser, so a line nested
+100,000 deep or a step of ``1e999`` is only a line that does not match. A line that does not
+match (a torn last line after a power cut, a foreign or damaged one) is skipped with a warning
+naming its line number; after :data:`WARN_LINES` such warnings the rest are counted into one
+summary.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import os
+import re
+from dataclasses import dataclass
 from pathlib import Path
 
 log = logging.getLogger(__name__)
 
 TRUNCATE_AT_BYTES = 64 << 10
 """The journal is emptied once it is this long and every line in it is in the database."""
+
+MAX_LINE_BYTES = 256
+"""Longer lines are not parsed (the daemon's own lines are under 100 bytes)."""
+
+MAX_JOURNAL_BYTES = 64 << 20
+"""A journal longer than this is refused: the daemon's own stays near :data:`TRUNCATE_AT_BYTES`."""
+
+MAX_STEP = 1_000_000
+"""The largest step an action may have (``protocol/actions.py``)."""
+
+MAX_TIME = 1e10
+"""Release times past this (the year 2286) are not ones this daemon wrote."""
+
+WARN_LINES = 10
+"""Skipped lines warned about one by one; the rest are summed up in one warning."""
+
+_LINE = re.compile(
+    rb'\{"m":"(?P<m>[A-Za-z0-9_.:-]{1,128})",'
+    rb'"s":(?P<s>0|[1-9][0-9]{0,6}),'
+    rb'"t":(?P<t>[0-9]{1,11}(?:\.[0-9]{1,20})?(?:[eE][+-]?[0-9]{1,2})?)\}'
+)
+
+
+class JournalError(ValueError):
+    """One journal line is not a release this daemon could have written (the reason is the text)."""
+
+
+@dataclass(frozen=True, slots=True)
+class JournalEntry:
+    """One well-formed journal line: where it is (1-based) and the release it records."""
+
+    line: int
+    mission_id: str
+    step: int
+    at: float
+
+
+def parse_line(raw: bytes) -> tuple[str, int, float]:
+    """(mission_id, step, time) of one journal line, or :class:`JournalError` saying why not.
+
+    Bounded work whatever the input: a length check, then one anchored regular expression whose
+    parts are all of bounded length; numbers are checked for range after conversion.
+    """
+    if len(raw) > MAX_LINE_BYTES:
+        raise JournalError(f"{len(raw)} bytes, longer than any release line ({MAX_LINE_BYTES})")
+    match = _LINE.fullmatch(raw.strip(b"\r"))
+    if match is None:
+        raise JournalError('not {"m":"<mission id>","s":<step>,"t":<time>}')
+    step = int(match["s"])
+    if step > MAX_STEP:
+        raise JournalError(f"step {step} is beyond the largest step {MAX_STEP}")
+    at = float(match["t"])
+    if not math.isfinite(at) or not 0.0 < at <= MAX_TIME:
+        raise JournalError(f"time {match['t'].decode()} is not a plausible UNIX time")
+    return match["m"].decode("ascii"), step, at
+
+
+class SkipLog:
+    """Warnings about skipped lines: the first :data:`WARN_LINES` one by one, then one summary."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.skipped = 0
+
+    def skip(self, line: int, why: str) -> None:
+        self.skipped += 1
+        if self.skipped <= WARN_LINES:
+            log.warning("release journal %s line %d skipped: %s", self.path, line, why)
+
+    def summary(self) -> None:
+        """One warning for the lines not warned about one by one (call once, at the end)."""
+        if self.skipped > WARN_LINES:
+            log.warning(
+                "release journal %s: %d more lines skipped (%d in all; only the first %d are named)",
+                self.path,
+                self.skipped - WARN_LINES,
+                self.skipped,
+                WARN_LINES,
+            )
 
 
 class ReleaseJournal:
@@ -39,7 +129,7 @@ class ReleaseJournal:
 
     def append(self, mission_id: str, step: int, at: float) -> None:
         """Make the release of ``step`` durable: one ``write`` of one line (atomic for an append)."""
-        line = json.dumps({"m": mission_id, "s": step, "t": at}, separators=(",", ":")).encode() + b"\n"
+        line = f'{{"m":{json.dumps(mission_id)},"s":{int(step)},"t":{float(at)!r}}}\n'.encode()
         os.write(self._fd, line)
         self._size += len(line)
         self.unrecorded += 1
@@ -50,25 +140,56 @@ class ReleaseJournal:
         if self.unrecorded == 0 and self._size >= TRUNCATE_AT_BYTES:
             self.clear()
 
-    def entries(self) -> list[tuple[str, int, float]]:
-        """Every well-formed line: (mission_id, step, time); a torn or foreign line is skipped."""
-        out: list[tuple[str, int, float]] = []
+    def entries(self, skips: SkipLog | None = None) -> list[JournalEntry]:
+        """Every well-formed line, in order; each other line is skipped and reported to ``skips``
+        (a fresh :class:`SkipLog` whose summary is logged here when none is given).
+
+        Raises OSError when the file cannot be read, and :class:`JournalError` when it is longer
+        than :data:`MAX_JOURNAL_BYTES` (not a journal this daemon wrote; refusing to start beats
+        spending minutes on it or forgetting a release in it).
+        """
+        own = skips is None
+        skipped = SkipLog(self.path) if skips is None else skips
+        out: list[JournalEntry] = []
         try:
-            text = self.path.read_bytes()
+            handle = open(self.path, "rb")  # noqa: SIM115 - closed below, size checked first
         except FileNotFoundError:
             return out
-        for raw in text.splitlines():
-            try:
-                item = json.loads(raw)
-                out.append((str(item["m"]), int(item["s"]), float(item["t"])))
-            except (ValueError, KeyError, TypeError):
-                log.warning("release journal %s: skipped an unreadable line %r", self.path, raw[:80])
+        with handle:
+            size = os.fstat(handle.fileno()).st_size
+            if size > MAX_JOURNAL_BYTES:
+                raise JournalError(
+                    f"{size} bytes, far more than the daemon writes (it is emptied at {TRUNCATE_AT_BYTES}); "
+                    "move it aside after checking the missions it names"
+                )
+            for number, raw in enumerate(handle.read().split(b"\n"), start=1):
+                if not raw:
+                    continue
+                try:
+                    mission_id, step, at = parse_line(raw)
+                except JournalError as exc:
+                    skipped.skip(number, str(exc))
+                    continue
+                out.append(JournalEntry(number, mission_id, step, at))
+        if own:
+            skipped.summary()
         return out
 
     def clear(self) -> None:
         os.ftruncate(self._fd, 0)
         self._size = 0
         self.unrecorded = 0
+
+    def set_aside(self) -> Path:
+        """Keep the file as ``<journal>.rejected`` (replacing an older one) and start an empty one:
+        lines skipped at start-up stay there for the operator, but are not warned about again."""
+        aside = self.path.with_name(self.path.name + ".rejected")
+        os.close(self._fd)
+        os.replace(self.path, aside)
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
+        self._size = 0
+        self.unrecorded = 0
+        return aside
 
     def close(self) -> None:
         os.close(self._fd)
