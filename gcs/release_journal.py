@@ -30,6 +30,7 @@ import logging
 import math
 import os
 import re
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,6 +75,10 @@ class JournalEntry:
     at: float
 
 
+_LINES = re.compile(rb"^" + _LINE.pattern + rb"\r?$", re.MULTILINE)
+"""Every well-formed line of a whole journal, found in one pass of the regular expression engine."""
+
+
 def parse_line(raw: bytes) -> tuple[str, int, float]:
     """(mission_id, step, time) of one journal line, or :class:`JournalError` saying why not.
 
@@ -85,13 +90,19 @@ def parse_line(raw: bytes) -> tuple[str, int, float]:
     match = _LINE.fullmatch(raw.strip(b"\r"))
     if match is None:
         raise JournalError('not {"m":"<mission id>","s":<step>,"t":<time>}')
+    step, at = _numbers(match)
+    return match["m"].decode("ascii"), step, at
+
+
+def _numbers(match: re.Match[bytes]) -> tuple[int, float]:
+    """The step and time of a matched line, range-checked."""
     step = int(match["s"])
     if step > MAX_STEP:
         raise JournalError(f"step {step} is beyond the largest step {MAX_STEP}")
     at = float(match["t"])
     if not math.isfinite(at) or not 0.0 < at <= MAX_TIME:
         raise JournalError(f"time {match['t'].decode()} is not a plausible UNIX time")
-    return match["m"].decode("ascii"), step, at
+    return step, at
 
 
 class SkipLog:
@@ -106,6 +117,14 @@ class SkipLog:
         if self.skipped <= WARN_LINES:
             log.warning("release journal %s line %d skipped: %s", self.path, line, why)
 
+    @property
+    def full(self) -> bool:
+        """No more lines will be named one by one (callers may just :meth:`count` them)."""
+        return self.skipped >= WARN_LINES
+
+    def count(self, lines: int) -> None:
+        self.skipped += lines
+
     def summary(self) -> None:
         """One warning for the lines not warned about one by one (call once, at the end)."""
         if self.skipped > WARN_LINES:
@@ -116,6 +135,57 @@ class SkipLog:
                 self.skipped,
                 WARN_LINES,
             )
+
+
+def _scan(text: bytes, skips: SkipLog, missions: set[bytes] | None) -> list[JournalEntry]:
+    """The well-formed lines of ``text`` (of ``missions``, when given); the others to ``skips``.
+
+    The well-formed lines are found by one regular expression over the whole text (C speed:
+    400,000 lines in well under a second), the lines between them are the malformed ones, parsed
+    one by one only while they are still named in a warning.
+    """
+    out: list[JournalEntry] = []
+    line, at = 1, 0  # ``at`` is the start of line number ``line``
+    for match in _LINES.finditer(text):
+        start = match.start()
+        if start > at:
+            _skip_malformed(text[at:start], line, skips)
+            line += text.count(b"\n", at, start)
+        at, number = match.end() + 1, line
+        line += 1
+        mission = match["m"]
+        if missions is not None and mission not in missions:
+            if skips.full:
+                skips.count(1)  # the common case of a flood: no message built
+            else:
+                skips.skip(number, f"mission {mission.decode()} is not in the database")
+            continue
+        try:
+            step, when = _numbers(match)
+        except JournalError as exc:
+            skips.skip(number, str(exc))
+            continue
+        out.append(JournalEntry(number, mission.decode("ascii"), step, when))
+    if at < len(text):
+        _skip_malformed(text[at:], line, skips)
+    return out
+
+
+def _skip_malformed(lines: bytes, first: int, skips: SkipLog) -> None:
+    """Report every non-empty line of ``lines`` (line ``first`` onwards) as skipped."""
+    split = lines.split(b"\n")
+    for offset, raw in enumerate(split):
+        if not raw:
+            continue
+        if skips.full:
+            skips.count(sum(1 for rest in split[offset:] if rest))
+            return
+        try:
+            parse_line(raw)
+            why = "not a release line"  # unreachable: _LINES would have matched it
+        except JournalError as exc:
+            why = str(exc)
+        skips.skip(first + offset, why)
 
 
 class ReleaseJournal:
@@ -140,9 +210,12 @@ class ReleaseJournal:
         if self.unrecorded == 0 and self._size >= TRUNCATE_AT_BYTES:
             self.clear()
 
-    def entries(self, skips: SkipLog | None = None) -> list[JournalEntry]:
-        """Every well-formed line, in order; each other line is skipped and reported to ``skips``
-        (a fresh :class:`SkipLog` whose summary is logged here when none is given).
+    def entries(
+        self, skips: SkipLog | None = None, missions: Collection[str] | None = None
+    ) -> list[JournalEntry]:
+        """Every well-formed line (of one of ``missions``, when given), in order; each other line is
+        skipped and reported to ``skips`` (a fresh :class:`SkipLog`, its summary logged here, when
+        none is given).
 
         Raises OSError when the file cannot be read, and :class:`JournalError` when it is longer
         than :data:`MAX_JOURNAL_BYTES` (not a journal this daemon wrote; refusing to start beats
@@ -162,15 +235,8 @@ class ReleaseJournal:
                     f"{size} bytes, far more than the daemon writes (it is emptied at {TRUNCATE_AT_BYTES}); "
                     "move it aside after checking the missions it names"
                 )
-            for number, raw in enumerate(handle.read().split(b"\n"), start=1):
-                if not raw:
-                    continue
-                try:
-                    mission_id, step, at = parse_line(raw)
-                except JournalError as exc:
-                    skipped.skip(number, str(exc))
-                    continue
-                out.append(JournalEntry(number, mission_id, step, at))
+            text = handle.read()
+        out = _scan(text, skipped, None if missions is None else {m.encode() for m in missions})
         if own:
             skipped.summary()
         return out

@@ -507,22 +507,19 @@ class Store:
         if self.journal is None:
             return []
         skips = SkipLog(self.journal.path)
+        known = {str(r[0]) for r in self._db.execute("SELECT id FROM missions")}
         try:
-            entries = self.journal.entries(skips)
+            entries = self.journal.entries(skips, missions=known)
         except OSError as exc:  # refuse to start rather than forget a release agents acted on
             raise StoreError(f"cannot read the release journal {self.journal.path}: {exc}") from None
         except JournalError as exc:
             raise StoreError(f"the release journal {self.journal.path} is refused: {exc}") from None
-        known = {str(r[0]) for r in self._db.execute("SELECT id FROM missions")}
         released: dict[str, set[int]] = {}
         members: dict[str, dict[str, int]] = {}
         recovered: list[tuple[str, int]] = []
         with self.atomic():
             for entry in entries:
                 mission_id, step = entry.mission_id, entry.step
-                if mission_id not in known:
-                    skips.skip(entry.line, f"mission {mission_id} is not in the database")
-                    continue
                 done = released.setdefault(mission_id, self.released_steps(mission_id))
                 if step in done:
                     continue
