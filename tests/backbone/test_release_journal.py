@@ -7,18 +7,13 @@ from __future__ import annotations
 
 import json
 import logging
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from gcs.release_journal import TRUNCATE_AT_BYTES
 from gcs.store import Store, StoreError
-
-BIN = Path(sys.executable).parent
+from tests.backbone.serve_process import run_serve
 
 
 def _store_with_mission(path: Path, completed: int = -1) -> Store:
@@ -234,20 +229,9 @@ def test_gcs_serve_starts_cleanly_past_every_hostile_line(tmp_path: Path) -> Non
     store.close()
     lines = [*HOSTILE_LINES.values(), _line("m-1", 5, 5.0)] * 3  # 5: nobody finished it
     Path(str(db) + "-releases").write_text("\n".join(lines) + "\n")
-    ready = tmp_path / "ready"
-    command = [BIN / "gcs", "serve", "--data-dir", data, "--listen", "127.0.0.1:0", "--http", "none"]
-    with subprocess.Popen(
-        [*command, "--ready-file", ready], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True
-    ) as daemon:
-        try:
-            for _ in range(600):  # up to 60 s on a loaded machine
-                if ready.exists() or daemon.poll() is not None:
-                    break
-                time.sleep(0.1)
-        finally:
-            daemon.send_signal(signal.SIGTERM)
-            _, stderr = daemon.communicate(timeout=30)
-    assert ready.exists(), f"gcs serve did not start: {stderr[-2000:]}"
+    result = run_serve(data)
+    assert result.started, f"gcs serve did not start: {result.stderr[-2000:]}"
+    stderr = result.stderr
     assert "Traceback" not in stderr
     skipped = [line for line in stderr.splitlines() if "release journal" in line]
     assert len(skipped) == 11 and "more lines skipped" in skipped[-1], skipped  # WARN_LINES, a summary
