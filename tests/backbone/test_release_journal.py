@@ -13,6 +13,10 @@ import pytest
 
 from gcs.release_journal import TRUNCATE_AT_BYTES
 from gcs.store import Store, StoreError
+from protocol.packets import Resume, SyncSignal
+from protocol.session import ClientHandshake
+from protocol.stream import open_client
+from tests.backbone.helpers import new_key, running_daemon, survey_mission, wait_for
 from tests.backbone.serve_process import run_serve
 
 
@@ -238,3 +242,48 @@ def test_gcs_serve_starts_cleanly_past_every_hostile_line(tmp_path: Path) -> Non
     reopened = Store(db)
     assert reopened.released_steps("m-1") == set()
     reopened.close()
+
+
+async def test_a_release_not_recovered_is_given_again_once_every_member_says_it_got_there(
+    tmp_path: Path,
+) -> None:
+    """The crash window: release of step 1 journaled, then the daemon died before its row, with
+    a2's arrival at step 1 not yet stored. The store does not recover it (the database does not
+    agree); a1, which heard it and flew on, and a2, which did not and still waits at step 1,
+    rejoin: their own reports are the arrivals, and a2 is released instead of timing out."""
+    key = new_key()
+    task = survey_mission(["a1", "a2"], sync_legs=3)
+    store = Store(tmp_path / "fleetgcs.sqlite")
+    store.add_mission("m-crash", task.name, task.model_dump_json(), ["a1", "a2"])
+    store.record_release("m-crash", 0)
+    store.set_completed_step("m-crash", "a1", 1)
+    store.set_completed_step("m-crash", "a2", 0)  # its "finished 1" was in memory only
+    store.journal_release("m-crash", 1)
+    store.close()
+    async with running_daemon(tmp_path, key, lost_after_periods=300.0) as daemon:  # silent clients
+        assert daemon.store.released_steps("m-crash") == {0}  # not recovered: a2 had not arrived
+        ahead, _ = await open_client(
+            "127.0.0.1",
+            daemon.listen_port,
+            ClientHandshake("a1", bytes.fromhex(key)),
+            resume=Resume(mission_id="m-crash", completed_step=2, waiting_step=2, queue_depth=2),
+        )
+        behind, _ = await open_client(
+            "127.0.0.1",
+            daemon.listen_port,
+            ClientHandshake("a2", bytes.fromhex(key)),
+            resume=Resume(mission_id="m-crash", completed_step=1, waiting_step=1, queue_depth=3),
+        )
+        try:
+            released = None
+            for _ in range(50):  # bounded: keepalives and other frames until the release
+                body = (await behind.read_frame(timeout=10.0)).body
+                if isinstance(body, SyncSignal) and body.kind == "release":
+                    released = body
+                    break
+            assert released is not None and released.step == 1, released
+            await wait_for(lambda: 1 in daemon.store.released_steps("m-crash"), 5, "release of step 1 stored")
+            assert 2 not in daemon.store.released_steps("m-crash")  # a2 has not finished step 2
+        finally:
+            await ahead.close()
+            await behind.close()
