@@ -30,6 +30,7 @@ import logging
 import math
 import os
 import re
+import shutil
 from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
@@ -247,14 +248,13 @@ class ReleaseJournal:
         self.unrecorded = 0
 
     def set_aside(self) -> Path:
-        """Keep the file as ``<journal>.rejected`` (replacing an older one) and start an empty one:
-        lines skipped at start-up stay there for the operator, but are not warned about again."""
+        """Copy the file to ``<journal>.rejected`` (replacing an older copy), then empty it: lines
+        skipped at start-up stay there for the operator, but are not warned about again. Copied,
+        not renamed, so a process appending to this file keeps appending to the journal."""
         aside = self.path.with_name(self.path.name + ".rejected")
-        os.close(self._fd)
-        os.replace(self.path, aside)
-        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o600)
-        self._size = 0
-        self.unrecorded = 0
+        shutil.copyfile(self.path, aside)
+        os.chmod(aside, 0o600)
+        self.clear()
         return aside
 
     def close(self) -> None:

@@ -551,9 +551,13 @@ class Store:
                 recovered.append((mission_id, step))
         skips.summary()
         if skips.skipped:
-            self.journal.set_aside()
-        else:
-            self.journal.clear()
+            try:
+                self.journal.set_aside()
+            except OSError as exc:  # a full disk: the warnings above are what is left of them
+                log.warning(
+                    "release journal %s: could not keep the skipped lines (%s)", self.journal.path, exc
+                )
+        self.journal.clear()
         return recovered
 
     def released_steps(self, mission_id: str) -> set[int]:
