@@ -47,7 +47,9 @@ class DaemonConfig(BaseModel):
     data_dir: Path = Field(default_factory=default_data_dir)
     database: Path | None = Field(default=None, description="default: DATA_DIR/fleetgcs.sqlite")
     new_database: bool = Field(
-        default=False, description="create an empty database even where one existed (it went missing)"
+        default=False,
+        description="begin a new fleet where the database went missing or is zero-length "
+        "(gcs serve --new-fleet); a foreign file is never overwritten",
     )
     fleet_key_hex: str | None = Field(default=None, description="shared key; default: DATA_DIR/fleet.key")
     agent_keys_file: Path | None = Field(default=None, description="JSON {identity: hex key}")
