@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gcs.cooperation.config import CooperationConfig
+from protocol.auth import parse_key
 from protocol.beacon import parse_beacon_address
 from protocol.packets import AgentParameters
 from protocol.wire import DEFAULT_MAX_BODY
@@ -154,6 +155,13 @@ class DaemonConfig(BaseModel):
         for url in value or []:
             if not isinstance(url, str) or not url.startswith(("nats://", "tls://")) or ":" not in url[7:]:
                 raise ValueError(f"cluster server {url!r} is not nats://HOST:PORT")
+        return value
+
+    @field_validator("fleet_key_hex")
+    @classmethod
+    def _fleet_key(cls, value: str | None) -> str | None:
+        if value is not None:
+            parse_key(value)  # its ValueError says what is wrong (never the key itself)
         return value
 
     @field_validator("release_beacon")

@@ -11,7 +11,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
+from gcs.config import DaemonConfig
 from gcs.store import Store
 from tests.backbone.serve_process import run_serve
 
@@ -118,3 +120,13 @@ def test_a_fresh_data_directory_still_starts_a_new_fleet(tmp_path: Path) -> None
     assert _database(data).stat().st_size > 0 and (data / "fleet.key").exists()
     again = run_serve(data)  # and starts again on what it made
     assert again.started, again.stderr
+
+
+def test_a_bad_configured_fleet_key_is_refused_by_the_configuration() -> None:
+    """FLEETGCS_FLEET_KEY_HEX / fleet_key_hex: checked with the rest of the configuration (one
+    line, `gcs serve: daemon.fleet_key_hex: ...`), not when the daemon first uses it."""
+    with pytest.raises(ValidationError, match="a key must be hex digits"):
+        DaemonConfig(fleet_key_hex="not hex")
+    with pytest.raises(ValidationError, match="at least 16 bytes"):
+        DaemonConfig(fleet_key_hex="abcd")
+    assert DaemonConfig(fleet_key_hex="ab" * 32).fleet_key_hex == "ab" * 32
