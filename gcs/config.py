@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from gcs.cooperation.config import CooperationConfig
+from protocol.auth import parse_key
 from protocol.beacon import parse_beacon_address
 from protocol.packets import AgentParameters
 from protocol.wire import DEFAULT_MAX_BODY
@@ -65,7 +66,9 @@ class DaemonConfig(BaseModel):
     data_dir: Path = Field(default_factory=default_data_dir)
     database: Path | None = Field(default=None, description="default: DATA_DIR/fleetgcs.sqlite")
     new_database: bool = Field(
-        default=False, description="create an empty database even where one existed (it went missing)"
+        default=False,
+        description="begin a new fleet where the database went missing or is zero-length "
+        "(gcs serve --new-fleet); a foreign file is never overwritten",
     )
     fleet_key_hex: str | None = Field(default=None, description="shared key; default: DATA_DIR/fleet.key")
     agent_keys_file: Path | None = Field(default=None, description="JSON {identity: hex key}")
@@ -197,6 +200,13 @@ class DaemonConfig(BaseModel):
         for url in value or []:
             if not isinstance(url, str) or not url.startswith(("nats://", "tls://")) or ":" not in url[7:]:
                 raise ValueError(f"cluster server {url!r} is not nats://HOST:PORT")
+        return value
+
+    @field_validator("fleet_key_hex")
+    @classmethod
+    def _fleet_key(cls, value: str | None) -> str | None:
+        if value is not None:
+            parse_key(value)  # its ValueError says what is wrong (never the key itself)
         return value
 
     @field_validator("release_beacon")

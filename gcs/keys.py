@@ -10,14 +10,29 @@ from pathlib import Path
 from protocol.auth import parse_key
 
 
+class KeyFileError(ValueError):
+    """A key file cannot be used (unreadable, not hex, too short): one line naming the file and why."""
+
+
 def load_or_create_key_file(path: Path) -> bytes:
     """Read a hex key file, creating it (mode 0600, 32 random bytes) when absent."""
-    if not path.exists():
-        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w") as handle:
-            handle.write(secrets.token_hex(32) + "\n")
-    return parse_key(path.read_text())
+    try:
+        if not path.exists():
+            path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            with os.fdopen(fd, "w") as handle:
+                handle.write(secrets.token_hex(32) + "\n")
+        text = path.read_bytes()
+    except OSError as exc:
+        raise KeyFileError(f"cannot read the key file {path}: {exc.strerror or exc}") from None
+    try:
+        return parse_key(text.decode("ascii"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        why = "not ASCII hex digits" if isinstance(exc, UnicodeDecodeError) else str(exc)
+        raise KeyFileError(
+            f"the key file {path} is unusable: {why}; restore it (every agent holds the same key), "
+            "or move it aside to have a new one made (every agent then needs the new key)"
+        ) from None
 
 
 class KeyRing:
@@ -34,14 +49,17 @@ class KeyRing:
     ) -> KeyRing:
         agent_keys: dict[str, bytes] = {}
         if agent_keys_file is not None:
-            document = json.loads(agent_keys_file.read_text())
+            try:
+                document = json.loads(agent_keys_file.read_bytes())
+            except (OSError, ValueError, RecursionError) as exc:
+                raise KeyFileError(f"cannot read the agent keys file {agent_keys_file}: {exc}") from None
             if not isinstance(document, dict):
-                raise ValueError(f"{agent_keys_file}: expected a JSON object {{identity: hex key}}")
+                raise KeyFileError(f"{agent_keys_file}: expected a JSON object {{identity: hex key}}")
             for identity, text in document.items():
                 try:
                     agent_keys[str(identity)] = parse_key(str(text))
                 except ValueError as exc:
-                    raise ValueError(f"{agent_keys_file}: key of {identity!r}: {exc}") from None
+                    raise KeyFileError(f"{agent_keys_file}: key of {identity!r}: {exc}") from None
         return cls(fleet_key, agent_keys, allow_unlisted)
 
     def key_for(self, identity: str) -> bytes | None:

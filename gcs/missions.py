@@ -516,6 +516,16 @@ class MissionRunner:
             # It still holds its queue. A sync wait it reports counts as a (repeated) arrival:
             # the 'finished' it sent before may have died with the previous daemon process.
             self._authority.reassert(identity)
+            # Barriers it passed by its own account are arrivals too: a release it heard may be
+            # missing here (journaled, then the daemon died before its row; the store recovers
+            # it only when the database agrees, gcs/store.py), and a member still waiting there
+            # is released once every member says it got that far.
+            passed = [s for s in mission.barriers.sync_steps if s <= resume.completed_step]
+            for step in passed:
+                if step != resume.waiting_step and step not in mission.barriers.released:
+                    await self._on_sync(
+                        session, SyncSignal(mission_id=mission.id, step=step, kind="finished")
+                    )
             if resume.waiting_step is not None:
                 await self._on_sync(
                     session, SyncSignal(mission_id=mission.id, step=resume.waiting_step, kind="finished")

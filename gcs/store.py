@@ -12,6 +12,7 @@ beside the writer. Bulk statements are chunked so no transaction holds the write
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -23,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from gcs.release_journal import ReleaseJournal
+from gcs.release_journal import JournalError, ReleaseJournal, SkipLog
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +112,108 @@ _MIGRATIONS: dict[int, str] = {
 }
 
 
+def _migrate(db: sqlite3.Connection, path: str) -> None:
+    """Bring the schema to :data:`SCHEMA_VERSION`; a newer one is refused (written by a newer daemon)."""
+    version = db.execute("PRAGMA user_version").fetchone()[0]
+    if version > SCHEMA_VERSION:
+        raise StoreError(
+            f"{path} has schema version {version}, newer than this daemon's {SCHEMA_VERSION} "
+            "(written by a newer fleetgcs): run that version, or restore a backup this one wrote"
+        )
+    for target in range(version + 1, SCHEMA_VERSION + 1):
+        db.executescript(f"BEGIN; {_MIGRATIONS[target]} PRAGMA user_version={target}; COMMIT;")
+
+
+@functools.cache
+def _expected_schema() -> dict[str, frozenset[str]]:
+    """Table -> column names every migration together creates (built once, in memory)."""
+    db = sqlite3.connect(":memory:", isolation_level=None)
+    try:
+        _migrate(db, ":memory:")
+        return _schema_of(db)
+    finally:
+        db.close()
+
+
+def _schema_of(db: sqlite3.Connection) -> dict[str, frozenset[str]]:
+    tables = [r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")]
+    return {
+        t: frozenset(str(c[1]) for c in db.execute(f"PRAGMA table_info({t!r})"))
+        for t in tables
+        if not t.startswith("sqlite_")
+    }
+
+
+def _check_schema(db: sqlite3.Connection, path: str) -> None:
+    """Every table and column this daemon uses is there (a dropped table fails here, not mid-flight)."""
+    have = _schema_of(db)
+    for table, columns in sorted(_expected_schema().items()):
+        if table not in have:
+            raise StoreError(f"{path}: table {table} is missing (damaged database); restore it from a backup")
+        missing = sorted(columns - have[table])
+        if missing:
+            raise StoreError(
+                f"{path}: table {table} lacks column(s) {', '.join(missing)} (damaged database); "
+                "restore it from a backup"
+            )
+
+
+def _prepare_file(file: Path, allow_new: bool) -> None:
+    """Refuse a path that cannot be this fleet's database file; create a new one where allowed.
+
+    A new database is one the daemon makes itself (:func:`_create_database`): a missing file in a
+    data directory that never had one, or, with ``allow_new`` (``--new-fleet``), a missing file
+    whose marker says one existed, or a zero-length file.
+    """
+    marker = file.with_name(file.name + ".created")
+    if not file.parent.exists():
+        try:
+            file.parent.mkdir(mode=0o700, parents=True)
+        except OSError as exc:
+            raise StoreError(f"cannot create the data directory {file.parent}: {exc}") from None
+    elif not file.parent.is_dir():
+        raise StoreError(f"{file.parent} is not a directory (the database goes in it)")
+    if file.exists() and not file.is_file():
+        raise StoreError(f"{file} is a directory or device, not a database file; give another --data-dir")
+    if file.exists() and file.stat().st_size == 0:
+        if not allow_new:
+            raise StoreError(
+                f"{file} is empty (zero bytes), not this fleet's database; restore it from a backup, or "
+                "start with --new-fleet to begin a new fleet there (connection IDs will be assigned anew)"
+            )
+        file.unlink()
+    if not file.exists():
+        if marker.exists() and not allow_new:
+            raise StoreError(
+                f"{file} is missing but a database existed there (marker {marker.name}); restore it "
+                "from a backup, or start with --new-fleet to begin a new fleet "
+                "(connection IDs will be assigned anew)"
+            )
+        try:
+            _create_database(file)
+            marker.write_text("fleetgcs database created here; see docs/security.md\n")
+        except (OSError, sqlite3.Error) as exc:
+            raise StoreError(f"cannot create the database {file}: {exc}") from None
+    with contextlib.suppress(OSError):
+        os.chmod(file, 0o600)  # the WAL and shared-memory files take the database's mode
+
+
+def _create_database(file: Path) -> None:
+    """A new database with its full schema, under a temporary name renamed into place: a file
+    at the database's name is never empty or schema-less (either is refused as not ours)."""
+    temporary = file.with_name(file.name + ".new")
+    for leftover in (temporary, *(file.with_name(file.name + s) for s in ("-wal", "-shm"))):
+        leftover.unlink(missing_ok=True)  # an old WAL must never be applied to the new file
+    os.close(os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    db = sqlite3.connect(temporary, isolation_level=None)
+    try:
+        _migrate(db, str(temporary))
+    finally:
+        db.close()
+    temporary.with_name(temporary.name + "-journal").unlink(missing_ok=True)
+    os.replace(temporary, file)
+
+
 TELEMETRY_COLUMNS = (
     "agent",
     "time",
@@ -166,30 +269,25 @@ class Store:
     def __init__(self, path: Path | str, *, allow_new: bool = False) -> None:
         """Open (or create) the database at ``path``.
 
-        Refuses (:class:`StoreError`) a damaged database, and a missing one where one existed
-        before (its ``.created`` marker is there): a new database would hand out the connection
-        IDs again, so a task file addressed by CID would command other vehicles. ``allow_new``
-        (``gcs serve --new-database``) is the operator saying an empty database is what they want.
+        Refuses (:class:`StoreError`, one line for the operator) what cannot be this fleet's
+        database: a path that is not a file, a zero-length or foreign file, a schema newer than
+        this daemon's or with a table or column missing, a damaged file; and a missing database
+        where one existed before (its ``.created`` marker is there). A new database would hand out
+        the connection IDs again from 1, so a task file addressed by CID would command other
+        vehicles. ``allow_new`` (``gcs serve --new-fleet``) is the operator saying a new fleet is
+        what they want (for a missing or zero-length file; a foreign one is never overwritten).
         The directory is created 0700 and the database files are 0600.
         """
         self.path = str(path)
         if self.path != ":memory:":
-            file = Path(self.path)
-            marker = file.with_name(file.name + ".created")
-            if not file.parent.exists():
-                file.parent.mkdir(mode=0o700, parents=True)
-            if not file.exists():
-                if marker.exists() and not allow_new:
-                    raise StoreError(
-                        f"{file} is missing but a database existed there (marker {marker.name}); restore it "
-                        "from a backup, or start with --new-database to begin with an empty one "
-                        "(connection IDs will be assigned anew)"
-                    )
-                os.close(os.open(file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-                marker.write_text("fleetgcs database created here; see docs/security.md\n")
-            with contextlib.suppress(OSError):
-                os.chmod(file, 0o600)  # the WAL and shared-memory files take the database's mode
-        self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+            try:
+                _prepare_file(Path(self.path), allow_new)
+            except OSError as exc:
+                raise StoreError(f"cannot use the database path {self.path}: {exc}") from None
+        try:
+            self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+        except sqlite3.Error as exc:
+            raise StoreError(f"cannot open the database {self.path}: {exc}") from None
         self.journal: ReleaseJournal | None = None
         # Held around every write transaction in this process (the loop's small ones and the
         # telemetry writer's chunks): a writer waiting here is woken the moment the other is
@@ -199,35 +297,52 @@ class Store:
         # next row (insert_telemetry), so the event loop waits one row, not a chunk.
         self.write_wanted = threading.Event()
         try:
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=NORMAL")
-            self._db.execute("PRAGMA foreign_keys=ON")
-            check = self._db.execute("PRAGMA quick_check").fetchone()[0]
-            if check != "ok":
-                raise sqlite3.DatabaseError(check)
-            self._migrate()
-            if self.path != ":memory:":
-                journal = Path(self.path + "-releases")
-                try:
-                    self.journal = ReleaseJournal(journal)
-                except OSError as exc:
-                    raise StoreError(f"cannot open the release journal {journal}: {exc}") from None
-                self.recover_releases()
+            self._open()
         except StoreError:
-            self._db.close()
+            self._close_quietly()
             raise
         except sqlite3.DatabaseError as exc:
-            self._db.close()
+            self._close_quietly()
             raise StoreError(
                 f"{self.path} is damaged or not a fleetgcs database ({exc}); restore it from a backup"
             ) from None
 
-    def _migrate(self) -> None:
-        version = self._db.execute("PRAGMA user_version").fetchone()[0]
-        if version > SCHEMA_VERSION:
-            raise RuntimeError(f"{self.path} has schema {version}, newer than this daemon's {SCHEMA_VERSION}")
-        for target in range(version + 1, SCHEMA_VERSION + 1):
-            self._db.executescript(f"BEGIN; {_MIGRATIONS[target]} PRAGMA user_version={target}; COMMIT;")
+    def _open(self) -> None:
+        """Check the file is this fleet's database, bring its schema up to date, recover releases."""
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")
+        self._db.execute("PRAGMA foreign_keys=ON")
+        check = self._db.execute("PRAGMA quick_check").fetchone()[0]
+        if check != "ok":
+            raise sqlite3.DatabaseError(check)
+        if self.path != ":memory:" and self._db.execute("PRAGMA user_version").fetchone()[0] == 0:
+            # Every database this daemon creates has its schema before it gets its name
+            # (_create_database): one at version 0 is someone else's, or was emptied.
+            tables = self._db.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]
+            what = (
+                f"a SQLite file with {tables} table(s) of something else"
+                if tables
+                else "an empty SQLite file"
+            )
+            raise StoreError(
+                f"{self.path} is not a fleetgcs database ({what}); give another --data-dir, or move it aside"
+            )
+        _migrate(self._db, self.path)
+        _check_schema(self._db, self.path)
+        if self.path != ":memory:":
+            journal = Path(self.path + "-releases")
+            try:
+                self.journal = ReleaseJournal(journal)
+            except OSError as exc:
+                raise StoreError(f"cannot open the release journal {journal}: {exc}") from None
+            self.recover_releases()
+
+    def _close_quietly(self) -> None:
+        if self.journal is not None:
+            with contextlib.suppress(OSError):
+                self.journal.close()
+            self.journal = None
+        self._db.close()
 
     def close(self) -> None:
         if self.journal is not None:
@@ -378,32 +493,70 @@ class Store:
     def recover_releases(self) -> list[tuple[str, int]]:
         """Releases journaled but not in the database (the daemon died between the two): written
         now, each with its ``sync_released`` event, in one transaction; then the journal is
-        emptied. Returns what was recovered. A release of a mission the database does not hold is
-        skipped (logged)."""
+        emptied. Returns what was recovered.
+
+        The journal is not trusted blindly (docs/security.md): a line that is not a release this
+        daemon could have written is skipped (:mod:`gcs.release_journal`), and so is one naming a
+        mission the database does not hold, or a barrier some non-excluded member of the mission
+        had not finished as stored in the database (``mission_agents.completed_step``): recovering
+        it would let a drone fly past a barrier another had not reached. Each is warned about
+        naming its line (the first few; then one summary), and the file is kept as
+        ``<journal>.rejected`` for the operator. Bounded: one query for the mission list, two per
+        mission named, none per line.
+        """
         if self.journal is None:
             return []
-        recovered: list[tuple[str, int]] = []
+        skips = SkipLog(self.journal.path)
+        known = {str(r[0]) for r in self._db.execute("SELECT id FROM missions")}
         try:
-            entries = self.journal.entries()
+            entries = self.journal.entries(skips, missions=known)
         except OSError as exc:  # refuse to start rather than forget a release agents acted on
             raise StoreError(f"cannot read the release journal {self.journal.path}: {exc}") from None
+        except JournalError as exc:
+            raise StoreError(f"the release journal {self.journal.path} is refused: {exc}") from None
+        released: dict[str, set[int]] = {}
+        members: dict[str, dict[str, int]] = {}
+        recovered: list[tuple[str, int]] = []
         with self.atomic():
-            for mission_id, step, at in entries:
-                if self.mission(mission_id) is None:
-                    log.warning("release journal: step %d of unknown mission %s skipped", step, mission_id)
+            for entry in entries:
+                mission_id, step = entry.mission_id, entry.step
+                done = released.setdefault(mission_id, self.released_steps(mission_id))
+                if step in done:
                     continue
-                if step in self.released_steps(mission_id):
+                if mission_id not in members:
+                    members[mission_id] = {
+                        a: s for a, (s, out) in self.mission_agents(mission_id).items() if not out
+                    }
+                behind = sorted(a for a, completed in members[mission_id].items() if completed < step)
+                if behind or not members[mission_id]:
+                    who = f"{', '.join(behind[:5])}{' ...' if len(behind) > 5 else ''} had not finished it"
+                    skips.skip(
+                        entry.line,
+                        f"release of step {step} of mission {mission_id} NOT recovered: "
+                        + (
+                            f"{who} as stored in the database" if behind else "the mission has no member left"
+                        ),
+                    )
                     continue
-                self.record_release(mission_id, step, at)
+                self.record_release(mission_id, step, entry.at)
                 self.add_event(
                     "sync_released",
                     "info",
                     f"step {step} released (recovered from the release journal after a restart)",
                     mission_id=mission_id,
                     data={"step": step, "recovered": True},
-                    at=at,
+                    at=entry.at,
                 )
+                done.add(step)
                 recovered.append((mission_id, step))
+        skips.summary()
+        if skips.skipped:
+            try:
+                self.journal.set_aside()
+            except OSError as exc:  # a full disk: the warnings above are what is left of them
+                log.warning(
+                    "release journal %s: could not keep the skipped lines (%s)", self.journal.path, exc
+                )
         self.journal.clear()
         return recovered
 

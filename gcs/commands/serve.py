@@ -17,6 +17,7 @@ from typing import Any
 from gcs.config import DaemonConfig, default_data_dir
 from gcs.config_file import ConfigFileError, load_daemon_config
 from gcs.daemon import serve_forever
+from gcs.keys import KeyFileError
 from gcs.store import StoreError
 from protocol.settings_file import LoggingConfig, configure_logging
 
@@ -106,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         return run_until_signalled(serve_forever(config, args.ready_file))
-    except StoreError as exc:
+    except (StoreError, KeyFileError) as exc:
         print(f"gcs serve: cannot start: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
@@ -194,9 +195,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--log-json", action="store_true", help="log one JSON object per line")
     parser.add_argument("--log-file", type=Path, help="log to this file, rotated at 10 MiB (5 kept)")
     parser.add_argument(
+        "--new-fleet",
         "--new-database",
+        dest="new_database",
         action="store_true",
-        help="start with an empty database where one existed and went missing (CIDs are assigned anew)",
+        help="begin a new fleet where the database went missing or is empty (zero bytes); "
+        "connection IDs are assigned anew",
     )
     parser.add_argument(
         "--no-enrollment",
