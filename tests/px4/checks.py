@@ -26,8 +26,8 @@ def assert_stops_and_holds(rig: PX4Rig, names: list[str], since: dict[str, float
         fastest = max(f.speed for f in window)
         drift = max(distance_m(f.lat, f.lon, window[0].lat, window[0].lon) for f in window)
         assert fastest < STOPPED_MPS, (
-            f"{name} {what}: still at {fastest:.2f} m/s {STOP_WITHIN_S:.0f}-{STOP_WITHIN_S + HOLD_FOR_S:.0f} s "
-            f"after (PX4 mode {rig.observers[name].custom_mode:#x})"
+            f"{name} {what}: still at {fastest:.2f} m/s {STOP_WITHIN_S:.0f}-"
+            f"{STOP_WITHIN_S + HOLD_FOR_S:.0f} s after (PX4 mode {rig.observers[name].custom_mode:#x})"
         )
         assert drift < HOLD_WITHIN_M, f"{name} {what}: moved {drift:.1f} m while it should hold"
 

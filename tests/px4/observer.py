@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from pymavlink import mavutil  # noqa: E402  (MAVLINK20 first)
+from pymavlink import mavutil
 
 GCS_PORT_BASE = 18570
 OBSERVER_SYSID = 245

@@ -18,7 +18,7 @@ from pathlib import Path
 from agent.autopilot.base import Autopilot
 from agent.autopilot.factory import create_autopilot
 from agent.config import AgentSettings
-from gcs.cooperation.config import CooperationConfig
+from gcs.cooperation.config import CollisionConfig, CooperationConfig
 from protocol.geo import offset_latlon
 from tests.px4.observer import Fix, Observer
 from tests.px4.sih import PX4Fleet
@@ -45,13 +45,16 @@ def at(north: float, east: float, index: int = 0) -> tuple[float, float]:
 class PX4Rig(FleetRig):
     """A running PX4 fleet flown through the daemon by agents on ``backend``."""
 
-    def __init__(self, px4: Path, backend: str, data_dir: Path) -> None:
+    def __init__(self, px4: Path, backend: str, data_dir: Path, collision: bool = False) -> None:
         super().__init__(f"px4-{backend}", [f"drone-{i + 1}" for i in range(VEHICLES)], data_dir, proxy=True)
         self.backend = backend
         self.fleet = PX4Fleet(
             px4, data_dir / "px4", FIRST_INSTANCE[backend], VEHICLES, HOME, SPACING_M, PARAMS, SPEED
         )
         self.observers: dict[str, Observer] = {}
+        # Collision avoidance (holds, climbs) would blur what the autopilot does by itself in the
+        # mission tests (parallel legs 10 m apart); the safety module turns it on.
+        self.collision = collision
 
     def start(self) -> PX4Rig:
         try:
@@ -62,9 +65,10 @@ class PX4Rig(FleetRig):
                 create_autopilot(self.backend, endpoint, telemetry_hz=10.0)
                 for endpoint in self.fleet.endpoints
             ]
-            self.start_agents(
-                autopilots, CooperationConfig(vehicle_time_scale=SPEED), DEFAULT_SETTINGS, arm_deadline_s=30.0
+            cooperation = CooperationConfig(
+                vehicle_time_scale=SPEED, collision=CollisionConfig(enabled=self.collision)
             )
+            self.start_agents(autopilots, cooperation, DEFAULT_SETTINGS, arm_deadline_s=30.0)
         except BaseException:
             self.stop()
             raise
