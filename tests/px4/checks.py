@@ -5,9 +5,10 @@ from __future__ import annotations
 import math
 
 from gcs.cooperation.config import CollisionConfig
+from protocol.actions import Goto, Hold, Land, Takeoff
 from protocol.geo import distance_m
 from tests.px4.rig import PX4Rig
-from tests.support.rig import Sample
+from tests.support.rig import Sample, task
 
 STOP_WITHIN_S = 3.0  # the issue's acceptance: below 0.5 m/s within 3 s ...
 STOPPED_MPS = 0.5
@@ -50,3 +51,32 @@ def min_separation(rig: PX4Rig, since_wall: float) -> tuple[float, int]:
                 closest = min(closest, math.hypot(h, v))
                 inside += h < margins.horizontal_margin_m and v < margins.vertical_margin_m
     return closest, inside
+
+
+def cruising(rig: PX4Rig, step: int, speed: float, names: list[str] | None = None) -> None:
+    rig.wait(
+        lambda: all(
+            (a := rig.agents[n]).queue.current_step == step and a.autopilot.telemetry().vn > speed
+            for n in names or rig.names
+        ),
+        90.0,
+        f"drones cruising north on step {step}",
+    )
+
+
+def hover_out(rig: PX4Rig, name: str, north: dict[str, tuple[float, float]], seconds: float = 120.0) -> str:
+    """Every drone takes off and hovers at its point (a long synced hold): a fleet in the air."""
+    plans: dict[str, list[object]] = {}
+    for i, n in enumerate(rig.names):
+        lat, lon = north[n]
+        plans[n] = [
+            Takeoff(step=0, alt=8.0 + 2 * i, sync=True),
+            Goto(step=1, lat=lat, lon=lon, alt=8.0 + 2 * i, speed=5.0, sync=True),
+            Hold(step=2, seconds=seconds, sync=True),
+            Land(step=3),
+        ]
+    mission_id = rig.submit(task(name, plans))
+    rig.wait(
+        lambda: all(a.queue.current_step == 2 for a in rig.agents.values()), 120.0, "every drone hovering"
+    )
+    return mission_id

@@ -31,6 +31,7 @@ def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 def leave_landed(rig: PX4Rig) -> Iterator[None]:
     """After each test (also a failed one): say where every vehicle is, then land whatever still flies,
     so that one failure does not cascade into the next scenario of the same PX4 boot (bounded)."""
+    rig.take_origins()
     yield
     for name, agent in rig.agents.items():
         t = agent.autopilot.telemetry()

@@ -52,6 +52,7 @@ class PX4Rig(FleetRig):
             px4, data_dir / "px4", FIRST_INSTANCE[backend], VEHICLES, HOME, SPACING_M, PARAMS, SPEED
         )
         self.observers: dict[str, Observer] = {}
+        self.origins: list[tuple[float, float]] = [at(0.0, 0.0, i) for i in range(VEHICLES)]
         # Collision avoidance (holds, climbs) would blur what the autopilot does by itself in the
         # mission tests (parallel legs 10 m apart); the safety module turns it on.
         self.collision = collision
@@ -79,6 +80,28 @@ class PX4Rig(FleetRig):
         for observer in self.observers.values():
             observer.close()
         self.fleet.stop()
+
+    def take_origins(self) -> None:
+        """Where each vehicle stands now: PX4 sets its home where it arms, so a drone that landed away
+        from its first home returns to its new one. Tests place their points from here (:meth:`at`)."""
+
+        def read() -> list[tuple[float, float]] | None:
+            out = []
+            for agent in self.agents.values():
+                t = agent.autopilot.telemetry()
+                if t.home_lat is None or t.home_lon is None or not t.position_known:
+                    return None
+                out.append((t.lat, t.lon) if t.landed else (t.home_lat, t.home_lon))
+            return out
+
+        self.wait(lambda: read() is not None, 30.0, "every vehicle's position and home")
+        origins = self.run(read)
+        assert origins is not None
+        self.origins = origins
+
+    def at(self, north: float, east: float, index: int) -> tuple[float, float]:
+        """Lat/lon ``north``/``east`` metres from where vehicle ``index`` stood at the test's start."""
+        return offset_latlon(*self.origins[index], north, east)
 
     def param(self, name: str, param: str) -> float:
         """``param`` as PX4 holds it (read on the GCS link, integers decoded)."""

@@ -1,7 +1,9 @@
 """The tests/ardupilot missions, plus pause, fleet hold, RTL/land, a planned survey and a geofence, flown
 end to end on real PX4 SITL through daemon and agents, on both agent backends (``rig`` is parametrized).
 
-Each test leaves every vehicle landed and disarmed for the next one. Times about a vehicle's motion are
+Each test leaves every vehicle landed and disarmed for the next one, and places its points from where
+each vehicle stands (``rig.at``): PX4 takes its home where it arms. The one test that leaves the drones
+unevenly spread (RTL of one, land-all) flies last. Times about a vehicle's motion are
 PX4's own (the observer's ``time_boot_ms``), since PX4 runs faster than the wall clock.
 """
 
@@ -15,8 +17,8 @@ from gcs.planning.mission import mission_from_paths
 from protocol.actions import GoBy, Goto, Hold, Land, ReturnToLaunch, SetSpeed, Takeoff, Waypoint, Waypoints
 from protocol.geo import distance_m
 from protocol.packets import FenceCircle, Geofence
-from tests.px4.checks import assert_stops_and_holds, min_separation
-from tests.px4.rig import HOME, SPACING_M, PX4Rig, at
+from tests.px4.checks import assert_stops_and_holds
+from tests.px4.rig import HOME, PX4Rig
 from tests.support.rig import task
 
 pytestmark = [pytest.mark.px4, pytest.mark.slow, pytest.mark.timeout(300)]
@@ -27,23 +29,12 @@ RTL_ALTS = (16.0, 20.0, 24.0)
 PX4_RTL_DEFAULT = 30.0  # RTL_RETURN_ALT out of the box
 
 
-def cruising(rig: PX4Rig, step: int, speed: float, names: list[str] | None = None) -> None:
-    rig.wait(
-        lambda: all(
-            (a := rig.agents[n]).queue.current_step == step and a.autopilot.telemetry().vn > speed
-            for n in names or rig.names
-        ),
-        90.0,
-        f"drones cruising north on step {step}",
-    )
-
-
 def test_synchronized_mission_right_after_connect(rig: PX4Rig) -> None:
     """Takeoff 10/12/14 m, two synced legs (the first at 3 m/s), RTL at 16/20/24 m: completes, the first
     leg flies its planned speed, each drone returns at its own layer (RTL_RETURN_ALT on PX4)."""
     plans: dict[str, list[object]] = {}
     for i, name in enumerate(rig.names):
-        wp1, wp2 = at(40.0, 0.0, i), at(40.0, 20.0, i)
+        wp1, wp2 = rig.at(40.0, 0.0, i), rig.at(40.0, 20.0, i)
         plans[name] = [
             Takeoff(step=0, alt=10.0 + 2 * i, sync=True),
             Goto(step=1, lat=wp1[0], lon=wp1[1], alt=10.0 + 2 * i, speed=FIRST_LEG_SPEED, sync=True),
@@ -59,8 +50,10 @@ def test_synchronized_mission_right_after_connect(rig: PX4Rig) -> None:
             f"{name} first leg peak {first_leg:.1f} m/s"
         )
         t = rig.agents[name].autopilot.telemetry()
-        assert distance_m(t.lat, t.lon, *at(0.0, 0.0, i)) < 3.0, f"{name} did not land home"
-        ret = [s for s in rig.flown(name, mission_id, 3) if distance_m(s.lat, s.lon, *at(0.0, 0.0, i)) > 15.0]
+        assert distance_m(t.lat, t.lon, *rig.at(0.0, 0.0, i)) < 3.0, f"{name} did not land home"
+        ret = [
+            s for s in rig.flown(name, mission_id, 3) if distance_m(s.lat, s.lon, *rig.at(0.0, 0.0, i)) > 15.0
+        ]
         assert ret, f"{name}: no return samples"
         top = max(s.alt for s in ret)
         assert abs(top - RTL_ALTS[i]) < 2.0, f"{name} returned at {top:.1f} m, asked {RTL_ALTS[i]} m"
@@ -72,7 +65,7 @@ def test_pause_stops_every_drone_within_3_s_and_resume_finishes(rig: PX4Rig) -> 
     within 3 m for 10 s; resumed, the leg goes on at its planned speed and lands at its point."""
     plans: dict[str, list[object]] = {}
     for i, name in enumerate(rig.names):
-        far = at(90.0, 0.0, i)
+        far = rig.at(90.0, 0.0, i)
         plans[name] = [
             Takeoff(step=0, alt=8.0 + 2 * i, sync=True),
             Goto(step=1, lat=far[0], lon=far[1], alt=8.0 + 2 * i, speed=4.0, sync=True),
@@ -93,14 +86,14 @@ def test_pause_stops_every_drone_within_3_s_and_resume_finishes(rig: PX4Rig) -> 
         assert after and max(s.speed for s in after) <= 4.0 + SPEED_TOLERANCE, f"{name} resumed too fast"
         assert max(s.speed for s in after) >= 4.0 - SPEED_TOLERANCE, f"{name} resumed slowly"
         t = rig.agents[name].autopilot.telemetry()
-        assert distance_m(t.lat, t.lon, *at(90.0, 0.0, i)) < 3.0  # landed at the point
+        assert distance_m(t.lat, t.lon, *rig.at(90.0, 0.0, i)) < 3.0  # landed at the point
 
 
 def test_fleet_hold_stops_a_leg_then_resume(rig: PX4Rig) -> None:
     """The operator's fleet hold (not a mission pause) stops PX4 drones mid-leg; resume finishes."""
     plans: dict[str, list[object]] = {}
     for i, name in enumerate(rig.names):
-        far = at(70.0, 0.0, i)
+        far = rig.at(70.0, 0.0, i)
         plans[name] = [
             Takeoff(step=0, alt=8.0 + 2 * i, sync=True),
             Goto(step=1, lat=far[0], lon=far[1], alt=8.0 + 2 * i, speed=5.0, sync=True),
@@ -117,7 +110,7 @@ def test_fleet_hold_stops_a_leg_then_resume(rig: PX4Rig) -> None:
     assert progress.state == "completed", progress
     for i, name in enumerate(rig.names):
         t = rig.agents[name].autopilot.telemetry()
-        assert distance_m(t.lat, t.lon, *at(70.0, 0.0, i)) < 3.0
+        assert distance_m(t.lat, t.lon, *rig.at(70.0, 0.0, i)) < 3.0
 
 
 def test_set_speed_after_hold_then_go_by_and_waypoints(rig: PX4Rig) -> None:
@@ -125,7 +118,7 @@ def test_set_speed_after_hold_then_go_by_and_waypoints(rig: PX4Rig) -> None:
     point (the tests/ardupilot scenario)."""
     plans: dict[str, list[object]] = {}
     for i, name in enumerate(rig.names):
-        a, b, c = at(30.0, 0.0, i), at(30.0, 25.0, i), at(5.0, 25.0, i)
+        a, b, c = rig.at(30.0, 0.0, i), rig.at(30.0, 25.0, i), rig.at(5.0, 25.0, i)
         plans[name] = [
             Takeoff(step=0, alt=8.0 + 2 * i, sync=True),
             Hold(step=1, seconds=1.0),
@@ -152,69 +145,9 @@ def test_set_speed_after_hold_then_go_by_and_waypoints(rig: PX4Rig) -> None:
         wp_peak = rig.peak(name, mission_id, 5)
         assert abs(wp_peak - 5.0) <= SPEED_TOLERANCE + 0.3, f"{name}: waypoints at {wp_peak:.1f} m/s"
         by = rig.flown(name, mission_id, 4)[-1]
-        assert distance_m(by.lat, by.lon, *at(30.0, -10.0, i)) < 4.0  # go_by ended 10 m west of a
+        assert distance_m(by.lat, by.lon, *rig.at(30.0, -10.0, i)) < 4.0  # go_by ended 10 m west of a
         t = rig.agents[name].autopilot.telemetry()
-        assert distance_m(t.lat, t.lon, *at(5.0, 25.0, i)) < 3.0
-
-
-def hover_out(rig: PX4Rig, name: str, north: dict[str, tuple[float, float]], seconds: float = 120.0) -> str:
-    """Every drone takes off and hovers at its point (a long synced hold): a fleet in the air."""
-    plans: dict[str, list[object]] = {}
-    for i, n in enumerate(rig.names):
-        lat, lon = north[n]
-        plans[n] = [
-            Takeoff(step=0, alt=8.0 + 2 * i, sync=True),
-            Goto(step=1, lat=lat, lon=lon, alt=8.0 + 2 * i, speed=5.0, sync=True),
-            Hold(step=2, seconds=seconds, sync=True),
-            Land(step=3),
-        ]
-    mission_id = rig.submit(task(name, plans))
-    rig.wait(
-        lambda: all(a.queue.current_step == 2 for a in rig.agents.values()), 120.0, "every drone hovering"
-    )
-    return mission_id
-
-
-def test_rtl_of_one_then_land_all(rig: PX4Rig) -> None:
-    """RTL of drone-1 brings it home; land-all then lands the others where they are."""
-    points = {n: at(30.0, 0.0, i) for i, n in enumerate(rig.names)}
-    mission_id = hover_out(rig, "rtl-one", points)
-    delivered, _ = rig.call(rig.d.operator.bring_down("rtl", ["drone-1"], "test rtl"))
-    assert delivered == ["drone-1"]
-    rig.wait(lambda: rig.agents["drone-1"].autopilot.telemetry().mode == "RTL", 10.0, "drone-1 in RTL")
-    rig.wait(
-        lambda: (t := rig.agents["drone-1"].autopilot.telemetry()).landed and not t.armed,
-        120.0,
-        "drone-1 home",
-    )
-    t1 = rig.agents["drone-1"].autopilot.telemetry()
-    assert distance_m(t1.lat, t1.lon, *at(0.0, 0.0, 0)) < 3.0
-    delivered, _ = rig.call(rig.d.operator.bring_down("land", None, "test land-all"))
-    assert {"drone-2", "drone-3"} <= set(delivered), delivered
-    rig.wait(rig.all_landed, 90.0, "every drone landed")
-    assert mission_id not in rig.run(lambda: rig.d.missions.active)
-    for name in rig.names[1:]:
-        t = rig.agents[name].autopilot.telemetry()
-        assert distance_m(t.lat, t.lon, *points[name]) < 3.0, f"{name} did not land where it hovered"
-
-
-def test_rtl_all_with_crossing_ways_home_keeps_them_apart(rig: PX4Rig) -> None:
-    """Drones hover over each other's way home; RTL-all: distinct return layers (RTL_RETURN_ALT read
-    back from PX4), nobody inside the collision margins, everyone lands at its own home."""
-    points = {n: at(25.0, -SPACING_M * (i - 1) * 2, i) for i, n in enumerate(rig.names)}  # 1 and 3 swap sides
-    hover_out(rig, "rtl-all", points)
-    since = time.monotonic()
-    delivered, aborted = rig.call(rig.d.operator.bring_down("rtl", None, "test rtl-all"))
-    assert sorted(delivered) == sorted(rig.names) and aborted
-    rig.wait(rig.all_landed, 150.0, "every drone landed after RTL-all")
-    layers = {e.agent: float(e.data["alt"]) for e in rig.events("return_planned") if e.time >= since - 1}
-    assert len(set(layers.values())) == len(rig.names), layers
-    for i, name in enumerate(rig.names):
-        t = rig.agents[name].autopilot.telemetry()
-        assert distance_m(t.lat, t.lon, *at(0.0, 0.0, i)) < 3.0, f"{name} not home"
-        assert rig.param(name, "RTL_RETURN_ALT") == pytest.approx(layers[name], abs=0.1)
-    closest, inside = min_separation(rig, since)
-    assert inside == 0, f"closest {closest:.2f} m"
+        assert distance_m(t.lat, t.lon, *rig.at(5.0, 25.0, i)) < 3.0
 
 
 def test_planned_survey(rig: PX4Rig) -> None:
@@ -222,9 +155,9 @@ def test_planned_survey(rig: PX4Rig) -> None:
     drone passes each of its waypoints and lands at home."""
     paths = []
     for i in range(len(rig.names)):
-        legs = [at(15.0, -3.0, i), at(45.0, -3.0, i), at(45.0, 3.0, i), at(15.0, 3.0, i)]
+        legs = [rig.at(15.0, -3.0, i), rig.at(45.0, -3.0, i), rig.at(45.0, 3.0, i), rig.at(15.0, 3.0, i)]
         paths.append(legs)
-    homes = [at(0.0, 0.0, i) for i in range(len(rig.names))]
+    homes = [rig.at(0.0, 0.0, i) for i in range(len(rig.names))]
     survey = mission_from_paths(
         paths,
         alt=8.0,
@@ -244,6 +177,29 @@ def test_planned_survey(rig: PX4Rig) -> None:
             assert miss < 3.0, f"{name} passed {miss:.1f} m from a survey waypoint"
         t = rig.agents[name].autopilot.telemetry()
         assert distance_m(t.lat, t.lon, *homes[i]) < 3.0
+
+
+def test_rtl_of_one_then_land_all(rig: PX4Rig) -> None:
+    """RTL of drone-1 brings it home; land-all then lands the others where they are."""
+    points = {n: rig.at(30.0, 0.0, i) for i, n in enumerate(rig.names)}
+    mission_id = hover_out(rig, "rtl-one", points)
+    delivered, _ = rig.call(rig.d.operator.bring_down("rtl", ["drone-1"], "test rtl"))
+    assert delivered == ["drone-1"]
+    rig.wait(lambda: rig.agents["drone-1"].autopilot.telemetry().mode == "RTL", 10.0, "drone-1 in RTL")
+    rig.wait(
+        lambda: (t := rig.agents["drone-1"].autopilot.telemetry()).landed and not t.armed,
+        120.0,
+        "drone-1 home",
+    )
+    t1 = rig.agents["drone-1"].autopilot.telemetry()
+    assert distance_m(t1.lat, t1.lon, *rig.at(0.0, 0.0, 0)) < 3.0
+    delivered, _ = rig.call(rig.d.operator.bring_down("land", None, "test land-all"))
+    assert {"drone-2", "drone-3"} <= set(delivered), delivered
+    rig.wait(rig.all_landed, 90.0, "every drone landed")
+    assert mission_id not in rig.run(lambda: rig.d.missions.active)
+    for name in rig.names[1:]:
+        t = rig.agents[name].autopilot.telemetry()
+        assert distance_m(t.lat, t.lon, *points[name]) < 3.0, f"{name} did not land where it hovered"
 
 
 def test_geofence_upload_sets_px4_gf_parameters(rig: PX4Rig) -> None:
