@@ -17,7 +17,7 @@ from gcs.planning.mission import mission_from_paths
 from protocol.actions import GoBy, Goto, Hold, Land, ReturnToLaunch, SetSpeed, Takeoff, Waypoint, Waypoints
 from protocol.geo import distance_m
 from protocol.packets import FenceCircle, Geofence
-from tests.px4.checks import assert_stops_and_holds
+from tests.px4.checks import assert_stops_and_holds, cruising, hover_out
 from tests.px4.rig import HOME, PX4Rig
 from tests.support.rig import task
 
