@@ -35,49 +35,15 @@ from agent.autopilot.base import (
     MissionPoint,
     Telemetry,
 )
-from agent.autopilot.mavlink_link import MavlinkLink, mavlink, mavutil, mission_result_name
+from agent.autopilot.flavours import Flavour, flavour_for
+from agent.autopilot.flavours.base import HoldSettler, ShownMode, base_altitude_amsl
+from agent.autopilot.mavlink_link import MavlinkLink, mavlink, mission_result_name
 
 log = logging.getLogger(__name__)
 
 __all__ = ["MavlinkAutopilot", "decode_mode"]
 
 POSITION_TARGET_TYPE_MASK = 0x0DF8  # use x/y/z only: ignore velocity, acceleration, yaw, yaw rate
-
-# ArduPilot FENCE_ACTION values (Copter) for FenceSpec.breach_action.
-ARDUPILOT_FENCE_ACTION = {"report": 0, "rtl": 1, "land": 2, "hold": 4}
-# PX4 GF_ACTION values.
-PX4_FENCE_ACTION = {"report": 1, "hold": 2, "rtl": 3, "land": 5}
-
-# PX4 custom_mode = main << 16 | sub << 24. Names follow ArduPilot's where the meaning matches so the
-# queue sees one vocabulary: PX4 "Hold" (AUTO.LOITER) reports LOITER, "Mission" reports AUTO.
-_PX4_MAIN = {1: "MANUAL", 2: "ALTCTL", 3: "POSCTL", 5: "ACRO", 6: "OFFBOARD", 7: "STABILIZED", 8: "RATTITUDE"}
-_PX4_AUTO_SUB = {
-    1: "READY",
-    2: "TAKEOFF",
-    3: "LOITER",
-    4: "AUTO",
-    5: "RTL",
-    6: "LAND",
-    8: "FOLLOW_ME",
-    9: "PRECLAND",
-    10: "VTOL_TAKEOFF",
-}
-_PX4_SET = {  # our mode name -> (main, sub)
-    "MANUAL": (1, 0),
-    "ALTCTL": (2, 0),
-    "POSCTL": (3, 0),
-    "GUIDED": (4, 3),  # PX4 flies position targets (DO_REPOSITION) in Hold
-    "LOITER": (4, 3),
-    "BRAKE": (4, 3),
-    "HOLD": (4, 3),
-    "AUTO": (4, 4),
-    "MISSION": (4, 4),
-    "RTL": (4, 5),
-    "LAND": (4, 6),
-    "TAKEOFF": (4, 2),
-    "OFFBOARD": (6, 0),
-    "STABILIZED": (7, 0),
-}
 
 # Messages we ask the vehicle to stream: (name, id, rate) where rate None means telemetry_hz.
 _FAST = None
@@ -93,23 +59,12 @@ _STREAMS: tuple[tuple[str, int, float | None], ...] = (
     ("HOME_POSITION", mavlink.MAVLINK_MSG_ID_HOME_POSITION, 0.5),
 )
 STREAM_FULL_REASSERT_S = 30.0
-# ArduCopter modes whose controller takes MAV_CMD_DO_CHANGE_SPEED (Mode::set_speed_xy).
-SPEED_MODES = frozenset({"AUTO", "GUIDED", "RTL"})
 STREAM_STALE_REASSERT_MIN_S = 3.0
 
 
 def decode_mode(autopilot: int, mav_type: int, base_mode: int, custom_mode: int) -> str:
     """The upper-case mode name of a HEARTBEAT (ArduPilot custom modes, PX4 main/sub modes)."""
-    if autopilot == mavlink.MAV_AUTOPILOT_PX4:
-        main = (custom_mode >> 16) & 0xFF
-        sub = (custom_mode >> 24) & 0xFF
-        if main == 4:
-            return _PX4_AUTO_SUB.get(sub, f"AUTO.{sub}")
-        return _PX4_MAIN.get(main, f"MODE({custom_mode})")
-    if not base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-        return "UNKNOWN"
-    mapping = mavutil.mode_mapping_bynumber(mav_type) or mavutil.mode_mapping_acm
-    return str(mapping.get(custom_mode, f"MODE({custom_mode})")).upper()
+    return flavour_for(autopilot).decode_mode(mav_type, base_mode, custom_mode)
 
 
 class MavlinkAutopilot(Autopilot):
@@ -180,8 +135,12 @@ class MavlinkAutopilot(Autopilot):
         self._mission_offset = 0  # seq of the first uploaded point (1 on ArduPilot: seq 0 is home)
         self._capabilities: int | None = None
         self._pending_speed: float | None = None  # set_speed in a mode that refuses it
+        self._leg_speed: float | None = None  # PX4: the last speed asked for, sent with each reposition
+        self._shown = ShownMode()  # PX4: GUIDED while our reposition leg is flown, LOITER once held
+        self._settler = HoldSettler()  # PX4: the second step of a reposition hold
         self._streams_ready = False
         self._stream_requested_at: dict[str, float] = {}
+        self._refused_streams: set[str] = set()  # SET_MESSAGE_INTERVAL refused: never re-asserted
         self._last_full_reassert = 0.0
         self._last_home_request = 0.0
         self._connected = False
@@ -208,18 +167,15 @@ class MavlinkAutopilot(Autopilot):
         if self._closed:
             return
         self._closed = True
+        self._settler.cancel()
         self._connected = False
         await asyncio.get_running_loop().run_in_executor(None, self._link.stop)
 
     @property
-    def is_px4(self) -> bool:
+    def flavour(self) -> Flavour:
+        """The vehicle's firmware conventions, from its heartbeat (ArduPilot until one is seen)."""
         vehicle = self._link.vehicle
-        return vehicle is not None and vehicle.autopilot == mavlink.MAV_AUTOPILOT_PX4
-
-    @property
-    def is_ardupilot(self) -> bool:
-        vehicle = self._link.vehicle
-        return vehicle is None or vehicle.autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+        return flavour_for(vehicle.autopilot if vehicle is not None else None)
 
     @property
     def link(self) -> MavlinkLink:
@@ -233,6 +189,7 @@ class MavlinkAutopilot(Autopilot):
 
     async def _setup_streams(self) -> None:
         """SET_MESSAGE_INTERVAL per message; REQUEST_DATA_STREAM when the vehicle does not take it."""
+        refused = 0
         fallback = False
         for name, msg_id, hz in self._stream_plan():
             try:
@@ -244,13 +201,16 @@ class MavlinkAutopilot(Autopilot):
                 )
                 self._stream_requested_at[name] = time.monotonic()
             except CommandRefused as exc:
-                log.info("SET_MESSAGE_INTERVAL %s refused (%s)", name, exc.reason)
-                fallback = True
+                # PX4 refuses MISSION_CURRENT (it streams it anyway): not re-asserted, no fallback
+                # while other intervals are taken.
+                log.debug("SET_MESSAGE_INTERVAL %s refused (%s)", name, exc.reason)
+                self._refused_streams.add(name)
+                refused += 1
             except CommandTimeout:
                 log.info("SET_MESSAGE_INTERVAL unanswered; falling back to REQUEST_DATA_STREAM")
                 fallback = True
                 break
-        if fallback:
+        if fallback or (refused and refused == len(self._stream_plan())):
             self._request_data_streams()
         self._last_full_reassert = time.monotonic()
         self._streams_ready = True
@@ -281,6 +241,8 @@ class MavlinkAutopilot(Autopilot):
         """Re-send interval requests, fire-and-forget (the vehicle may have reverted them)."""
         now = time.monotonic()
         for name, msg_id, hz in self._stream_plan():
+            if name in self._refused_streams:
+                continue
             if only_stale:
                 last = self._link.last_seen.get(name, 0.0)
                 stale_after = max(3.0 / hz, 2.0)
@@ -325,7 +287,10 @@ class MavlinkAutopilot(Autopilot):
 
     def _h_heartbeat(self, msg: Any) -> None:
         tel = self._tel
-        tel.mode = decode_mode(msg.autopilot, msg.type, msg.base_mode, msg.custom_mode)
+        flavour = flavour_for(msg.autopilot)
+        tel.mode = self._shown.from_heartbeat(
+            flavour, flavour.decode_mode(msg.type, msg.base_mode, msg.custom_mode)
+        )
         tel.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         self._update_landed()
         self._update_mission_current()
@@ -423,23 +388,15 @@ class MavlinkAutopilot(Autopilot):
 
     async def set_mode(self, name: str) -> None:
         """Switch flight mode by name (ArduPilot custom mode / PX4 main+sub mode); waits for the ACK."""
+        self._settler.cancel()
         name = name.upper()
         what = f"mode {name}"
         vehicle = self._link.vehicle
-        if self.is_px4:
-            if name not in _PX4_SET:
-                raise CommandRefused(what, "no such PX4 mode")
-            main, sub = _PX4_SET[name]
-            params: tuple[float, ...] = (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub)
-            custom = (main << 16) | (sub << 24)
-        else:
-            mapping = (vehicle and mavutil.mode_mapping_byname(vehicle.mav_type)) or {
-                v: k for k, v in mavutil.mode_mapping_acm.items()
-            }
-            if name not in mapping:
-                raise CommandRefused(what, "the vehicle has no such mode")
-            custom = int(mapping[name])
-            params = (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom)
+        flavour = self.flavour
+        try:
+            params, custom = flavour.mode_command(name, vehicle.mav_type if vehicle is not None else 2)
+        except KeyError:
+            raise CommandRefused(what, f"no such {flavour.name} mode") from None
         try:
             await self._link.command(what, mavlink.MAV_CMD_DO_SET_MODE, params)
         except CommandRefused as exc:
@@ -447,11 +404,19 @@ class MavlinkAutopilot(Autopilot):
                 raise
             await self._set_mode_legacy(what, name, custom)
             return
-        if not self.is_px4:
+        self._set_leg_active(False)
+        if flavour.guided_mode is not None:
             # Accepted: the mode has changed, though the next heartbeat may be up to 1 s away.
             # Later decisions (send the speed now? switch to GUIDED first?) need it at once.
             with self._state_lock:
                 self._tel.mode = name
+
+    def _set_leg_active(self, active: bool) -> None:
+        """PX4: mark whether one of our reposition legs is being flown (the mode shown follows)."""
+        with self._state_lock:
+            mode = self._shown.leg(self.flavour, active)
+            if mode is not None:
+                self._tel.mode = mode
 
     async def _set_mode_legacy(self, what: str, name: str, custom: int) -> None:
         """SET_MODE message for autopilots without MAV_CMD_DO_SET_MODE; confirmed by the heartbeat."""
@@ -478,8 +443,8 @@ class MavlinkAutopilot(Autopilot):
         while True:
             self._link.ensure_link("arm")
             try:
-                if not self.is_px4:
-                    await self._ensure_mode("GUIDED")
+                if self.flavour.guided_mode is not None:
+                    await self._ensure_mode(self.flavour.guided_mode)
                 await self._link.command("arm", mavlink.MAV_CMD_COMPONENT_ARM_DISARM, (1,))
                 return
             except (CommandRefused, CommandTimeout) as exc:
@@ -498,15 +463,12 @@ class MavlinkAutopilot(Autopilot):
     async def takeoff(self, alt_rel_m: float) -> None:
         if not math.isfinite(alt_rel_m) or alt_rel_m <= 0:
             raise ValueError(f"takeoff altitude must be a positive number, not {alt_rel_m!r}")
-        if self.is_px4:
-            tel = self.telemetry()
-            base_alt = tel.home_alt_amsl if tel.home_alt_amsl is not None else tel.alt_amsl - tel.alt_rel
-            params: tuple[float, ...] = (0, 0, 0, math.nan, tel.lat, tel.lon, base_alt + alt_rel_m)
-        else:
-            await self._ensure_mode("GUIDED")
-            # ArduCopter: param7 is the altitude above home; lat/lon 0 (NaN breaks it).
-            params = (0, 0, 0, 0, 0, 0, alt_rel_m)
+        flavour = self.flavour
+        if flavour.guided_mode is not None:
+            await self._ensure_mode(flavour.guided_mode)
+        params = flavour.takeoff_params(alt_rel_m, self.telemetry())
         await self._link.command("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF, params)
+        self._set_leg_active(False)
 
     async def set_speed(self, speed_mps: float) -> None:
         """Change the cruise speed now if the mode takes it, else with the next position target.
@@ -517,7 +479,8 @@ class MavlinkAutopilot(Autopilot):
         """
         if not math.isfinite(speed_mps) or speed_mps <= 0:
             raise ValueError(f"speed must be a positive number, not {speed_mps!r}")
-        if not self.is_px4 and self._mode_now() not in SPEED_MODES:
+        self._leg_speed = speed_mps
+        if not self.flavour.speed_accepted_in(self._mode_now()):
             self._link.ensure_link("set speed")
             log.info(
                 "mode %s takes no speed change; %.1f m/s goes with the next target",
@@ -553,27 +516,15 @@ class MavlinkAutopilot(Autopilot):
 
     async def goto(self, lat: float, lon: float, alt_rel_m: float, speed_mps: float | None = None) -> None:
         self._check_target("goto", lat, lon, alt_rel_m)
-        if self.is_px4:
+        flavour = self.flavour
+        if flavour.guided_mode is None:  # PX4: DO_REPOSITION, the speed in param1
             if speed_mps is not None:
-                await self.set_speed(speed_mps)
-            tel = self.telemetry()
-            base_alt = tel.home_alt_amsl if tel.home_alt_amsl is not None else tel.alt_amsl - tel.alt_rel
-            await self._link.command(
-                "goto",
-                mavlink.MAV_CMD_DO_REPOSITION,
-                (
-                    -1,
-                    mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE,
-                    0,
-                    math.nan,
-                    lat,
-                    lon,
-                    base_alt + alt_rel_m,
-                ),
-                int_frame=mavlink.MAV_FRAME_GLOBAL,
-            )
+                self._leg_speed = speed_mps
+            alt_amsl = base_altitude_amsl(self.telemetry()) + alt_rel_m
+            await self._reposition("goto", lat, lon, alt_amsl, self._leg_speed)
+            self._set_leg_active(True)
             return
-        await self._ensure_mode("GUIDED")
+        await self._ensure_mode(flavour.guided_mode)
         # Not acknowledged by ArduPilot: the queue watches the position. Never set the Z-ignore bit.
         self._link.send(
             mavlink.MAVLink_set_position_target_global_int_message(
@@ -602,7 +553,7 @@ class MavlinkAutopilot(Autopilot):
             return self._local_offset_option
         caps = self._capabilities
         return (
-            not self.is_px4
+            self.flavour.guided_mode is not None
             and caps is not None
             and bool(caps & mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED)
         )
@@ -612,7 +563,7 @@ class MavlinkAutopilot(Autopilot):
             await super().go_by(north_m, east_m, up_m, speed_mps)
             return
         self._check_target("go_by", north_m, east_m, up_m)
-        await self._ensure_mode("GUIDED")
+        await self._ensure_mode(self.flavour.guided_mode or "GUIDED")
         # MAV_FRAME_LOCAL_OFFSET_NED: x/y/z relative to the vehicle's position when received, z down.
         self._link.send(
             mavlink.MAVLink_set_position_target_local_ned_message(
@@ -653,34 +604,61 @@ class MavlinkAutopilot(Autopilot):
         self._link.ensure_link(what)
 
     async def return_to_launch(self, alt_rel_m: float | None = None) -> None:
+        flavour = self.flavour
+        if alt_rel_m is None:
+            alt_rel_m = flavour.default_return_alt(self.telemetry())
+        elif not math.isfinite(alt_rel_m) or alt_rel_m <= 0:
+            raise ValueError(f"return altitude must be a positive number, not {alt_rel_m!r}")
         if alt_rel_m is not None:
-            if not math.isfinite(alt_rel_m) or alt_rel_m <= 0:
-                raise ValueError(f"return altitude must be a positive number, not {alt_rel_m!r}")
-            # The return altitude layer: ArduCopter RTL_ALT is in cm, PX4 RTL_RETURN_ALT in m.
-            if self.is_px4:
-                await self._link.set_param("RTL_RETURN_ALT", alt_rel_m)
-            else:
-                await self._link.set_param("RTL_ALT", round(alt_rel_m * 100.0))
+            # The return altitude layer: ArduCopter RTL_ALT in cm, PX4 RTL_RETURN_ALT in m.
+            await self.set_param(flavour.return_alt_param, flavour.return_alt_value(alt_rel_m))
         await self.set_mode("RTL")
 
     async def hold(self) -> None:
-        if self.is_px4:
-            await self.set_mode("LOITER")
+        """Stop where the vehicle is: ArduPilot BRAKE (LOITER if refused); PX4 DO_REPOSITION here.
+
+        PX4 flies a goto (DO_REPOSITION) in Hold already, so switching to Hold would change
+        nothing; a reposition to the current point stops it (measured: < 0.5 m/s within 3 s).
+        """
+        flavour = self.flavour
+        tel = self.telemetry()
+        if flavour.hold_by_reposition and tel.armed and not tel.landed and tel.position_known:
+            await self._reposition("hold", tel.lat, tel.lon, tel.alt_amsl, None)
+            self._set_leg_active(False)
+            self._settler.start(self.telemetry, self._settle_reposition)
             return
-        try:
-            await self.set_mode("BRAKE")
-        except CommandRefused as exc:
-            log.info("BRAKE refused (%s); using LOITER", exc.reason)
-            await self.set_mode("LOITER")
+        for i, mode in enumerate(flavour.hold_modes):
+            try:
+                await self.set_mode(mode)
+                return
+            except CommandRefused as exc:
+                if i + 1 == len(flavour.hold_modes):
+                    raise
+                log.info("%s refused (%s); trying %s", mode, exc.reason, flavour.hold_modes[i + 1])
+
+    async def _settle_reposition(self, lat: float, lon: float, alt_amsl: float) -> None:
+        await self._reposition("hold (settle)", lat, lon, alt_amsl, None)
+
+    async def _reposition(
+        self, what: str, lat: float, lon: float, alt_amsl: float, speed: float | None
+    ) -> None:
+        """MAV_CMD_DO_REPOSITION as COMMAND_INT (PX4 ignores the frame: z is AMSL)."""
+        self._settler.cancel()
+        params = self.flavour.reposition_params(lat, lon, alt_amsl, speed)
+        await self._link.command(
+            what, mavlink.MAV_CMD_DO_REPOSITION, params, int_frame=mavlink.MAV_FRAME_GLOBAL
+        )
 
     # ================================================================== fence, mission, params
 
     async def get_param(self, name: str) -> float:
-        """Read one autopilot parameter."""
+        """Read one autopilot parameter (PX4 integers decoded from their bytes)."""
+        self._link.param_codec = self.flavour
         return await self._link.get_param(name)
 
     async def set_param(self, name: str, value: float) -> float:
         """Write one autopilot parameter; returns the value the vehicle echoed."""
+        self._link.param_codec = self.flavour
         return await self._link.set_param(name, value)
 
     async def upload_fence(self, fence: FenceSpec) -> bool:
@@ -712,9 +690,8 @@ class MavlinkAutopilot(Autopilot):
                     param1=c.radius_m,
                 )
             )
-        action_map = PX4_FENCE_ACTION if self.is_px4 else ARDUPILOT_FENCE_ACTION
-        if fence.breach_action not in action_map:
-            raise ValueError(f"unknown breach action {fence.breach_action!r}")
+        flavour = self.flavour
+        params = flavour.fence_params(fence, bool(items))  # ValueError on an unknown breach action
         try:
             result = await mavlink_mission.upload(
                 self._link,
@@ -731,17 +708,8 @@ class MavlinkAutopilot(Autopilot):
             log.warning("fence upload rejected: %s", mission_result_name(result))
             return False
         try:
-            if self.is_px4:
-                await self._link.set_param("GF_ACTION", action_map[fence.breach_action])
-                if fence.max_alt_m is not None:
-                    await self._link.set_param("GF_MAX_VER_DIST", fence.max_alt_m)
-                return True
-            fence_type = (4 if items else 0) | (1 if fence.max_alt_m is not None else 0)
-            if fence.max_alt_m is not None:
-                await self._link.set_param("FENCE_ALT_MAX", fence.max_alt_m)
-            await self._link.set_param("FENCE_ACTION", action_map[fence.breach_action])
-            await self._link.set_param("FENCE_TYPE", fence_type)
-            await self._link.set_param("FENCE_ENABLE", 1 if fence_type else 0)
+            for name, value in params:
+                await self.set_param(name, value)
         except (CommandRefused, CommandTimeout) as exc:
             log.warning("fence parameters not accepted: %s", exc)
             return False
@@ -750,7 +718,7 @@ class MavlinkAutopilot(Autopilot):
     async def upload_mission(self, points: list[MissionPoint]) -> None:
         items: list[mavlink_mission.Item] = []
         offset = 0
-        if not self.is_px4:
+        if self.flavour.mission_home_item:
             # ArduPilot: seq 0 is home; it overwrites it, but it must be there.
             tel = self.telemetry()
             items.append(
@@ -791,7 +759,7 @@ class MavlinkAutopilot(Autopilot):
     async def start_mission(self) -> None:
         tel = self.telemetry()
         await self.set_mode("AUTO")
-        if not self.is_px4 and tel.armed and tel.landed:
+        if self.flavour.mission_home_item and tel.armed and tel.landed:
             # ArduCopter on the ground needs MISSION_START to begin an AUTO mission.
             await self._link.command("mission start", mavlink.MAV_CMD_MISSION_START, (0, 0))
 

@@ -30,7 +30,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 # MAVLink 2 is needed for mission_type (fences) and STATUSTEXT chunks. pymavlink picks the wire
 # protocol from the environment when a dialect is loaded, so set it before importing mavutil.
@@ -70,6 +70,16 @@ _NOT_VEHICLE_TYPES = frozenset(
         mavlink.MAV_TYPE_WINCH,
     }
 )
+
+
+class ParamCodec(Protocol):
+    """How parameter values travel (:class:`agent.autopilot.flavours.Flavour` implements it)."""
+
+    params_bytewise: bool
+
+    def decode_param(self, raw: float, param_type: int) -> float: ...
+
+    def encode_param(self, value: float, param_type: int) -> float: ...
 
 
 def mav_result_name(result: int) -> str:
@@ -200,6 +210,8 @@ class MavlinkLink:
         self._texts: collections.deque[StatusText] = collections.deque(maxlen=STATUSTEXT_KEEP)
         self._text_chunks: dict[int, list[str]] = {}
         self._param_types: dict[str, int] = {}
+        # Set by the backend from the vehicle's flavour: PX4 sends integer values byte-wise.
+        self.param_codec: ParamCodec | None = None
         self._command_locks: dict[int, asyncio.Lock] = {}
         self._t0 = time.monotonic()
 
@@ -562,6 +574,15 @@ class MavlinkLink:
         timeout = self.command_timeout_s if timeout_s is None else timeout_s
         attempts = self.command_retries if retries is None else max(1, retries)
         self.ensure_link(what)
+        codec = self.param_codec
+        if (
+            value is not None
+            and codec is not None
+            and codec.params_bytewise
+            and name not in self._param_types
+        ):
+            # The bytes of an integer value depend on the parameter's type: read it first.
+            await self._param_exchange(name, None, timeout_s, retries)
         sub = self.subscribe(["PARAM_VALUE"], lambda m: m.param_id == name)
         seen: float | None = None  # the last echo that differed from the value asked for
         try:
@@ -572,8 +593,9 @@ class MavlinkLink:
                     )
                 else:
                     ptype = self._param_types.get(name, mavlink.MAV_PARAM_TYPE_REAL32)
+                    wire = value if codec is None else codec.encode_param(value, ptype)
                     msg = mavlink.MAVLink_param_set_message(
-                        self.target_system, self.target_component, name.encode(), value, ptype
+                        self.target_system, self.target_component, name.encode(), wire, ptype
                     )
                 self.send(msg)
                 deadline = time.monotonic() + timeout
@@ -583,6 +605,8 @@ class MavlinkLink:
                         self.ensure_link(what)
                         continue
                     got = float(reply.param_value)
+                    if codec is not None:
+                        got = codec.decode_param(got, reply.param_type)
                     if value is None or math.isclose(got, value, rel_tol=1e-5, abs_tol=1e-5):
                         return got
                     # Another link's read (a GCS, a test) is answered to every link: an echo of

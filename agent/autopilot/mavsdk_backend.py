@@ -11,13 +11,16 @@ Connection URLs are MAVSDK's (``udpin://0.0.0.0:14540``, ``udpout://host:port``,
 pymavlink-style strings the other backend takes (``tcp:host:port``, ``udpin:0.0.0.0:14540``,
 ``/dev/ttyAMA0:921600``) and the deprecated ``udp://:14540`` / ``tcp://host:port`` are translated.
 
-Mapping: arm → ``Action.arm`` (retried on refusal until the deadline), takeoff →
-``set_takeoff_altitude`` + ``Action.takeoff``, goto → ``Action.goto_location`` with the AMSL altitude
-computed from home, land → ``Action.land`` (after a goto when lat/lon are given), RTL →
-``Action.return_to_launch``, hold → ``Action.hold``, speed → ``Action.set_current_speed``, fence →
-``Geofence.upload_geofence`` + PX4 ``GF_ACTION``/``GF_MAX_VER_DIST``, mission → ``MissionRaw``.
-ArduPilot-specific modes (GUIDED before arming, BRAKE) go as raw COMMAND_LONGs through the
-``MavlinkDirect`` plugin, which also feeds the heartbeat clock and the mode name.
+What differs per firmware comes from the vehicle's :class:`~agent.autopilot.flavours.Flavour`,
+shared with the pymavlink backend. Mapping: arm → ``Action.arm`` (retried on refusal until the
+deadline), takeoff → ``MAV_CMD_NAV_TAKEOFF`` with the flavour's params (PX4: AMSL), goto → PX4
+``DO_REPOSITION`` with the speed in param1 (ArduPilot: GUIDED + ``Action.goto_location``), hold → PX4
+``DO_REPOSITION`` to the current point (``Action.hold`` only switches to Hold, which a PX4 goto is
+already flown in), land → ``Action.land`` (after a goto when lat/lon are given), RTL →
+``Action.return_to_launch`` after the return altitude, speed → ``Action.set_current_speed``, fence →
+``Geofence.upload_geofence`` + the flavour's parameters, mission → ``MissionRaw``. Raw commands
+(modes, take-off, repositions) go through the ``MavlinkDirect`` plugin with our own ACK wait; it
+also feeds the heartbeat clock and the mode name.
 """
 
 from __future__ import annotations
@@ -45,7 +48,8 @@ from agent.autopilot.base import (
     MissionPoint,
     Telemetry,
 )
-from agent.autopilot.mavlink_backend import ARDUPILOT_FENCE_ACTION, PX4_FENCE_ACTION, decode_mode
+from agent.autopilot.flavours import Flavour, flavour_for
+from agent.autopilot.flavours.base import HoldSettler, ShownMode, base_altitude_amsl
 from agent.autopilot.mavlink_link import mavlink
 
 log = logging.getLogger(__name__)
@@ -167,6 +171,10 @@ class MavsdkAutopilot(Autopilot):
         self._compid = 1
         self._autopilot_type = mavlink.MAV_AUTOPILOT_GENERIC
         self._mode_from_heartbeat = False
+        self._shown = ShownMode()  # PX4: GUIDED while our reposition leg is flown, LOITER once held
+        self._settler = HoldSettler()  # PX4: the second step of a reposition hold
+        self._leg_speed: float | None = None  # PX4: the last speed asked for, sent with each reposition
+        self._param_is_int: dict[str, bool] = {}
         self._mission_seq = -1
         self._mission_offset = 0
         self._landed_state = 0
@@ -237,6 +245,7 @@ class MavsdkAutopilot(Autopilot):
         if self._closed:
             return
         self._closed = True
+        self._settler.cancel()
         mavsdk, self._mavsdk = self._mavsdk, None
         if mavsdk is not None:
             await asyncio.get_running_loop().run_in_executor(None, mavsdk.destroy)
@@ -286,17 +295,15 @@ class MavsdkAutopilot(Autopilot):
         with self._lock:
             self._last_hb = time.monotonic()
             self._autopilot_type = int(fields.get("autopilot", self._autopilot_type))
+            flavour = flavour_for(self._autopilot_type)
             try:
-                mode = decode_mode(
-                    int(fields["autopilot"]),
-                    int(fields["type"]),
-                    int(fields["base_mode"]),
-                    int(fields["custom_mode"]),
+                raw = flavour.decode_mode(
+                    int(fields["type"]), int(fields["base_mode"]), int(fields["custom_mode"])
                 )
             except (KeyError, TypeError, ValueError):
                 return
             self._mode_from_heartbeat = True
-            self._tel.mode = mode
+            self._tel.mode = self._shown.from_heartbeat(flavour, raw)
             self._tel.armed = bool(int(fields["base_mode"]) & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             self._update_landed()
             self._update_mission_current()
@@ -384,8 +391,15 @@ class MavsdkAutopilot(Autopilot):
     # ================================================================== plumbing
 
     @property
-    def is_ardupilot(self) -> bool:
-        return self._autopilot_type == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+    def flavour(self) -> Flavour:
+        """The vehicle's firmware conventions, from MAVSDK's autopilot type and each heartbeat."""
+        return flavour_for(self._autopilot_type)
+
+    def _set_leg_active(self, active: bool) -> None:
+        with self._lock:
+            mode = self._shown.leg(self.flavour, active)
+            if mode is not None:
+                self._tel.mode = mode
 
     def ensure_link(self, what: str) -> None:
         if self._system is None or self._closed:
@@ -445,21 +459,40 @@ class MavsdkAutopilot(Autopilot):
                 with contextlib.suppress(RuntimeError):
                     loop.call_soon_threadsafe(queue.put_nowait, result)
 
-    async def _direct_command(self, what: str, command: int, params: tuple[float, ...]) -> None:
-        """A raw COMMAND_LONG through MavlinkDirect, waiting for its COMMAND_ACK (ArduPilot modes)."""
+    async def _direct_command(
+        self, what: str, command: int, params: tuple[float, ...], int_frame: int | None = None
+    ) -> None:
+        """A raw COMMAND_LONG (COMMAND_INT with ``int_frame``: params 5/6 lat/lon in degrees)
+        through MavlinkDirect, waiting for its COMMAND_ACK."""
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
 
         self.ensure_link(what)
+        # JSON has no NaN and MavlinkDirect turns a "NaN" string into 0 (measured). Our only NaN is
+        # param4, the yaw ("keep heading") of NAV_TAKEOFF and DO_REPOSITION: send the heading instead.
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
-        fields = {
+        if not math.isfinite(p[3]):
+            p[3] = self.telemetry().heading_deg
+        if not all(math.isfinite(x) for x in p):
+            raise ValueError(f"{what}: non-finite command parameter {params!r}")
+        fields: dict[str, Any] = {
             "target_system": self._sysid,
             "target_component": self._compid,
             "command": command,
-            "confirmation": 0,
-            **{f"param{i + 1}": p[i] for i in range(7)},
         }
+        if int_frame is None:
+            fields |= {"confirmation": 0, **{f"param{i + 1}": p[i] for i in range(7)}}
+        else:
+            fields |= {
+                "frame": int_frame,
+                "current": 0,
+                "autocontinue": 0,
+                **{f"param{i + 1}": p[i] for i in range(4)},
+                "x": round(p[4] * 1e7),
+                "y": round(p[5] * 1e7),
+                "z": p[6],
+            }
         message = MavlinkMessage(
-            message_name="COMMAND_LONG",
+            message_name="COMMAND_LONG" if int_frame is None else "COMMAND_INT",
             system_id=0,
             component_id=0,
             target_system_id=self._sysid,
@@ -493,15 +526,17 @@ class MavsdkAutopilot(Autopilot):
         finally:
             self._ack_waiters.remove(waiter)
 
-    async def _ardupilot_mode(self, name: str) -> None:
-        from pymavlink import mavutil
-
+    async def _set_mode(self, name: str) -> None:
+        """MAV_CMD_DO_SET_MODE by name, encoded by the flavour (a no-op when already in it)."""
+        self._settler.cancel()
         if self.telemetry().mode == name:
             return
-        number = {v: k for k, v in mavutil.mode_mapping_acm.items()}[name]
-        await self._direct_command(
-            f"mode {name}", mavlink.MAV_CMD_DO_SET_MODE, (mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, number)
-        )
+        try:
+            params, _ = self.flavour.mode_command(name, mavlink.MAV_TYPE_QUADROTOR)
+        except KeyError:
+            raise CommandRefused(f"mode {name}", f"no such {self.flavour.name} mode") from None
+        await self._direct_command(f"mode {name}", mavlink.MAV_CMD_DO_SET_MODE, params)
+        self._set_leg_active(False)
 
     # ================================================================== commands
 
@@ -511,8 +546,8 @@ class MavsdkAutopilot(Autopilot):
         while True:
             self.ensure_link("arm")
             try:
-                if self.is_ardupilot:
-                    await self._ardupilot_mode("GUIDED")
+                if self.flavour.guided_mode is not None:
+                    await self._set_mode(self.flavour.guided_mode)
                 await self._call("arm", self._action.arm)
                 return
             except (CommandRefused, CommandTimeout) as exc:
@@ -531,36 +566,49 @@ class MavsdkAutopilot(Autopilot):
     async def takeoff(self, alt_rel_m: float) -> None:
         if not math.isfinite(alt_rel_m) or alt_rel_m <= 0:
             raise ValueError(f"takeoff altitude must be a positive number, not {alt_rel_m!r}")
-        if self.is_ardupilot:
+        flavour = self.flavour
+        if flavour.guided_mode is not None:
             # MAVSDK's ArduPilot takeoff sends NAV_TAKEOFF without switching mode; ArduCopter needs GUIDED.
-            await self._ardupilot_mode("GUIDED")
-            await self._direct_command("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF, (0, 0, 0, 0, 0, 0, alt_rel_m))
-            return
-        await self._call("takeoff altitude", self._action.set_takeoff_altitude, alt_rel_m)
-        await self._call("takeoff", self._action.takeoff)
+            await self._set_mode(flavour.guided_mode)
+        params = flavour.takeoff_params(alt_rel_m, self.telemetry())
+        await self._direct_command("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF, params)
+        self._set_leg_active(False)
 
     async def set_speed(self, speed_mps: float) -> None:
         if not math.isfinite(speed_mps) or speed_mps <= 0:
             raise ValueError(f"speed must be a positive number, not {speed_mps!r}")
+        self._leg_speed = speed_mps
         await self._call("set speed", self._action.set_current_speed, speed_mps)
 
     def _amsl(self, alt_rel_m: float) -> float:
-        tel = self.telemetry()
-        base = tel.home_alt_amsl if tel.home_alt_amsl is not None else tel.alt_amsl - tel.alt_rel
-        return base + alt_rel_m
+        return base_altitude_amsl(self.telemetry()) + alt_rel_m
+
+    async def _settle_reposition(self, lat: float, lon: float, alt_amsl: float) -> None:
+        await self._reposition("hold (settle)", lat, lon, alt_amsl, None)
+
+    async def _reposition(
+        self, what: str, lat: float, lon: float, alt_amsl: float, speed: float | None
+    ) -> None:
+        self._settler.cancel()
+        params = self.flavour.reposition_params(lat, lon, alt_amsl, speed)
+        await self._direct_command(
+            what, mavlink.MAV_CMD_DO_REPOSITION, params, int_frame=mavlink.MAV_FRAME_GLOBAL
+        )
 
     async def goto(self, lat: float, lon: float, alt_rel_m: float, speed_mps: float | None = None) -> None:
         if not all(math.isfinite(v) for v in (lat, lon, alt_rel_m)):
             raise ValueError("goto: non-finite target")
         if not self.telemetry().armed:
             raise CommandRefused("goto", "vehicle is disarmed")
-        if not self.is_ardupilot:
+        flavour = self.flavour
+        if flavour.guided_mode is None:  # PX4: DO_REPOSITION with the speed in param1
             if speed_mps is not None:
-                await self.set_speed(speed_mps)
-            await self._call("goto", self._action.goto_location, lat, lon, self._amsl(alt_rel_m), math.nan)
+                self._leg_speed = speed_mps
+            await self._reposition("goto", lat, lon, self._amsl(alt_rel_m), self._leg_speed)
+            self._set_leg_active(True)
             return
         # ArduCopter: GUIDED, the target, then the speed (the target resets it to WPNAV_SPEED).
-        await self._ardupilot_mode("GUIDED")
+        await self._set_mode(flavour.guided_mode)
         await self._call("goto", self._action.goto_location, lat, lon, self._amsl(alt_rel_m), math.nan)
         if speed_mps is not None:
             await self.set_speed(speed_mps)
@@ -570,26 +618,59 @@ class MavsdkAutopilot(Autopilot):
             raise ValueError("land: give both lat and lon, or neither")
         if lat is not None and lon is not None:
             await self.approach_landing_point(lat, lon)
+        self._settler.cancel()
         await self._call("land", self._action.land)
 
     async def return_to_launch(self, alt_rel_m: float | None = None) -> None:
+        if alt_rel_m is None:
+            alt_rel_m = self.flavour.default_return_alt(self.telemetry())
+        elif not math.isfinite(alt_rel_m) or alt_rel_m <= 0:
+            raise ValueError(f"return altitude must be a positive number, not {alt_rel_m!r}")
         if alt_rel_m is not None:
+            # MAVSDK writes the flavour's parameter (PX4 RTL_RETURN_ALT in m, ArduPilot RTL_ALT in cm).
             await self._call("rtl altitude", self._action.set_return_to_launch_altitude, float(alt_rel_m))
+        self._settler.cancel()
         await self._call("rtl", self._action.return_to_launch)
+        self._set_leg_active(False)
 
     async def hold(self) -> None:
-        if self.is_ardupilot:
-            try:
-                await self._ardupilot_mode("BRAKE")
-            except CommandRefused:
-                await self._ardupilot_mode("LOITER")
+        """Stop where the vehicle is: ArduPilot BRAKE (LOITER if refused); PX4 DO_REPOSITION here."""
+        flavour = self.flavour
+        tel = self.telemetry()
+        if flavour.hold_by_reposition and tel.armed and not tel.landed and tel.position_known:
+            await self._reposition("hold", tel.lat, tel.lon, tel.alt_amsl, None)
+            self._set_leg_active(False)
+            self._settler.start(self.telemetry, self._settle_reposition)
             return
-        await self._call("hold", self._action.hold)
+        for i, mode in enumerate(flavour.hold_modes):
+            try:
+                await self._set_mode(mode)
+                return
+            except CommandRefused as exc:
+                if i + 1 == len(flavour.hold_modes):
+                    raise
+                log.info("%s refused (%s); trying %s", mode, exc.reason, flavour.hold_modes[i + 1])
 
     # ================================================================== fence, mission, params
 
     async def set_param(self, name: str, value: float) -> None:
-        """Write a parameter (float, falling back to int for integer parameters)."""
+        """Write a parameter (float, falling back to int for integer parameters).
+
+        PX4 ignores a REAL32 PARAM_SET of an INT32 parameter (MAVSDK then times out after 10 s),
+        so with a flavour whose integers travel byte-wise the type is read first.
+        """
+        if self.flavour.params_bytewise:
+            if name not in self._param_is_int:
+                try:
+                    await self._call(f"get {name}", self._param.get_param_int, name)
+                    self._param_is_int[name] = True
+                except (CommandRefused, CommandTimeout):
+                    self._param_is_int[name] = False
+            if self._param_is_int[name]:
+                await self._call(f"set {name}", self._param.set_param_int, name, round(value))
+            else:
+                await self._call(f"set {name}", self._param.set_param_float, name, float(value))
+            return
         try:
             await self._call(f"set {name}", self._param.set_param_float, name, float(value))
         except CommandRefused:
@@ -598,9 +679,8 @@ class MavsdkAutopilot(Autopilot):
     async def upload_fence(self, fence: FenceSpec) -> bool:
         from mavsdk.plugins.geofence import Circle, FenceType, GeofenceData, Point, Polygon
 
-        action_map = ARDUPILOT_FENCE_ACTION if self.is_ardupilot else PX4_FENCE_ACTION
-        if fence.breach_action not in action_map:
-            raise ValueError(f"unknown breach action {fence.breach_action!r}")
+        flavour = self.flavour
+        params = flavour.fence_params(fence, bool(fence.polygon or fence.circle))  # ValueError: bad action
         polygons = []
         if fence.polygon:
             if len(fence.polygon) < 3:
@@ -612,17 +692,8 @@ class MavsdkAutopilot(Autopilot):
             circles.append(Circle(Point(c.lat, c.lon), c.radius_m, FenceType.INCLUSION))
         try:
             await self._call("fence upload", self._geofence.upload_geofence, GeofenceData(polygons, circles))
-            if self.is_ardupilot:
-                fence_type = (4 if polygons or circles else 0) | (1 if fence.max_alt_m is not None else 0)
-                if fence.max_alt_m is not None:
-                    await self.set_param("FENCE_ALT_MAX", fence.max_alt_m)
-                await self.set_param("FENCE_ACTION", action_map[fence.breach_action])
-                await self.set_param("FENCE_TYPE", fence_type)
-                await self.set_param("FENCE_ENABLE", 1 if fence_type else 0)
-            else:
-                await self.set_param("GF_ACTION", action_map[fence.breach_action])
-                if fence.max_alt_m is not None:
-                    await self.set_param("GF_MAX_VER_DIST", fence.max_alt_m)
+            for name, value in params:
+                await self.set_param(name, value)
         except (CommandRefused, CommandTimeout) as exc:
             log.warning("fence not installed: %s", exc)
             return False
@@ -633,7 +704,7 @@ class MavsdkAutopilot(Autopilot):
 
         items = []
         offset = 0
-        if self.is_ardupilot:  # seq 0 is home on ArduPilot
+        if self.flavour.mission_home_item:  # seq 0 is home on ArduPilot
             tel = self.telemetry()
             items.append(
                 MissionItem(
@@ -678,4 +749,5 @@ class MavsdkAutopilot(Autopilot):
             self._update_mission_current()
 
     async def start_mission(self) -> None:
+        self._settler.cancel()
         await self._call("mission start", self._mission_raw.start_mission)
