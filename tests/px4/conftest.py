@@ -7,7 +7,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from tests.px4.rig import BACKENDS, PX4Rig
+from tests.px4.rig import BACKENDS, PX4Rig, first_instance
 from tests.px4.sih import SKIP_REASON, px4_dir
 
 
@@ -19,8 +19,11 @@ def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
         pytest.skip(SKIP_REASON)
     if backend == "mavsdk":
         pytest.importorskip("mavsdk", reason="the MAVSDK backend needs the mavsdk package (extra [mavsdk])")
+    first = first_instance()
+    if first is None:
+        pytest.skip("PX4 instance ids 0-9 are shared by two xdist workers (gw0, gw1); this is a third")
     collision = bool(getattr(request.module, "COLLISION_AVOIDANCE", False))
-    fleet = PX4Rig(px4, backend, tmp_path_factory.mktemp(f"px4-{backend}"), collision).start()
+    fleet = PX4Rig(px4, backend, tmp_path_factory.mktemp(f"px4-{backend}"), first, collision).start()
     try:
         yield fleet
     finally:

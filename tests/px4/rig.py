@@ -4,9 +4,10 @@ One PX4 boot (3 quadcopters, homes 10 m apart) serves a test module per backend.
 PX4's API links (``udpin:127.0.0.1:14540+i``) behind a :class:`tests.faults.proxy.FaultProxy` (to cut
 the daemon link); an :class:`Observer` per vehicle watches PX4's GCS link in PX4's own clock.
 
-Instance ids: each backend has its own block (``mavlink`` 0-2, ``mavsdk`` 5-7), so the two backends'
-modules run at the same time on two xdist workers, and a second process asking for a block waits for
-it (file lock) instead of colliding. PX4 runs ``SPEED`` times faster than the wall clock
+Instance ids: each xdist worker has its own block (``gw0`` and a run without xdist 0-2, ``gw1`` 5-7;
+PX4 sends the API link of every instance from 10 on to one port, so a third worker skips), and a second
+process asking for a block (another checkout) waits for it (file lock) instead of colliding.
+PX4 runs ``SPEED`` times faster than the wall clock
 (``PX4_SIM_SPEED_FACTOR``; override with ``$FLEETGCS_PX4_SPEED``).
 """
 
@@ -28,7 +29,17 @@ HOME = (47.397742, 8.545594, 489.4)  # PX4 SIH's default home (Zurich)
 SPACING_M = 10.0
 VEHICLES = 3
 BACKENDS = ("mavlink", "mavsdk")
-FIRST_INSTANCE = {"mavlink": 0, "mavsdk": 5}
+BLOCK = 5  # instance ids per xdist worker
+
+
+def first_instance() -> int | None:
+    """This worker's first PX4 instance id (``PYTEST_XDIST_WORKER`` gwN -> 5N), None past id 9."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    index = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
+    first = BLOCK * index
+    return first if first + VEHICLES - 1 <= 9 else None
+
+
 SPEED = float(os.environ.get("FLEETGCS_PX4_SPEED", "2"))
 # Stock SIH drains the battery in 60 s (the daemon's energy monitor then sends everyone home within a
 # minute); one hour lasts the whole module. No .ulg logs.
@@ -45,12 +56,10 @@ def at(north: float, east: float, index: int = 0) -> tuple[float, float]:
 class PX4Rig(FleetRig):
     """A running PX4 fleet flown through the daemon by agents on ``backend``."""
 
-    def __init__(self, px4: Path, backend: str, data_dir: Path, collision: bool = False) -> None:
+    def __init__(self, px4: Path, backend: str, data_dir: Path, first: int, collision: bool = False) -> None:
         super().__init__(f"px4-{backend}", [f"drone-{i + 1}" for i in range(VEHICLES)], data_dir, proxy=True)
         self.backend = backend
-        self.fleet = PX4Fleet(
-            px4, data_dir / "px4", FIRST_INSTANCE[backend], VEHICLES, HOME, SPACING_M, PARAMS, SPEED
-        )
+        self.fleet = PX4Fleet(px4, data_dir / "px4", first, VEHICLES, HOME, SPACING_M, PARAMS, SPEED)
         self.observers: dict[str, Observer] = {}
         self.origins: list[tuple[float, float]] = [at(0.0, 0.0, i) for i in range(VEHICLES)]
         # Collision avoidance (holds, climbs) would blur what the autopilot does by itself in the

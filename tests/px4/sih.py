@@ -124,7 +124,7 @@ class PX4Fleet:
                     raise TimeoutError(busy) from None
                 time.sleep(0.5)
 
-    def start(self, lock_timeout: float = 600.0) -> PX4Fleet:
+    def start(self, lock_timeout: float = 120.0) -> PX4Fleet:
         self._acquire(lock_timeout)
         try:
             bindir = self._bin()
