@@ -12,13 +12,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from pydantic import ValidationError
-
 from agent.autopilot.base import Autopilot, LinkLost
-from agent.config import AgentConfig, AgentSettings
+from agent.config import AgentConfig
 from agent.runtime import Agent
-from protocol.packets import Capabilities
-from protocol.settings_file import LoggingConfig, configure_logging, first_error, package_version
+from protocol.settings_file import LoggingConfig, configure_logging, package_version
 
 
 def split_host_port(text: str, default_port: int) -> tuple[str, int]:
@@ -38,8 +35,16 @@ def make_autopilot(
     """The backend named on the command line. ``memory`` takes 'LAT,LON[,ALT]' as its connection."""
     if backend == "memory":
         from agent.autopilot.memory import MemoryAutopilot
+        from agent.config_file import AutopilotSection
 
-        parts = [float(p) for p in connection.split(",")] if connection and connection != "memory" else []
+        default = AutopilotSection.model_fields["connection"].default
+        given = connection if connection not in ("", "memory", default) else ""
+        try:
+            parts = [float(p) for p in given.split(",")] if given else []
+        except ValueError:
+            raise SystemExit(
+                f"agent: the memory backend takes LAT,LON[,ALT] as its connection, not {connection!r}"
+            ) from None
         home = (parts[0], parts[1], parts[2] if len(parts) > 2 else 0.0) if len(parts) >= 2 else None
         return MemoryAutopilot(home, speedup=speedup) if home else MemoryAutopilot(speedup=speedup)
     from agent.autopilot.factory import create_autopilot
@@ -65,30 +70,84 @@ def read_key(args: argparse.Namespace) -> str:
     raise SystemExit("agent: give the key with --key-file, --key or FLEETGCS_KEY (see `gcs keygen`)")
 
 
-def config_from_file(args: argparse.Namespace) -> tuple[AgentConfig, Autopilot, LoggingConfig]:
-    """--config FILE (+ FLEETGCS_AGENT_* environment); flags given on the command line win."""
-    from agent.config_file import load_agent_config
+def _flag(args: argparse.Namespace, name: str) -> object | None:
+    """A flag's value when given on the command line, else None (`doctor` lacks some of them)."""
+    return getattr(args, name, None)
 
-    defaults = args.parser_defaults
+
+def flag_overrides(args: argparse.Namespace) -> tuple[dict[str, object], dict[str, object]]:
+    """The ([agent], [autopilot]) values set by command-line flags; only flags actually given.
+
+    Flags default to None so that a flag equal to the built-in default still beats the file.
+    """
     agent: dict[str, object] = {}
+    autopilot: dict[str, object] = {}
     if args.id:
         agent["identity"] = args.id
-    if args.gcs != defaults.gcs:
+    if args.gcs is not None:
         agent["gcs_host"], agent["gcs_port"] = split_host_port(args.gcs, 4396)
     if args.key or args.key_file:
         agent["key_hex"] = read_key(args)
-    if args.release_beacon:
-        agent["release_beacon"] = args.release_beacon
-    autopilot: dict[str, object] = {}
-    if args.autopilot != defaults.autopilot:
-        autopilot["connection"] = args.autopilot
-    if args.autopilot_backend != defaults.autopilot_backend:
-        autopilot["backend"] = args.autopilot_backend
+    for flag, field in (
+        ("release_beacon", "release_beacon"),
+        ("tls_ca", "tls_ca"),
+        ("tls_cert", "tls_cert"),
+        ("tls_key", "tls_key"),
+        ("tls_server_name", "tls_server_name"),
+    ):
+        if _flag(args, flag) is not None:
+            agent[field] = _flag(args, flag)
+    capabilities = {
+        field: _flag(args, flag)
+        for flag, field in (("max_speed", "max_speed_mps"), ("endurance", "endurance_s"))
+        if _flag(args, flag) is not None
+    }
+    if capabilities:
+        agent["capabilities"] = capabilities
+    settings = {
+        field: _flag(args, flag)
+        for flag, field in (
+            ("lost_link_timeout", "lost_link_timeout_s"),
+            ("lost_link_action", "lost_link_action"),
+        )
+        if _flag(args, flag) is not None
+    }
+    if settings:
+        agent["settings"] = settings
+    for flag, field in (
+        ("autopilot", "connection"),
+        ("autopilot_backend", "backend"),
+        ("speedup", "speedup"),
+        ("tlog", "tlog"),
+        ("mavlink_signing_key_file", "mavlink_signing_key_file"),
+    ):
+        if _flag(args, flag) is not None:
+            autopilot[field] = _flag(args, flag)
+    return agent, autopilot
+
+
+def agent_from_args(args: argparse.Namespace) -> tuple[AgentConfig, Autopilot, LoggingConfig | None]:
+    """The agent's configuration and autopilot: built-in defaults < --config FILE < FLEETGCS_AGENT_*
+    / FLEETGCS_AUTOPILOT_* environment < command-line flags (docs/configuration.md)."""
+    from agent.config_file import LOG_PREFIX, load_agent_config
+
+    agent, autopilot = flag_overrides(args)
     try:
         loaded = load_agent_config(args.config, agent, autopilot)
     except ValueError as exc:
-        raise SystemExit(f"agent: {exc}") from None
+        text = str(exc)
+        if args.config is None and "agent.identity" in text:
+            raise SystemExit(
+                f"agent {args.command}: give --id (or --config FILE with [agent] identity)"
+            ) from None
+        if args.config is None and "agent.key_hex" in text:
+            read_key(args)  # raises the "give the key" message
+        raise SystemExit(f"agent {args.command}: {text}") from None
+    config = loaded.agent
     a = loaded.autopilot
+    if "autopilot" not in config.capabilities.model_fields_set:
+        capabilities = config.capabilities.model_copy(update={"autopilot": a.backend})
+        config = config.model_copy(update={"capabilities": capabilities})
     pilot = make_autopilot(
         a.backend,
         a.connection,
@@ -96,40 +155,8 @@ def config_from_file(args: argparse.Namespace) -> tuple[AgentConfig, Autopilot, 
         str(a.tlog) if a.tlog else None,
         str(a.mavlink_signing_key_file) if a.mavlink_signing_key_file else None,
     )
-    return loaded.agent, pilot, loaded.log
-
-
-def agent_from_args(args: argparse.Namespace) -> tuple[AgentConfig, Autopilot, LoggingConfig | None]:
-    """The agent's configuration and autopilot, from --config FILE or from the flags alone."""
-    if args.config is not None:
-        return config_from_file(args)
-    if not args.id:
-        raise SystemExit(f"agent {args.command}: give --id (or --config FILE with [agent] identity)")
-    host, port = split_host_port(args.gcs, 4396)
-    try:
-        config = AgentConfig(
-            identity=args.id,
-            gcs_host=host,
-            gcs_port=port,
-            key_hex=read_key(args),
-            capabilities=Capabilities(
-                max_speed_mps=args.max_speed, endurance_s=args.endurance, autopilot=args.autopilot_backend
-            ),
-            tls_ca=args.tls_ca,
-            tls_cert=args.tls_cert,
-            tls_key=args.tls_key,
-            tls_server_name=args.tls_server_name,
-            settings=AgentSettings(
-                lost_link_timeout_s=args.lost_link_timeout, lost_link_action=args.lost_link_action
-            ),
-            release_beacon=args.release_beacon,
-        )
-    except ValidationError as exc:
-        raise SystemExit(f"agent {args.command}: {first_error(exc, 'agent')}") from None
-    autopilot = make_autopilot(
-        args.autopilot_backend, args.autopilot, args.speedup, args.tlog, args.mavlink_signing_key_file
-    )
-    return config, autopilot, None
+    logging_set = args.config is not None or any(k.startswith(LOG_PREFIX) for k in os.environ)
+    return config, pilot, loaded.log if logging_set else None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -155,17 +182,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("run", help="connect an autopilot to the daemon")
-    p.add_argument("--gcs", default="127.0.0.1:4396", help="daemon HOST:PORT (default %(default)s)")
-    p.add_argument("--autopilot", default="tcp:127.0.0.1:5760", help="MAVLink connection string")
-    p.add_argument("--autopilot-backend", default="mavlink", choices=["mavlink", "mavsdk", "memory"])
+    # Flags default to None: a flag given wins over --config and the environment, one left out does
+    # not; the built-in defaults (in brackets) live in AgentConfig / AutopilotSection.
+    p.add_argument("--gcs", help="daemon HOST:PORT [127.0.0.1:4396]")
+    p.add_argument("--autopilot", help="MAVLink connection string [tcp:127.0.0.1:5760]")
+    p.add_argument(
+        "--autopilot-backend", choices=["mavlink", "mavsdk", "memory"], help="autopilot backend [mavlink]"
+    )
     p.add_argument("--id", help="agent identity (unique in the fleet; required without --config)")
     p.add_argument("--key-file", help="file holding the hex key (fleet key or this agent's key)")
     p.add_argument("--key", help="hex key (prefer --key-file or FLEETGCS_KEY: argv is visible to all users)")
-    p.add_argument("--max-speed", type=float, default=10.0, help="capability: max speed m/s")
-    p.add_argument("--endurance", type=float, default=1200.0, help="capability: endurance s")
-    p.add_argument("--lost-link-timeout", type=float, default=15.0)
-    p.add_argument("--lost-link-action", default="continue", choices=["continue", "hold", "rtl", "land"])
-    p.add_argument("--speedup", type=float, default=1.0, help="memory backend only: time speed-up")
+    p.add_argument("--max-speed", type=float, help="capability: max speed m/s [10]")
+    p.add_argument("--endurance", type=float, help="capability: endurance s [1200]")
+    p.add_argument("--lost-link-timeout", type=float, help="s without the daemon before the action [15]")
+    p.add_argument("--lost-link-action", choices=["continue", "hold", "rtl", "land"], help="[continue]")
+    p.add_argument("--speedup", type=float, help="memory backend only: time speed-up [1]")
     p.add_argument("--tlog", help="append the MAVLink traffic to this .tlog file (replay with MAVProxy)")
     p.add_argument("--mavlink-signing-key-file", help="MAVLink 2 signing key (64 hex digits or a passphrase)")
     p.add_argument("--tls-ca", type=Path, help="PEM CA: connect to the daemon over TLS and verify it")
@@ -180,7 +211,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--config", type=Path, help="TOML configuration file (docs/configuration.md)")
     p.set_defaults(run=run)
-    p.set_defaults(parser_defaults=argparse.Namespace(**{a.dest: a.default for a in p._actions}))
     d = sub.add_parser(
         "doctor",
         help="check the autopilot link, the daemon link (handshake with the key), time sync and clock drift",
@@ -191,7 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--probe-identity", help="identity for the test handshake (default: the agent's own)")
     d.add_argument("--timeout", type=float, default=10.0, help="per-check timeout, s")
     d.add_argument("--drift-interval", type=float, default=3.0, help="s between two offset samples; 0 = skip")
-    d.set_defaults(run=doctor, parser_defaults=argparse.Namespace(**{a.dest: a.default for a in p._actions}))
+    d.set_defaults(run=doctor)
     return parser
 
 
@@ -227,9 +257,7 @@ def doctor(args: argparse.Namespace) -> int:
     """Run the checks of agent/doctor.py and print what is wrong."""
     from agent.doctor import diagnose
 
-    # doctor checks links, not capabilities or failsafes: the run defaults serve
-    args.max_speed, args.endurance = 10.0, 1200.0
-    args.lost_link_timeout, args.lost_link_action = 15.0, "continue"
+    # doctor checks links, not capabilities or failsafes: the file's or built-in values serve
     config, autopilot, _ = agent_from_args(args)
     report = asyncio.run(
         diagnose(

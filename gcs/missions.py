@@ -86,6 +86,7 @@ class ActiveMission:
     barriers: BarrierSet
     completed: dict[str, int]
     excluded: set[str] = field(default_factory=set)
+    left_why: dict[str, str] = field(default_factory=dict)  # excluded agent -> why (this daemon's run)
     state: MissionState = "running"
     timers: dict[int, asyncio.TimerHandle] = field(default_factory=dict)
     failures: dict[str, tuple[int, float]] = field(default_factory=dict)  # agent -> last (step, time) seen
@@ -94,6 +95,19 @@ class ActiveMission:
 
     def last_step(self, agent: str) -> int:
         return self.plans[agent][-1].step
+
+
+def every_agent_left(mission: ActiveMission) -> str:
+    """The result of a mission no agent flies any more, saying why each left.
+
+    A battery emergency's withdrawal or a vehicle's own failsafe is not a lost link: the text
+    names each agent with its reason ("drone-1: withdrawn: energy: ...; drone-2: vehicle
+    failsafe battery_low"). Agents excluded before a daemon restart have no reason kept.
+    """
+    whys = [f"{a}: {mission.left_why.get(a, 'excluded')}" for a in sorted(mission.plans)]
+    if all(mission.left_why.get(a, "").startswith("lost") for a in mission.plans):
+        return "every agent was lost"
+    return "no agent left flying (" + "; ".join(whys) + ")"
 
 
 class MissionRunner:
@@ -548,7 +562,7 @@ class MissionRunner:
     def _check_complete(self, mission: ActiveMission) -> None:
         flying = [a for a in mission.plans if a not in mission.excluded]
         if not flying:
-            self._finish(mission, "aborted", "every agent was lost")
+            self._finish(mission, "aborted", every_agent_left(mission))
             return
         if all(mission.completed[a] >= mission.last_step(a) for a in flying):
             note = f" ({len(mission.excluded)} agents excluded)" if mission.excluded else ""
@@ -715,6 +729,7 @@ class MissionRunner:
 
     async def _exclude(self, mission: ActiveMission, identity: str, why: str) -> None:
         mission.excluded.add(identity)
+        mission.left_why[identity] = why
         self._store.exclude_agent(mission.id, identity)
         self._events.publish("agent_excluded", why, severity="warning", agent=identity, mission_id=mission.id)
         for step in mission.barriers.exclude(identity):

@@ -628,7 +628,10 @@ class MavsdkAutopilot(Autopilot):
             raise ValueError(f"return altitude must be a positive number, not {alt_rel_m!r}")
         if alt_rel_m is not None:
             # MAVSDK writes the flavour's parameter (PX4 RTL_RETURN_ALT in m, ArduPilot RTL_ALT in cm).
-            await self._call("rtl altitude", self._action.set_return_to_launch_altitude, float(alt_rel_m))
+            try:
+                await self._call("rtl altitude", self._action.set_return_to_launch_altitude, float(alt_rel_m))
+            except (CommandRefused, CommandTimeout) as exc:  # a return must not fail for its altitude
+                log.warning("return altitude %.1f m not set (%s); returning at the vehicle's", alt_rel_m, exc)
         self._settler.cancel()
         await self._call("rtl", self._action.return_to_launch)
         self._set_leg_active(False)
@@ -638,6 +641,8 @@ class MavsdkAutopilot(Autopilot):
         flavour = self.flavour
         tel = self.telemetry()
         if flavour.hold_by_reposition and tel.armed and not tel.landed and tel.position_known:
+            if self._settler.running:
+                return  # already stopping (a collision hold is re-sent every 2 s): do not re-aim back
             await self._reposition("hold", tel.lat, tel.lon, tel.alt_amsl, None)
             self._set_leg_active(False)
             self._settler.start(self.telemetry, self._settle_reposition)

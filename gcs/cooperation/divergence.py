@@ -33,8 +33,9 @@ from gcs.cooperation.legs import Leg, Point
 from protocol.geo import ned_offset_m, offset_latlon
 from protocol.packets import StatusReport
 
-# Modes in which the vehicle is not flying its plan: returns, landings and brakes (holds).
-NON_PLAN_MODES = frozenset({"RTL", "SMART_RTL", "LAND", "BRAKE"})
+# Modes in which the vehicle is not flying its plan: returns, landings and holds (ArduPilot BRAKE,
+# or LOITER when BRAKE is refused; a held PX4 drone shows LOITER, one flying a leg GUIDED).
+NON_PLAN_MODES = frozenset({"RTL", "SMART_RTL", "LAND", "BRAKE", "LOITER"})
 # Agent exceptions whose reaction may have taken the vehicle off its plan (agent/monitor.py).
 FAILSAFE_EXCEPTIONS = ("battery_low", "battery_critical", "fence_breach", "link_lost")
 

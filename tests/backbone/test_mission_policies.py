@@ -148,3 +148,23 @@ async def test_preflight_waits_for_a_fix_and_says_so(tmp_path: Path) -> None:
                 await daemon.missions.submit(survey_mission(["a"], sync_legs=1, fix_wait_s=1))
         finally:
             await stop_agents(agents)
+
+
+async def test_a_mission_without_agents_says_why_they_left(tmp_path: Path) -> None:
+    """Withdrawn by a battery emergency is not "lost": the result names each agent's reason."""
+    key = new_key()
+    async with running_daemon(tmp_path, key) as daemon:
+        agents = [start_agent(n, daemon.listen_port, key, i) for i, n in enumerate(["a", "b"])]
+        try:
+            await wait_for(lambda: len(daemon.agents.connected()) == 2, 10, "two agents")
+            mission_id = await daemon.missions.submit(survey_mission(["a", "b"], sync_legs=1))
+            await daemon.missions.withdraw("a", "energy: battery emergency")
+            await daemon.missions.withdraw("b", "operator: fleet rtl")
+            await wait_for(lambda: mission_id not in daemon.missions.active, 10, "mission end")
+            progress = daemon.missions.progress(mission_id)
+            assert progress is not None and progress.state == "aborted", progress
+            assert progress.result is not None and "lost" not in progress.result, progress.result
+            assert "a: withdrawn: energy: battery emergency" in progress.result
+            assert "b: withdrawn: operator: fleet rtl" in progress.result
+        finally:
+            await stop_agents(agents)
