@@ -1,5 +1,5 @@
 """One PX4 rig per backend per module (``rig`` is parametrized over the agent's two backends); a module
-sets ``COLLISION_AVOIDANCE = True`` to fly with the daemon's collision avoidance on."""
+sets ``COLLISION_AVOIDANCE`` (a CollisionConfig) to fly with the daemon's collision avoidance on."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
     first = first_instance()
     if first is None:
         pytest.skip("PX4 instance ids 0-9 are shared by two xdist workers (gw0, gw1); this is a third")
-    collision = bool(getattr(request.module, "COLLISION_AVOIDANCE", False))
+    collision = getattr(request.module, "COLLISION_AVOIDANCE", None)
     fleet = PX4Rig(px4, backend, tmp_path_factory.mktemp(f"px4-{backend}"), first, collision).start()
     try:
         yield fleet

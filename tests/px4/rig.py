@@ -56,7 +56,9 @@ def at(north: float, east: float, index: int = 0) -> tuple[float, float]:
 class PX4Rig(FleetRig):
     """A running PX4 fleet flown through the daemon by agents on ``backend``."""
 
-    def __init__(self, px4: Path, backend: str, data_dir: Path, first: int, collision: bool = False) -> None:
+    def __init__(
+        self, px4: Path, backend: str, data_dir: Path, first: int, collision: CollisionConfig | None = None
+    ) -> None:
         super().__init__(f"px4-{backend}", [f"drone-{i + 1}" for i in range(VEHICLES)], data_dir, proxy=True)
         self.backend = backend
         self.fleet = PX4Fleet(px4, data_dir / "px4", first, VEHICLES, HOME, SPACING_M, PARAMS, SPEED)
@@ -64,7 +66,7 @@ class PX4Rig(FleetRig):
         self.origins: list[tuple[float, float]] = [at(0.0, 0.0, i) for i in range(VEHICLES)]
         # Collision avoidance (holds, climbs) would blur what the autopilot does by itself in the
         # mission tests (parallel legs 10 m apart); the safety module turns it on.
-        self.collision = collision
+        self.collision = collision or CollisionConfig(enabled=False)
 
     def start(self) -> PX4Rig:
         try:
@@ -75,9 +77,7 @@ class PX4Rig(FleetRig):
                 create_autopilot(self.backend, endpoint, telemetry_hz=10.0)
                 for endpoint in self.fleet.endpoints
             ]
-            cooperation = CooperationConfig(
-                vehicle_time_scale=SPEED, collision=CollisionConfig(enabled=self.collision)
-            )
+            cooperation = CooperationConfig(vehicle_time_scale=SPEED, collision=self.collision)
             self.start_agents(autopilots, cooperation, DEFAULT_SETTINGS, arm_deadline_s=30.0)
         except BaseException:
             self.stop()

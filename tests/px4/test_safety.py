@@ -11,6 +11,7 @@ import time
 
 import pytest
 
+from gcs.cooperation.config import CollisionConfig
 from protocol.actions import Goto, Land, Takeoff
 from protocol.geo import distance_m
 from tests.px4.checks import (
@@ -26,7 +27,9 @@ from tests.support.rig import task
 
 pytestmark = [pytest.mark.px4, pytest.mark.slow, pytest.mark.timeout(300)]
 
-COLLISION_AVOIDANCE = True  # read by the rig fixture
+# Read by the rig fixture. Holds, not climbs: a held drone waits until the other has passed, long
+# enough to see it stop (a climb escape clears a pair in about 2 s).
+COLLISION_AVOIDANCE = CollisionConfig(escape="none")
 LOST_LINK_TIMEOUT_S = 2.0
 
 
@@ -101,18 +104,24 @@ def test_low_battery_sends_that_drone_home(rig: PX4Rig) -> None:
 
 
 def test_collision_hold_stops_a_px4_drone(rig: PX4Rig) -> None:
-    """drone-1 and drone-2 head-on at one altitude: the daemon holds one of them, and a held PX4 drone
-    is below 0.5 m/s within 3 s and stays so while held; the mission still completes."""
-    south, north = rig.at(-25.0, SPACING_M / 2, 0), rig.at(25.0, SPACING_M / 2, 0)
+    """drone-1 and drone-2 cross at one altitude and one time (drone-1 west to east, drone-2 south to
+    north): the daemon holds one of them until the other has passed, and a held PX4 drone is below
+    0.5 m/s within 3 s and stays so while held; the mission still completes."""
+    cross_n, cross_e = 30.0, SPACING_M / 2  # from drone-1's origin; drone-2's is SPACING_M east
+
+    def leg(index: int, north: float, east: float) -> tuple[float, float]:
+        return rig.at(cross_n + north, cross_e + east - SPACING_M * index, index)
+
     plans: dict[str, list[object]] = {}
-    for name, (a, b) in (("drone-1", (south, north)), ("drone-2", (north, south))):
-        plans[name] = [
+    for index, (a, b) in enumerate((((0.0, -25.0), (0.0, 25.0)), ((-25.0, 0.0), (25.0, 0.0)))):
+        start, end = leg(index, *a), leg(index, *b)
+        plans[rig.names[index]] = [
             Takeoff(step=0, alt=10.0, sync=True),
-            Goto(step=1, lat=a[0], lon=a[1], alt=10.0, speed=5.0, sync=True),
-            Goto(step=2, lat=b[0], lon=b[1], alt=10.0, speed=5.0, sync=True),
+            Goto(step=1, lat=start[0], lon=start[1], alt=10.0, speed=5.0, sync=True),
+            Goto(step=2, lat=end[0], lon=end[1], alt=10.0, speed=5.0, sync=True),
             Land(step=3),
         ]
-    mission_id = rig.submit(task("head-on", plans))
+    mission_id = rig.submit(task("crossing", plans))
     pair = ["drone-1", "drone-2"]
     holds: dict[str, list[list[float]]] = {n: [] for n in pair}  # [start, end] in vehicle seconds
     deadline = time.monotonic() + 200.0
@@ -133,8 +142,8 @@ def test_collision_hold_stops_a_px4_drone(rig: PX4Rig) -> None:
     assert progress.state == "completed", progress
     long_holds = [(n, s, e) for n in pair for s, e in holds[n] if e - s >= STOP_WITHIN_S + 1.0]
     assert long_holds, f"no collision hold of {STOP_WITHIN_S + 1.0:.0f} s or more: {holds}"
-    for name, start, end in long_holds:
-        window = rig.fixes(name, start + STOP_WITHIN_S, end)
+    for name, held_from, held_until in long_holds:
+        window = rig.fixes(name, held_from + STOP_WITHIN_S, held_until)
         fastest = max(f.speed for f in window)
         assert fastest < STOPPED_MPS, f"{name} held by collision avoidance at {fastest:.2f} m/s"
 
