@@ -13,8 +13,8 @@ import pytest
 from protocol.actions import GoBy, Goto, Hold, Land, ReturnToLaunch, SetSpeed, Takeoff, Waypoint, Waypoints
 from protocol.geo import distance_m
 from protocol.packets import FenceCircle, Geofence
-from protocol.taskfile import AgentPlan, TaskFile
 from tests.ardupilot.rig import HOME, Rig, at
+from tests.support.rig import task
 
 pytestmark = [pytest.mark.ardupilot, pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -23,17 +23,8 @@ SPEED_TOLERANCE = 0.6
 RTL_ALTS = (16.0, 20.0, 24.0)
 
 
-def task(name: str, plans: dict[str, list[object]], **options: object) -> TaskFile:
-    return TaskFile.model_validate(
-        {"name": name, "plans": [AgentPlan(agent=a, actions=acts).model_dump() for a, acts in plans.items()]}  # type: ignore[arg-type]
-        | options
-    )
-
-
 def peak(rig: Rig, name: str, mission_id: str, step: int) -> float:
-    flown = rig.flown(name, mission_id, step)
-    assert flown, f"{name} has no samples of step {step}"
-    return max(s.speed for s in flown)
+    return rig.peak(name, mission_id, step)
 
 
 def test_synchronized_mission_right_after_connect(rig: Rig) -> None:
