@@ -31,7 +31,12 @@ MAX_GAP_S = 1.0  # status every 0.1 s: a second without a stored row is a hole
 
 async def _start(data_dir: Path, ready: Path, listen: str) -> tuple[subprocess.Popen[bytes], int]:
     proc = serve_daemon(data_dir, ready, listen, env=SLOW_FLUSH)
-    agent_port, _ = await asyncio.to_thread(wait_ready, ready, proc, 120.0)  # a loaded CI machine
+    try:
+        agent_port, _ = await asyncio.to_thread(wait_ready, ready, proc, 120.0)  # a loaded CI machine
+    except BaseException:
+        proc.kill()  # never ready: do not leave it running
+        proc.wait(timeout=10)
+        raise
     return proc, agent_port
 
 
