@@ -11,6 +11,13 @@ sends, in this order (docs/protocol.md section 2): the buffered reports oldest f
 report, all before its first status period. The daemon counts replayed reports apart from live
 frames (its replay allowance has a burst of 400), so a long outage never trips the rate limit.
 
+On a version-2 session a replayed report stays buffered after it is sent, until the daemon
+acknowledges that it is stored (a type 3 with ``replay_stored``: every replayed report up to
+that agent time): a daemon killed between receiving the replay and committing it to its
+database would otherwise lose the whole outage. What is not acknowledged when the link drops
+is replayed again after the next ``accepted`` (the daemon ignores a report it already stored).
+The buffer keeps its bound (``status_buffer``). A version-1 session forgets a report once sent.
+
 Refusal and close codes decide what happens next (:data:`protocol.session.ACTIONS`): ``retry``
 waits the daemon's ``retry_after_s`` (``REFUSED_BACKOFF_S`` when it names none; an unproved wait
 is capped at ``UNPROVED_RETRY_MAX_S``), ``reconnect`` uses the normal backoff (``replaced`` waits
@@ -168,6 +175,8 @@ class DaemonLink:
         self.thinned = 0  # buffered status reports left out of a replay
         self._stream: FramedStream | None = None
         self._status_backlog: deque[StatusReport] = deque(maxlen=config.status_buffer)
+        self._sent_unacked = 0  # the backlog's first reports: replayed, not yet acknowledged (v2)
+        self.acknowledged = 0  # replayed reports the daemon said it stored (v2 `replay_stored`)
         self._control_backlog: list[Body] = []
         self._send_lock = asyncio.Lock()
         self._stopping = False
@@ -178,7 +187,10 @@ class DaemonLink:
 
     async def send_status(self, status: StatusReport) -> None:
         if not self.connected or not await self._send(status):
-            self._status_backlog.append(status.model_copy(update={"buffered": True}))
+            backlog = self._status_backlog
+            if self._sent_unacked and len(backlog) == backlog.maxlen:
+                self._sent_unacked -= 1  # the bound pushes out the oldest, a sent one
+            backlog.append(status.model_copy(update={"buffered": True}))
 
     async def send_control(self, body: Body) -> None:
         if not self.connected or not await self._send(body):
@@ -401,17 +413,30 @@ class DaemonLink:
         The thinned replay fits the daemon's separate replay allowance (docs/protocol.md), so it
         goes out at once; what cannot be sent stays buffered for the next session.
         """
+        self._sent_unacked = 0  # what the last session did not get acknowledged goes again
         if not self._status_backlog:
             return
         reports = thin_replay(list(self._status_backlog), self.config.replay_max_reports)
         self.thinned += len(self._status_backlog) - len(reports)
         self._status_backlog.clear()
         self._status_backlog.extend(reports)
-        while self._status_backlog and self.connected:
-            if not await self._send(self._status_backlog[0]):
+        keep = self.version is not None and self.version >= 2  # until the daemon acknowledges them
+        while len(self._status_backlog) > self._sent_unacked and self.connected:
+            if not await self._send(self._status_backlog[self._sent_unacked]):
                 return
-            self._status_backlog.popleft()
+            if keep:
+                self._sent_unacked += 1
+            else:
+                self._status_backlog.popleft()
             self.replayed += 1
+
+    def _stored(self, until: float) -> None:
+        """The daemon stored our replayed reports up to agent time ``until``: forget those (v2)."""
+        backlog = self._status_backlog
+        while self._sent_unacked and backlog[0].time <= until:
+            backlog.popleft()
+            self._sent_unacked -= 1
+            self.acknowledged += 1
 
     async def _dispatch(self, frame: Frame) -> None:
         body = frame.body
@@ -420,6 +445,8 @@ class DaemonLink:
         elif isinstance(body, SyncSignal) and body.kind == "release":
             await self._on_release(body)
         elif isinstance(body, SetParameters):
+            if body.replay_stored is not None:
+                self._stored(body.replay_stored)
             await self._on_parameters(body)
         elif isinstance(body, Close):
             self._drop()
@@ -432,5 +459,10 @@ class DaemonLink:
 
     @property
     def buffered(self) -> tuple[int, int]:
-        """(status reports, control packets) waiting for the link."""
-        return len(self._status_backlog), len(self._control_backlog)
+        """(status reports, control packets) waiting for the link (not yet sent)."""
+        return len(self._status_backlog) - self._sent_unacked, len(self._control_backlog)
+
+    @property
+    def unacknowledged(self) -> int:
+        """Replayed status reports kept until the daemon says it stored them (v2)."""
+        return self._sent_unacked

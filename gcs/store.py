@@ -701,9 +701,15 @@ TELEMETRY_CHUNK = 500
 (a few milliseconds), so the event loop's small state writes never wait long for it."""
 
 
+_BUFFERED_PARAM = f"?{TELEMETRY_COLUMNS.index('buffered') + 1}"
 _INSERT_TELEMETRY = (
-    f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) VALUES ({','.join('?' * len(TELEMETRY_COLUMNS))})"
+    f"INSERT INTO telemetry({','.join(TELEMETRY_COLUMNS)}) "
+    f"SELECT {','.join(f'?{n}' for n in range(1, len(TELEMETRY_COLUMNS) + 1))} "
+    f"WHERE {_BUFFERED_PARAM} = 0 OR NOT EXISTS (SELECT 1 FROM telemetry WHERE agent = ?1 AND time = ?2)"
 )
+"""A replayed (buffered) row the table already holds (same agent and time) is skipped: an agent
+sends its replay again until the daemon acknowledges it stored (gcs/telemetry.py), and a daemon
+killed after the write but before the acknowledgement gets the same reports twice."""
 YIELD_WAIT_S = 0.05
 """The longest a bulk insert waits for a lock a state write asked for before it goes on."""
 

@@ -11,6 +11,16 @@ falls ``max_queued_rows`` behind, the oldest waiting rows are dropped and counte
 batched. History pages are read in a worker thread on a read-only connection
 (:meth:`TelemetryRecorder.history_page`).
 
+Replayed (``buffered``) reports of a version-2 agent are acknowledged once they are durable: each
+block carries, per agent, the newest replayed report time it holds, and after the writer thread
+committed the block the recorder sends the agent a type 3 ``replay_stored`` with that time
+(docs/protocol.md section 2), so the agent keeps its replay until then and a daemon killed in
+between loses none of it. The store ignores a replayed row it already has (same agent and
+time), so a replay sent again is not stored twice. A replayed report lost on the way (a hook
+queue or the row buffer overflowed, a failed write) stops the acknowledgements of the agents it
+may concern until the daemon restarts: an acknowledgement covers every earlier time, so it must
+never be sent over a hole; those agents keep replaying their reports (bounded) on each rejoin.
+
 Flight logs: CSV (one row per sample, the columns of :data:`CSV_COLUMNS`) and GeoJSON (one
 LineString per flight), with flights split at each arm...landed-and-disarmed cycle.
 """
@@ -19,6 +29,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import csv
 import io
 import itertools
@@ -36,7 +47,7 @@ from gcs.agents_table import StatusTick
 from gcs.config import TelemetryConfig
 from gcs.memory import release_free_memory
 from gcs.store import Store, checkpoint, insert_telemetry, prune_telemetry, telemetry_page_json
-from protocol.packets import StatusReport
+from protocol.packets import SetParameters, StatusReport
 from protocol.status_binary import ARMED, BUFFERED, HAS_POSITION, LANDED
 
 if TYPE_CHECKING:
@@ -121,6 +132,8 @@ class TickRows:
 
 RowBlock = TickRows | list[tuple[Any, ...]]
 """What the writer queues: a tick's rows as columns, or rows already made."""
+Acks = dict[str, float]
+"""Per agent identity, the newest replayed report time a block holds (acknowledged once written)."""
 
 
 def _rows_of(block: RowBlock) -> Iterable[tuple[Any, ...]]:
@@ -139,10 +152,18 @@ One: each is CPU-bound, and every extra thread competes with the event loop for 
 class TelemetryWriter:
     """One thread that owns the telemetry inserts and pruning, fed through a bounded row buffer."""
 
-    def __init__(self, store: Store, config: TelemetryConfig, max_rows: int = MAX_QUEUED_ROWS) -> None:
+    def __init__(
+        self,
+        store: Store,
+        config: TelemetryConfig,
+        max_rows: int = MAX_QUEUED_ROWS,
+        on_stored: Callable[[Acks], None] | None = None,
+    ) -> None:
         self._store = store
         self.config = config
-        self._blocks: collections.deque[RowBlock] = collections.deque()
+        self._on_stored = on_stored  # called (on the writer's thread) with the acks of what was committed
+        self.withheld: set[str] = set()  # agents whose replayed rows went unwritten: never acknowledged
+        self._blocks: collections.deque[tuple[RowBlock, Acks | None]] = collections.deque()
         self._queued = 0  # rows in _blocks
         self._max_rows = max_rows
         self._lock = threading.Lock()
@@ -163,19 +184,22 @@ class TelemetryWriter:
         """Queue one row; O(1), never blocks on SQLite."""
         self.add_block([row])
 
-    def add_block(self, block: RowBlock) -> None:
+    def add_block(self, block: RowBlock, acks: Acks | None = None) -> None:
         """Queue a block of rows (a tick's columns, or tuples); when the buffer is full the oldest
-        blocks go, counted in ``dropped`` (whole blocks: at most one tick's rows more than needed)."""
+        blocks go, counted in ``dropped`` (whole blocks: at most one tick's rows more than needed).
+        ``acks`` are reported to ``on_stored`` once this block and every one before it is written."""
         size = len(block)
-        if not size:
+        if not size and not acks:
             return
         with self._lock:
-            self._blocks.append(block)
+            self._blocks.append((block, acks))
             self._queued += size
             while self._queued > self._max_rows and len(self._blocks) > 1:
-                gone = len(self._blocks.popleft())
-                self._queued -= gone
-                self.dropped += gone
+                gone, lost = self._blocks.popleft()
+                self._queued -= len(gone)
+                self.dropped += len(gone)
+                if lost:
+                    self.withheld.update(lost)
 
     @property
     def pending(self) -> int:
@@ -236,14 +260,22 @@ class TelemetryWriter:
             self._queued = 0
         if not blocks:
             return False
+        acks: Acks = {}
+        for _, block_acks in blocks:
+            for identity, until in (block_acks or {}).items():
+                acks[identity] = max(until, acks.get(identity, until))
         try:
-            insert(itertools.chain.from_iterable(_rows_of(block) for block in blocks))
+            insert(itertools.chain.from_iterable(_rows_of(block) for block, _ in blocks))
             self.written += count
         except sqlite3.Error:  # a full disk or a locked file costs this batch, not the daemon
             self.failed_batches += 1
+            self.withheld.update(acks)
             log.exception("telemetry: could not write %d samples", count)
             return False
-        return True
+        stored = {identity: until for identity, until in acks.items() if identity not in self.withheld}
+        if stored and self._on_stored is not None:
+            self._on_stored(stored)
+        return count > 0
 
     def _prune(self, db: sqlite3.Connection) -> None:
         try:
@@ -266,12 +298,19 @@ class TelemetryRecorder:
         self._writer: TelemetryWriter | None = None
         self._last_kept: dict[str, float] = {}
         self._queries = asyncio.Semaphore(HISTORY_QUERIES)
+        self._ctx: ServiceContext | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._hook_drops = 0  # ticks this service's hook queue dropped, as of the last check
+        self.acks_off = False  # a tick was dropped: replayed reports are no longer acknowledged
+        self.acks_sent = 0
 
     async def start(self, ctx: ServiceContext) -> None:
-        if not self.config.enabled:
+        self._ctx, self._loop = ctx, asyncio.get_running_loop()
+        if not self.config.enabled:  # nothing is stored, so nothing to keep: replays acknowledged at once
+            ctx.agents.on_status_tick.append(self._ack_only)
             return
         self._store = ctx.store
-        self._writer = TelemetryWriter(ctx.store, self.config)
+        self._writer = TelemetryWriter(ctx.store, self.config, on_stored=self._stored)
         if ctx.store.path != ":memory:":
             self._writer.start()  # an in-memory store is written on flush, on its one connection
         ctx.agents.on_status_tick.append(self._on_tick)
@@ -289,13 +328,64 @@ class TelemetryRecorder:
     def dropped(self) -> int:
         return self._writer.dropped if self._writer else 0
 
+    def _replay_acks(self, tick: StatusTick) -> Acks | None:
+        """Per version-2 agent, the newest replayed report time in ``tick`` (None: no replayed reports).
+
+        None as well once any tick was dropped on the way here: an acknowledgement covers every
+        earlier report, and a dropped one was not stored.
+        """
+        replayed = np.flatnonzero(tick.cols["flags"] & BUFFERED)
+        if not len(replayed) or self.acks_off or self._ctx is None:
+            return None
+        mine = type(self).__name__
+        drops = sum(s.dropped for s in self._ctx.agents.hook_stats() if s.name.startswith(mine))
+        if drops != self._hook_drops:
+            self._hook_drops, self.acks_off = drops, True
+            log.warning("telemetry: status ticks were dropped; replayed reports are no longer acknowledged")
+            return None
+        acks: Acks = {}
+        times = tick.cols["time"]
+        for i in replayed.tolist():
+            owner = tick.owners[i]
+            if owner.version >= 2:
+                acks[owner.identity] = max(float(times[i]), acks.get(owner.identity, float(times[i])))
+        return acks or None
+
+    def _stored(self, acks: Acks) -> None:
+        """The writer committed replayed reports (its thread): acknowledge them on the loop."""
+        loop = self._loop
+        if loop is not None:
+            with contextlib.suppress(RuntimeError):  # the loop has closed: the daemon is gone
+                loop.call_soon_threadsafe(self._acknowledge, acks)
+
+    def _acknowledge(self, acks: Acks) -> None:
+        """Tell each agent (its current session, version 2) up to which time its replay is stored."""
+        if self._ctx is None:
+            return
+        for identity, until in acks.items():
+            session = self._ctx.agents.session(identity)
+            if session is None or session.version < 2:
+                continue
+            if session.post(SetParameters(replay_stored=until)):
+                self.acks_sent += 1
+
+    async def _ack_only(self, tick: StatusTick) -> None:
+        """Telemetry off: replayed reports are acknowledged as they arrive (nothing will store them)."""
+        acks = self._replay_acks(tick)
+        if acks:
+            self._acknowledge(acks)
+
     async def _on_tick(self, tick: StatusTick) -> None:
         """A status tick's rows, straight from its columns (one lock, no report objects)."""
         if self._writer is None:
             return
         block = TickRows(tick, time.time())
+        acks = self._replay_acks(tick)
+        if acks and self._store is not None and self._store.path == ":memory:":
+            self._acknowledge(acks)  # nothing in memory outlives the process: no reason to keep them
+            acks = None
         if self.config.period_s <= 0:
-            self._writer.add_block(block)  # tuples are made by the writer thread
+            self._writer.add_block(block, acks)  # tuples are made by the writer thread
             return
         kept, period, last_kept = [], self.config.period_s, self._last_kept
         for row in block.rows():  # downsampled: one row per agent per period_s
@@ -304,7 +394,7 @@ class TelemetryRecorder:
                 continue
             last_kept[row[0]] = row[1]
             kept.append(row)
-        self._writer.add_block(kept)
+        self._writer.add_block(kept, acks)
 
     def flush(self) -> None:
         """Write every queued sample now (blocks until written: tests and tools, not the loop)."""

@@ -302,6 +302,11 @@ class SetParameters(_Body):
     geofence: Geofence | None = None
     clear_geofence: bool | None = Field(default=None, description="true: remove the fence (absent = false)")
     parameters: AgentParameters | None = None
+    replay_stored: Finite | None = Field(
+        default=None,
+        description="v2: the agent's replayed (buffered) status reports with time <= this are stored "
+        "durably by the daemon; the agent may forget them (docs/protocol.md section 2)",
+    )
 
 
 # --- type 4: perform action(s) -----------------------------------------------------------------

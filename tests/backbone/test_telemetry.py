@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import csv
 import itertools
 import json
@@ -96,6 +97,56 @@ async def test_downsampling_keeps_one_sample_per_period(tmp_path: Path) -> None:
     assert 2 <= len(kept) <= received / 3  # reports come every 0.1 s; one in five is kept
     gaps = [b["time"] - a["time"] for a, b in itertools.pairwise(kept)]
     assert min(gaps) >= 0.5
+
+
+def test_a_replayed_row_is_stored_once(tmp_path: Path) -> None:
+    """An agent replays until the daemon acknowledges it, so a replayed report may come twice: one row.
+    Live rows are stored as before."""
+    store = Store(tmp_path / "db.sqlite")
+    replayed = (*telemetry_row("a", 5.0, 0.0)[:-1], 1)
+    store.add_telemetry([replayed, replayed, telemetry_row("a", 6.0, 0.0)])
+    store.add_telemetry([replayed, telemetry_row("a", 6.0, 1.0), (*telemetry_row("b", 5.0, 0.0)[:-1], 1)])
+    assert [(r["agent"], r["time"]) for r in store.telemetry("a")] == [("a", 5.0), ("a", 6.0), ("a", 6.0)]
+    assert len(store.telemetry("b")) == 1
+
+
+async def test_replay_is_kept_until_stored_on_v2_and_forgotten_on_v1(tmp_path: Path) -> None:
+    """v2: the replayed reports stay with the agent until the writer committed them (``replay_stored``);
+    v1: the agent forgets them once sent, and the daemon sends it no acknowledgement."""
+    key = new_key()
+    slow = TelemetryConfig(flush_s=30.0)  # nothing is committed until the test flushes
+    daemon_cm = running_daemon(tmp_path, key, telemetry=slow)
+    daemon = await daemon_cm.__aenter__()
+    port = daemon.listen_port
+    v2 = start_agent("keeper", port, key)
+    v1 = start_agent("forgetter", port, key, index=1)
+    v1.agent.link.versions = [1]
+    try:
+        await wait_for(lambda: v2.agent.link.connected and v1.agent.link.connected, 10, "both join")
+        assert (v2.agent.link.version, v1.agent.link.version) == (2, 1)
+        await daemon_cm.__aexit__(None, None, None)
+        await wait_for(
+            lambda: v2.agent.link.buffered[0] >= 5 and v1.agent.link.buffered[0] >= 5, 10, "both buffer"
+        )
+        daemon_cm = running_daemon(tmp_path, key, listen_port=port, telemetry=slow)
+        daemon = await daemon_cm.__aenter__()
+        await wait_for(
+            lambda: v2.agent.link.sessions == 2 and v1.agent.link.sessions == 2 and v2.agent.link.replayed,
+            10,
+            "both rejoin and replay",
+        )
+        await wait_for(lambda: v2.agent.link.buffered[0] == 0 and v1.agent.link.buffered[0] == 0, 10, "sent")
+        link = v2.agent.link  # (reports from before its first join were replayed and acknowledged then)
+        kept, acknowledged = link.unacknowledged, link.acknowledged
+        assert kept == link.replayed - acknowledged and kept >= 5  # sent, not yet stored: kept
+        assert v1.agent.link.unacknowledged == 0 and v1.agent.link.replayed >= 5
+        await daemon.agents.drain_hooks()
+        await asyncio.to_thread(daemon.telemetry.flush)  # the commit: now the daemon acknowledges
+        await wait_for(lambda: link.unacknowledged == 0, 10, "the acknowledgement")
+        assert link.acknowledged == acknowledged + kept and v1.agent.link.acknowledged == 0
+    finally:
+        await stop_agents([v2, v1])
+        await daemon_cm.__aexit__(None, None, None)
 
 
 def test_retention_prunes_old_samples(tmp_path: Path) -> None:

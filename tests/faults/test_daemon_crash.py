@@ -19,45 +19,12 @@ import httpx
 import pytest
 
 from tests.backbone.helpers import HOME, survey_mission
+from tests.faults.common import serve_daemon as _serve
+from tests.faults.common import wait_ready as _wait_ready
 
 BIN = Path(sys.executable).parent
 NAMES = ["crash-1", "crash-2"]
 SYNC_STEPS = [0, 1, 2, 3, 4, 5]
-
-
-def _serve(data_dir: Path, ready: Path, listen: str) -> subprocess.Popen[bytes]:
-    ready.unlink(missing_ok=True)
-    return subprocess.Popen(
-        [
-            BIN / "gcs",
-            "serve",
-            "--listen",
-            listen,
-            "--http",
-            "127.0.0.1:0",
-            "--data-dir",
-            data_dir,
-            "--status-period",
-            "0.1",
-            "--lost-after",
-            "20",
-            "--ready-file",
-            ready,
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-
-
-def _wait_ready(path: Path, proc: subprocess.Popen[bytes], timeout: float = 20.0) -> tuple[int, int]:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if path.exists() and path.read_text().strip():
-            agent_port, http_port = (int(p) for p in path.read_text().split())
-            return agent_port, http_port
-        assert proc.poll() is None, f"gcs serve exited with {proc.returncode}"
-        time.sleep(0.05)
-    raise AssertionError("gcs serve did not become ready")
 
 
 def _agent(name: str, index: int, port: int, key_file: Path) -> subprocess.Popen[bytes]:

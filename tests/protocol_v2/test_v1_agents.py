@@ -120,6 +120,7 @@ def _daemon_bodies() -> list[Body]:
         SetParameters(),  # the keepalive
         SetParameters(geofence=fence, clear_geofence=False, parameters=parameters),
         SetParameters(clear_geofence=True),
+        SetParameters(replay_stored=1.7e9),  # the replay acknowledgement (v2)
         SyncSignal(mission_id="m-1", step=3, kind="release"),
     ]
     link = _Capture()
