@@ -1,0 +1,214 @@
+"""AUTO mode: flying the stored mission item by item (take-off, waypoints, land, RTL, speed changes),
+and how a new upload or DO_SET_MISSION_CURRENT moves the current item."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+from sitl.dialect import mavlink as mav
+from sitl.mission import FENCE, GLOBAL_FRAMES_AMSL, MISSION, MissionItem, build_fence
+from sitl.physics import Limits, latlon_to_local
+from sitl.vehicle.constants import (
+    AUTO,
+    NAV_CMDS,
+    NAV_NAMES,
+    SEV_INFO,
+    TAKEOFF_DONE_M,
+)
+
+if TYPE_CHECKING:
+    from sitl.vehicle.core import SimVehicle
+
+
+class AutoMission:
+    """Executes the MISSION store; the transfer protocol itself is sitl/mission.py."""
+
+    def __init__(self, v: SimVehicle) -> None:
+        self.v = v
+
+    def ground_start(self) -> bool:
+        """On the ground in AUTO only a takeoff item (or DO items before it) may run."""
+        v = self.v
+        items = v.mission.mission_items()
+        if not 0 < v.mis_idx < len(items):
+            return False
+        cmd = items[v.mis_idx].command
+        return cmd == mav.MAV_CMD_NAV_TAKEOFF or cmd not in NAV_CMDS
+
+    def starts_with_takeoff(self) -> bool:
+        v = self.v
+        for it in v.mission.mission_items()[1:]:
+            if it.command in NAV_CMDS:
+                return it.command == mav.MAV_CMD_NAV_TAKEOFF
+        return False
+
+    def begin(self) -> None:
+        v = self.v
+        n = len(v.mission.mission_items())
+        if v.mis_idx < 1 or v.mis_idx >= n or v.mis_complete:
+            v.mis_idx = 1
+        v.mis_started = False
+        v.mis_complete = False
+        v.mis_rtl = v.mis_land = False
+        self.send_current()
+
+    def send_current(self) -> None:
+        v = self.v
+        v.send(v.telemetry.msg_mission_current())
+
+    def item_target(self, it: MissionItem, b: tuple[float, float, float]) -> tuple[float, float, float]:
+        v = self.v
+        if it.x == 0 and it.y == 0:
+            n, e = b[0], b[1]
+        else:
+            n, e = latlon_to_local(v.origin[0], v.origin[1], it.lat, it.lon)
+        d = v.guidance.alt_to_d(it.frame, it.z) if (it.z != 0 or it.frame in GLOBAL_FRAMES_AMSL) else b[2]
+        return n, e, d
+
+    def item_reached(self, seq: int) -> None:
+        """MISSION_ITEM_REACHED for stored item ``seq``."""
+        v = self.v
+        v.send(mav.MAVLink_mission_item_reached_message(seq))
+
+    def advance(self, reached: bool = True) -> None:
+        v = self.v
+        if reached:
+            v.item_reached(v.mis_idx)
+        v.mis_idx += 1
+        v.mis_started = False
+        v.mis_hold_until = None
+        v.mis_reached = False
+        if v.mis_idx >= len(v.mission.mission_items()):
+            v.mis_complete = True
+            v.statustext(SEV_INFO, "Mission complete")
+            b = v.belief()
+            v.target = (b[0], b[1], b[2]) if not v.mis_land else v.target
+            v.leg = None
+        self.send_current()
+
+    def step(self, lim: Limits, dt: float, b: tuple[float, float, float]) -> None:
+        v = self.v
+        k = v.kin
+        items = v.mission.mission_items()
+        if v.mis_complete or v.mis_idx >= len(items):
+            if v.mis_land:
+                v.guidance.land_step(lim, dt, b)
+            elif v.mis_rtl:
+                v.guidance.rtl_step(lim, dt, b)
+            else:
+                tn, te, td = v.target
+                k.position_step(tn, te, td, lim, dt, b[0], b[1], b[2])
+            return
+        it = items[v.mis_idx]
+        cmd = it.command
+        if not v.mis_started:
+            v.mis_started = True
+            v.statustext(SEV_INFO, f"Mission: {v.mis_idx} {NAV_NAMES.get(cmd, str(cmd))}")
+            v.mis_rtl = v.mis_land = False
+            if cmd in (mav.MAV_CMD_NAV_WAYPOINT, mav.MAV_CMD_NAV_LOITER_UNLIM, mav.MAV_CMD_NAV_LOITER_TIME):
+                v.guidance.goto(*self.item_target(it, b))
+            elif cmd == mav.MAV_CMD_NAV_TAKEOFF:
+                alt = it.z if it.frame not in GLOBAL_FRAMES_AMSL else it.z - v.home[2]
+                d = -(alt + v.home[2] - v.origin[2])
+                if -b[2] < -d - TAKEOFF_DONE_M:
+                    v.target = (b[0], b[1], d)
+                    if v.landed:
+                        v.takeoff_alt = -d
+                        v.landed = False
+                else:
+                    self.advance()
+                    return
+            elif cmd == mav.MAV_CMD_NAV_LAND:
+                tn, te, _ = self.item_target(it, b)
+                v.target = (tn, te, b[2])
+                v.guidance.set_leg(tn, te)
+                v.mis_land = True
+                v.land_target = (tn, te)
+            elif cmd == mav.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+                v.mis_rtl = True
+                v.start_rtl()
+            elif cmd == mav.MAV_CMD_DO_CHANGE_SPEED:
+                v.commands.change_speed(it.param1, it.param2)
+                self.advance()
+                return
+            else:  # other DO/condition commands: not simulated, skipped
+                self.advance(reached=False)
+                return
+        if cmd in (mav.MAV_CMD_NAV_WAYPOINT, mav.MAV_CMD_NAV_LOITER_UNLIM, mav.MAV_CMD_NAV_LOITER_TIME):
+            tn, te, td = v.target
+            k.position_step(tn, te, td, lim, dt, b[0], b[1], b[2])
+            dist = math.sqrt((tn - b[0]) ** 2 + (te - b[1]) ** 2 + (td - b[2]) ** 2)
+            hold = it.param1 if cmd != mav.MAV_CMD_NAV_LOITER_UNLIM else math.inf
+            if not v.mis_reached:
+                radius = max(0.05, v.params["WPNAV_RADIUS"] / 100.0)
+                if hold > 0:  # a hold needs the vehicle stopped on the point
+                    radius = min(radius, 0.5)
+                if dist <= radius and (hold <= 0 or math.hypot(k.vn, k.ve) < 0.3):
+                    v.mis_reached = True
+                    v.mis_hold_until = v.t + hold
+            if v.mis_reached and v.mis_hold_until is not None and v.t >= v.mis_hold_until:
+                self.advance()
+        elif cmd == mav.MAV_CMD_NAV_TAKEOFF:
+            if v.takeoff_alt is None:
+                tn, te, td = v.target
+                k.position_step(tn, te, td, lim, dt, b[0], b[1], b[2])
+                if abs(td - b[2]) < TAKEOFF_DONE_M:
+                    self.advance()
+        elif cmd == mav.MAV_CMD_NAV_LAND:
+            tn, te, td = v.target
+            if not v.mis_reached:
+                k.position_step(tn, te, td, lim, dt, b[0], b[1], b[2])
+                if math.hypot(tn - b[0], te - b[1]) < 0.5 and math.hypot(k.vn, k.ve) < 0.5:
+                    v.mis_reached = True
+                    v.leg = None
+            else:
+                v.guidance.land_step(lim, dt, b)
+        elif cmd == mav.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            v.guidance.rtl_step(lim, dt, b)
+
+    def can_clear(self, mission_type: int) -> bool:
+        v = self.v
+        return not (mission_type == MISSION and v.mode == AUTO and v.armed)
+
+    def mission_stored(self, mission_type: int) -> None:
+        v = self.v
+        if mission_type == FENCE:
+            v.fence.zones = build_fence(v.mission.stores[FENCE], v.origin[0], v.origin[1])
+            v.params.define("FENCE_TOTAL", len(v.mission.stores[FENCE]))
+        elif mission_type == MISSION:
+            if v.mode != AUTO:
+                v.mis_idx = 1
+                v.mis_complete = False
+                v.mis_started = False
+            elif v.mis_idx >= len(v.mission.mission_items()):
+                v.mis_idx = max(1, len(v.mission.mission_items()) - 1)
+                v.mis_started = False
+
+    def home_item(self) -> MissionItem:
+        v = self.v
+        return MissionItem(
+            0,
+            mav.MAV_FRAME_GLOBAL,
+            mav.MAV_CMD_NAV_WAYPOINT,
+            0,
+            1,
+            0,
+            0,
+            0,
+            0,
+            round(v.home[0] * 1e7),
+            round(v.home[1] * 1e7),
+            v.home[2],
+        )
+
+    def set_current(self, seq: int) -> bool:
+        v = self.v
+        if not 0 < seq < len(v.mission.mission_items()):
+            return False
+        v.mis_idx = seq
+        v.mis_started = False
+        v.mis_complete = False
+        v.mis_reached = False
+        self.send_current()
+        return True
