@@ -465,8 +465,9 @@ class Px4Vehicle(SimVehicle):
         if self.armed and self.landed and self.takeoff_alt is None:
             if self.flew:
                 if self.t - self.landed_since >= p["COM_DISARM_LAND"]:
-                    if self.mode == AUTO and not self.mis_complete and (self.mis_land or self.mis_rtl):
-                        self.auto.advance()
+                    auto = self.auto
+                    if self.mode == AUTO and not auto.complete and (auto.landing or auto.returning):
+                        auto.advance()
                     self.disarm("Disarmed by landing")
                 return
             if p["COM_DISARM_PRFLT"] > 0 and self.t - self.arm_time >= p["COM_DISARM_PRFLT"]:
@@ -498,9 +499,9 @@ class Px4Vehicle(SimVehicle):
                 ret = min(dist / math.tan(math.radians(min(89.0, max(1.0, cone)))), ret)
             ret = max(ret, 2.0 * acc)
         ret = max(ret, -(b[2] - hd))  # never descends to return
-        self.rtl_alt = ret - hd
-        self.rtl_state = RTL_CLIMB
-        self.target = (b[0], b[1], -self.rtl_alt)
+        self.guidance.rtl_alt = ret - hd
+        self.guidance.rtl_state = RTL_CLIMB
+        self.target = (b[0], b[1], -self.guidance.rtl_alt)
         self.leg = None
 
     # ------------------------------------------------------------------ simulation step

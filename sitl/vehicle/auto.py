@@ -26,14 +26,21 @@ class AutoMission:
 
     def __init__(self, v: SimVehicle) -> None:
         self.v = v
+        self.idx = 1  # current item (engine numbering: 0 is home)
+        self.started = False  # the current item has begun
+        self.hold_until: float | None = None
+        self.reached = False
+        self.complete = False
+        self.returning = False  # flying a NAV_RETURN_TO_LAUNCH item
+        self.landing = False  # flying a NAV_LAND item
 
     def ground_start(self) -> bool:
         """On the ground in AUTO only a takeoff item (or DO items before it) may run."""
         v = self.v
         items = v.mission.mission_items()
-        if not 0 < v.mis_idx < len(items):
+        if not 0 < self.idx < len(items):
             return False
-        cmd = items[v.mis_idx].command
+        cmd = items[self.idx].command
         return cmd == mav.MAV_CMD_NAV_TAKEOFF or cmd not in NAV_CMDS
 
     def starts_with_takeoff(self) -> bool:
@@ -46,11 +53,11 @@ class AutoMission:
     def begin(self) -> None:
         v = self.v
         n = len(v.mission.mission_items())
-        if v.mis_idx < 1 or v.mis_idx >= n or v.mis_complete:
-            v.mis_idx = 1
-        v.mis_started = False
-        v.mis_complete = False
-        v.mis_rtl = v.mis_land = False
+        if self.idx < 1 or self.idx >= n or self.complete:
+            self.idx = 1
+        self.started = False
+        self.complete = False
+        self.returning = self.landing = False
         self.send_current()
 
     def send_current(self) -> None:
@@ -74,16 +81,16 @@ class AutoMission:
     def advance(self, reached: bool = True) -> None:
         v = self.v
         if reached:
-            v.item_reached(v.mis_idx)
-        v.mis_idx += 1
-        v.mis_started = False
-        v.mis_hold_until = None
-        v.mis_reached = False
-        if v.mis_idx >= len(v.mission.mission_items()):
-            v.mis_complete = True
+            v.item_reached(self.idx)
+        self.idx += 1
+        self.started = False
+        self.hold_until = None
+        self.reached = False
+        if self.idx >= len(v.mission.mission_items()):
+            self.complete = True
             v.statustext(SEV_INFO, "Mission complete")
             b = v.belief()
-            v.target = (b[0], b[1], b[2]) if not v.mis_land else v.target
+            v.target = (b[0], b[1], b[2]) if not self.landing else v.target
             v.leg = None
         self.send_current()
 
@@ -91,21 +98,21 @@ class AutoMission:
         v = self.v
         k = v.kin
         items = v.mission.mission_items()
-        if v.mis_complete or v.mis_idx >= len(items):
-            if v.mis_land:
+        if self.complete or self.idx >= len(items):
+            if self.landing:
                 v.guidance.land_step(lim, dt, b)
-            elif v.mis_rtl:
+            elif self.returning:
                 v.guidance.rtl_step(lim, dt, b)
             else:
                 tn, te, td = v.target
                 k.position_step(tn, te, td, lim, dt, b[0], b[1], b[2])
             return
-        it = items[v.mis_idx]
+        it = items[self.idx]
         cmd = it.command
-        if not v.mis_started:
-            v.mis_started = True
-            v.statustext(SEV_INFO, f"Mission: {v.mis_idx} {NAV_NAMES.get(cmd, str(cmd))}")
-            v.mis_rtl = v.mis_land = False
+        if not self.started:
+            self.started = True
+            v.statustext(SEV_INFO, f"Mission: {self.idx} {NAV_NAMES.get(cmd, str(cmd))}")
+            self.returning = self.landing = False
             if cmd in (mav.MAV_CMD_NAV_WAYPOINT, mav.MAV_CMD_NAV_LOITER_UNLIM, mav.MAV_CMD_NAV_LOITER_TIME):
                 v.guidance.goto(*self.item_target(it, b))
             elif cmd == mav.MAV_CMD_NAV_TAKEOFF:
@@ -123,10 +130,10 @@ class AutoMission:
                 tn, te, _ = self.item_target(it, b)
                 v.target = (tn, te, b[2])
                 v.guidance.set_leg(tn, te)
-                v.mis_land = True
-                v.land_target = (tn, te)
+                self.landing = True
+                v.guidance.land_target = (tn, te)
             elif cmd == mav.MAV_CMD_NAV_RETURN_TO_LAUNCH:
-                v.mis_rtl = True
+                self.returning = True
                 v.start_rtl()
             elif cmd == mav.MAV_CMD_DO_CHANGE_SPEED:
                 v.commands.change_speed(it.param1, it.param2)
@@ -140,14 +147,14 @@ class AutoMission:
             k.position_step(tn, te, td, lim, dt, b[0], b[1], b[2])
             dist = math.sqrt((tn - b[0]) ** 2 + (te - b[1]) ** 2 + (td - b[2]) ** 2)
             hold = it.param1 if cmd != mav.MAV_CMD_NAV_LOITER_UNLIM else math.inf
-            if not v.mis_reached:
+            if not self.reached:
                 radius = max(0.05, v.params["WPNAV_RADIUS"] / 100.0)
                 if hold > 0:  # a hold needs the vehicle stopped on the point
                     radius = min(radius, 0.5)
                 if dist <= radius and (hold <= 0 or math.hypot(k.vn, k.ve) < 0.3):
-                    v.mis_reached = True
-                    v.mis_hold_until = v.t + hold
-            if v.mis_reached and v.mis_hold_until is not None and v.t >= v.mis_hold_until:
+                    self.reached = True
+                    self.hold_until = v.t + hold
+            if self.reached and self.hold_until is not None and v.t >= self.hold_until:
                 self.advance()
         elif cmd == mav.MAV_CMD_NAV_TAKEOFF:
             if v.takeoff_alt is None:
@@ -157,10 +164,10 @@ class AutoMission:
                     self.advance()
         elif cmd == mav.MAV_CMD_NAV_LAND:
             tn, te, td = v.target
-            if not v.mis_reached:
+            if not self.reached:
                 k.position_step(tn, te, td, lim, dt, b[0], b[1], b[2])
                 if math.hypot(tn - b[0], te - b[1]) < 0.5 and math.hypot(k.vn, k.ve) < 0.5:
-                    v.mis_reached = True
+                    self.reached = True
                     v.leg = None
             else:
                 v.guidance.land_step(lim, dt, b)
@@ -178,12 +185,12 @@ class AutoMission:
             v.params.define("FENCE_TOTAL", len(v.mission.stores[FENCE]))
         elif mission_type == MISSION:
             if v.mode != AUTO:
-                v.mis_idx = 1
-                v.mis_complete = False
-                v.mis_started = False
-            elif v.mis_idx >= len(v.mission.mission_items()):
-                v.mis_idx = max(1, len(v.mission.mission_items()) - 1)
-                v.mis_started = False
+                self.idx = 1
+                self.complete = False
+                self.started = False
+            elif self.idx >= len(v.mission.mission_items()):
+                self.idx = max(1, len(v.mission.mission_items()) - 1)
+                self.started = False
 
     def home_item(self) -> MissionItem:
         v = self.v
@@ -206,9 +213,9 @@ class AutoMission:
         v = self.v
         if not 0 < seq < len(v.mission.mission_items()):
             return False
-        v.mis_idx = seq
-        v.mis_started = False
-        v.mis_complete = False
-        v.mis_reached = False
+        self.idx = seq
+        self.started = False
+        self.complete = False
+        self.reached = False
         self.send_current()
         return True

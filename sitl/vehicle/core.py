@@ -37,7 +37,6 @@ from sitl.vehicle.constants import (
     AUTO,
     GUST_LEAK,
     MODE_NAMES,
-    RTL_CLIMB,
     SEV_INFO,
     STABILIZE,
     WIND_LEAK,
@@ -140,10 +139,6 @@ class SimVehicle:
         # after takeoff or after entering GUIDED (re)starts it at WPNAV_SPEED (ArduCopter's
         # ModeGuided::pos_control_start), dropping any speed change sent before.
         self.guided_wp_active = False
-        self.rtl_state = RTL_CLIMB
-        self.rtl_alt = 15.0
-        self.rtl_loiter_until = 0.0
-        self.land_target: tuple[float, float] = (0.0, 0.0)
         self.heading = 0.0
         # sensor / estimate state
         self.gerr = (0.0, 0.0, 0.0)
@@ -158,14 +153,6 @@ class SimVehicle:
         self.wob = (0.0, 0.0)
         self.gust = (0.0, 0.0)
         self.prearm_announced = False
-        # mission execution
-        self.mis_idx = 1
-        self.mis_started = False
-        self.mis_hold_until: float | None = None
-        self.mis_reached = False
-        self.mis_complete = False
-        self.mis_rtl = False
-        self.mis_land = False
         # failsafes
         self.batt_low_since: float | None = None
         self.batt_failsafe = False
@@ -343,7 +330,7 @@ class SimVehicle:
                 home_lat=self.home[0],
                 home_lon=self.home[1],
                 home_alt_amsl=self.home[2],
-                mission_current=self.mis_idx if self.mode == AUTO else -1,
+                mission_current=self.auto.idx if self.mode == AUTO else -1,
                 mission_count=len(self.mission.mission_items()),
                 link_down=self.link_down,
                 fence_breached=self.fence.breaches != 0,

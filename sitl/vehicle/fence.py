@@ -70,7 +70,7 @@ class Fence:
         self.breach_type = mav.FENCE_BREACH_BOUNDARY if new & 6 else mav.FENCE_BREACH_MAXALT
         v.statustext(SEV_NOTICE, "Fence Breached")
         action = int(v.params["FENCE_ACTION"])
-        if action == 0 or v.mode == LAND or (v.mode == AUTO and v.mis_land):
+        if action == 0 or v.mode == LAND or (v.mode == AUTO and v.auto.landing):
             return
         if action in (1, 3, 5):
             if v.mode != RTL and not (v.gps_ok and v.set_mode(RTL)):

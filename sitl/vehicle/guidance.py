@@ -38,6 +38,10 @@ class Guidance:
     def __init__(self, v: SimVehicle) -> None:
         self.v = v
         self.lim_cache: Limits | None = None
+        self.rtl_state = RTL_CLIMB
+        self.rtl_alt = 15.0  # metres above the origin
+        self.rtl_loiter_until = 0.0
+        self.land_target: tuple[float, float] = (0.0, 0.0)  # n, e of LAND and the final descent
 
     def limits(self) -> Limits:
         v = self.v
@@ -118,13 +122,13 @@ class Guidance:
                 v.kin.vd = min(v.kin.vd + 9.8 * dt, 15.0)
             return
         if v.landed and v.takeoff_alt is None:
-            if v.mode in (LAND, RTL) or (v.mode == AUTO and (v.mis_land or v.mis_rtl)):
+            if v.mode in (LAND, RTL) or (v.mode == AUTO and (v.auto.landing or v.auto.returning)):
                 if v.t - v.landed_since >= LAND_DETECT_S:
-                    if v.mode == AUTO and not v.mis_complete:
+                    if v.mode == AUTO and not v.auto.complete:
                         v.auto.advance()
                     v.disarm("Land complete")
                 return
-            if v.mode == AUTO and not v.mis_complete and v.auto.ground_start():
+            if v.mode == AUTO and not v.auto.complete and v.auto.ground_start():
                 v.auto.step(self.limits(), dt, v.belief())
                 if v.takeoff_alt is not None:
                     return
@@ -183,7 +187,7 @@ class Guidance:
 
     def land_step(self, lim: Limits, dt: float, b: tuple[float, float, float]) -> None:
         v = self.v
-        ln, le = v.land_target
+        ln, le = self.land_target
         llim = Limits(lim.speed_xy, lim.accel_xy, lim.speed_up, self.land_descent_speed(b), lim.accel_z)
         v.kin.position_step(ln, le, 1000.0, llim, dt, b[0], b[1], b[2])
 
@@ -196,39 +200,39 @@ class Guidance:
         if v.fence.enabled() and int(v.params["FENCE_TYPE"]) & 1:
             target = min(target, v.params["FENCE_ALT_MAX"] - v.params["FENCE_MARGIN"])
         _hn, _he, hd = v.home_ned
-        v.rtl_alt = target - hd  # relative to home -> above origin
-        v.rtl_alt = max(v.rtl_alt, -hd + 2.0)
-        v.rtl_state = RTL_CLIMB
-        v.target = (b[0], b[1], -v.rtl_alt)
+        self.rtl_alt = target - hd  # relative to home -> above origin
+        self.rtl_alt = max(self.rtl_alt, -hd + 2.0)
+        self.rtl_state = RTL_CLIMB
+        v.target = (b[0], b[1], -self.rtl_alt)
         v.leg = None
 
     def rtl_step(self, lim: Limits, dt: float, b: tuple[float, float, float]) -> None:
         v = self.v
         k = v.kin
         hn, he, hd = v.home_ned
-        if v.rtl_state == RTL_CLIMB:
+        if self.rtl_state == RTL_CLIMB:
             tn, te, _ = v.target
-            k.position_step(tn, te, -v.rtl_alt, lim, dt, b[0], b[1], b[2])
-            if abs(-b[2] - v.rtl_alt) < 0.5:
-                v.rtl_state = RTL_RETURN
-                v.target = (hn, he, -v.rtl_alt)
+            k.position_step(tn, te, -self.rtl_alt, lim, dt, b[0], b[1], b[2])
+            if abs(-b[2] - self.rtl_alt) < 0.5:
+                self.rtl_state = RTL_RETURN
+                v.target = (hn, he, -self.rtl_alt)
                 self.set_leg(hn, he)
-        elif v.rtl_state == RTL_RETURN:
-            k.position_step(hn, he, -v.rtl_alt, lim, dt, b[0], b[1], b[2])
+        elif self.rtl_state == RTL_RETURN:
+            k.position_step(hn, he, -self.rtl_alt, lim, dt, b[0], b[1], b[2])
             if (
                 math.hypot(hn - b[0], he - b[1]) < max(0.5, v.params["WPNAV_RADIUS"] / 100.0 * 0.25)
                 and math.hypot(k.vn, k.ve) < 0.5
             ):
-                v.rtl_state = RTL_LOITER
-                v.rtl_loiter_until = v.t + v.params["RTL_LOIT_TIME"] / 1000.0
+                self.rtl_state = RTL_LOITER
+                self.rtl_loiter_until = v.t + v.params["RTL_LOIT_TIME"] / 1000.0
                 v.leg = None
-        elif v.rtl_state == RTL_LOITER:
-            k.position_step(hn, he, -v.rtl_alt, lim, dt, b[0], b[1], b[2])
-            if v.t >= v.rtl_loiter_until:
+        elif self.rtl_state == RTL_LOITER:
+            k.position_step(hn, he, -self.rtl_alt, lim, dt, b[0], b[1], b[2])
+            if v.t >= self.rtl_loiter_until:
                 final = v.params["RTL_ALT_FINAL"] / 100.0
-                v.rtl_state = RTL_DESCEND if final > 0 else RTL_FINAL
-                v.land_target = (hn, he)
-        elif v.rtl_state == RTL_DESCEND:
+                self.rtl_state = RTL_DESCEND if final > 0 else RTL_FINAL
+                self.land_target = (hn, he)
+        elif self.rtl_state == RTL_DESCEND:
             final = v.params["RTL_ALT_FINAL"] / 100.0
             k.position_step(hn, he, hd - final, lim, dt, b[0], b[1], b[2])
         else:

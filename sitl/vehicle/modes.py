@@ -51,7 +51,7 @@ class ModeSwitch:
         v.speed_xy_override = v.speed_up_override = v.speed_dn_override = None
         v.vel_target = None
         if mode != AUTO:
-            v.mis_rtl = v.mis_land = False
+            v.auto.returning = v.auto.landing = False
         if mode in (GUIDED, LOITER, POSHOLD):
             v.target = v.guidance.stopping_point() if not v.landed else v.belief()
             v.leg = None
@@ -60,11 +60,11 @@ class ModeSwitch:
             v.leg = None
         elif mode == LAND:
             sp = v.guidance.stopping_point() if not v.landed else v.belief()
-            v.land_target = (sp[0], sp[1])
+            v.guidance.land_target = (sp[0], sp[1])
             v.leg = None
         elif mode == RTL:
             v.start_rtl()
-        elif mode == AUTO and (prev != AUTO or not v.mis_started):
+        elif mode == AUTO and (prev != AUTO or not v.auto.started):
             v.auto.begin()
         if reason:
             v.statustext(SEV_NOTICE, reason)

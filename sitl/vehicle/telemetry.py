@@ -43,9 +43,9 @@ class Telemetry:
             return mav.MAV_LANDED_STATE_TAKEOFF
         landing = (
             v.mode == LAND
-            or (v.mode == RTL and v.rtl_state == RTL_FINAL)
-            or (v.mode == AUTO and v.mis_land and v.mis_reached)
-            or (v.mode == AUTO and v.mis_rtl and v.rtl_state == RTL_FINAL)
+            or (v.mode == RTL and v.guidance.rtl_state == RTL_FINAL)
+            or (v.mode == AUTO and v.auto.landing and v.auto.reached)
+            or (v.mode == AUTO and v.auto.returning and v.guidance.rtl_state == RTL_FINAL)
         )
         return mav.MAV_LANDED_STATE_LANDING if landing else mav.MAV_LANDED_STATE_IN_AIR
 
@@ -278,15 +278,15 @@ class Telemetry:
         n = len(v.mission.mission_items())
         if n <= 1:
             state = mav.MISSION_STATE_NO_MISSION
-        elif v.mis_complete:
+        elif v.auto.complete:
             state = mav.MISSION_STATE_COMPLETE
         elif v.mode == AUTO and v.armed:
             state = mav.MISSION_STATE_ACTIVE
-        elif v.mis_started:
+        elif v.auto.started:
             state = mav.MISSION_STATE_PAUSED
         else:
             state = mav.MISSION_STATE_NOT_STARTED
-        seq = min(v.mis_idx, max(0, n - 1))
+        seq = min(v.auto.idx, max(0, n - 1))
         return mav.MAVLink_mission_current_message(seq, max(0, n - 1), state, 1 if v.mode == AUTO else 0)
 
     def msg_nav_controller_output(self) -> mav.MAVLink_message:
