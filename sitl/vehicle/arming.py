@@ -20,6 +20,7 @@ class Arming:
         self.v = v
 
     def prearm_failure(self) -> str | None:
+        """The first failing pre-arm check, in ArduCopter's words; None when all pass (or ARMING_CHECK=0)."""
         v = self.v
         if v.params["ARMING_CHECK"] == 0:
             return None
@@ -59,6 +60,7 @@ class Arming:
         return True, ""
 
     def disarm(self, reason: str = "") -> None:
+        """Stop the motors; LAND/RTL touchdowns say 'Land complete, disarming'."""
         v = self.v
         v.armed = False
         v.takeoff_alt = None

@@ -44,6 +44,7 @@ class AutoMission:
         return cmd == mav.MAV_CMD_NAV_TAKEOFF or cmd not in NAV_CMDS
 
     def starts_with_takeoff(self) -> bool:
+        """True when the first NAV item is a take-off (ArduCopter refuses AUTO on the ground otherwise)."""
         v = self.v
         for it in v.mission.mission_items()[1:]:
             if it.command in NAV_CMDS:
@@ -51,6 +52,7 @@ class AutoMission:
         return False
 
     def begin(self) -> None:
+        """Entering AUTO: restart from item 1 unless a mission is under way."""
         v = self.v
         n = len(v.mission.mission_items())
         if self.idx < 1 or self.idx >= n or self.complete:
@@ -61,10 +63,12 @@ class AutoMission:
         self.send_current()
 
     def send_current(self) -> None:
+        """MISSION_CURRENT at once when the current item changes."""
         v = self.v
         v.send(v.telemetry.msg_mission_current())
 
     def item_target(self, it: MissionItem, b: tuple[float, float, float]) -> tuple[float, float, float]:
+        """An item's location in the local frame; 0,0 keeps the current position, alt 0 the altitude."""
         v = self.v
         if it.x == 0 and it.y == 0:
             n, e = b[0], b[1]
@@ -79,6 +83,7 @@ class AutoMission:
         v.send(mav.MAVLink_mission_item_reached_message(seq))
 
     def advance(self, reached: bool = True) -> None:
+        """Go to the next item (MISSION_ITEM_REACHED unless skipped); after the last, 'Mission complete'."""
         v = self.v
         if reached:
             v.item_reached(self.idx)
@@ -95,6 +100,7 @@ class AutoMission:
         self.send_current()
 
     def step(self, lim: Limits, dt: float, b: tuple[float, float, float]) -> None:
+        """Fly the current item for one step, starting it first (STATUSTEXT 'Mission: N ...')."""
         v = self.v
         k = v.kin
         items = v.mission.mission_items()
@@ -175,10 +181,12 @@ class AutoMission:
             v.guidance.rtl_step(lim, dt, b)
 
     def can_clear(self, mission_type: int) -> bool:
+        """A MISSION may not be cleared while it is flown in AUTO."""
         v = self.v
         return not (mission_type == MISSION and v.mode == AUTO and v.armed)
 
     def mission_stored(self, mission_type: int) -> None:
+        """An upload replaced a list: rebuild the fence, or put the current item back in range."""
         v = self.v
         if mission_type == FENCE:
             v.fence.zones = build_fence(v.mission.stores[FENCE], v.origin[0], v.origin[1])
@@ -193,6 +201,7 @@ class AutoMission:
                 self.started = False
 
     def home_item(self) -> MissionItem:
+        """Item 0 of an ArduPilot mission download: home."""
         v = self.v
         return MissionItem(
             0,
@@ -210,6 +219,7 @@ class AutoMission:
         )
 
     def set_current(self, seq: int) -> bool:
+        """DO_SET_MISSION_CURRENT / MISSION_SET_CURRENT; False for an item that does not exist."""
         v = self.v
         if not 0 < seq < len(v.mission.mission_items()):
             return False

@@ -37,6 +37,7 @@ class Commands:
         self.handlers: dict[int, Callable[[mav.MAVLink_message, bool], Result]] = self._table()
 
     def handle(self, msg: mav.MAVLink_message, is_int: bool) -> None:
+        """Execute, send the STATUSTEXTs and the COMMAND_ACK, then any requested message."""
         v = self.v
         cmd = msg.command
         result, extra = v.command_result(msg, is_int)
@@ -227,6 +228,7 @@ class Commands:
         }
 
     def change_speed(self, speed_type: float, speed: float) -> bool:
+        """Speed override for horizontal (0/1), climb (2) or descent (3); -1/0 leaves it unchanged."""
         v = self.v
         if speed <= 0:
             return speed == -1 or speed == 0

@@ -214,6 +214,7 @@ class SimVehicle:
         return -self.est()[2] + self.origin[2] - self.home[2]
 
     def _param_changed(self, name: str, value: float) -> None:
+        """Apply a PARAM_SET to the models (limits cache, wind, gusts, battery capacity)."""
         if name.startswith("WPNAV_"):
             self.guidance.lim_cache = None
         elif name in ("SIM_WIND_SPD", "SIM_WIND_DIR"):
@@ -227,6 +228,7 @@ class SimVehicle:
             self.battery.set_pct(pct)
 
     def _set_wind(self, north: float, east: float, update_params: bool = True) -> None:
+        """Steady wind (m/s toward north/east), mirrored in SIM_WIND_SPD/DIR."""
         self.wind.north, self.wind.east = north, east
         if update_params:
             spd = math.hypot(north, east)
@@ -453,6 +455,7 @@ class SimVehicle:
             self.fence.check()
 
     def _path_error(self, tn: float, te: float) -> None:
+        """Track the largest distance of the true position from the current straight leg."""
         assert self.leg is not None
         sn, se, en, ee = self.leg
         dn, de = en - sn, ee - se
@@ -465,6 +468,7 @@ class SimVehicle:
             self.max_path_error_m = err
 
     def _apply_failure(self, f: Failure) -> None:
+        """Apply a scheduled failure now."""
         if f.kind == "link_drop":
             self.link_down_until = max(self.link_down_until, f.at + f.duration)
         elif f.kind == "gps_loss":
@@ -475,6 +479,7 @@ class SimVehicle:
             self._set_wind(f.value[0], f.value[1])
 
     def _touchdown(self) -> None:
+        """On the ground: motion stops, the leg ends."""
         k = self.kin
         k.d = 0.0
         k.vn = k.ve = k.vd = 0.0

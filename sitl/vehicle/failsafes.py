@@ -24,6 +24,7 @@ class Failsafes:
         self.v = v
 
     def check(self) -> None:
+        """One step of the three failsafes; each acts once until it clears."""
         v = self.v
         p = v.params
         # battery (raw voltage against BATT_LOW_VOLT for BATT_LOW_TIMER seconds)

@@ -32,6 +32,7 @@ class Fence:
         self.next_check = 0.0
 
     def enabled(self) -> bool:
+        """FENCE_ENABLE is set."""
         v = self.v
         return v.params["FENCE_ENABLE"] != 0
 
@@ -54,6 +55,7 @@ class Fence:
         return out
 
     def check(self) -> None:
+        """New breaches count, say 'Fence Breached' and run FENCE_ACTION (RTL, LAND or BRAKE)."""
         v = self.v
         if not self.enabled() or v.landed:
             self.breaches = 0

@@ -44,6 +44,7 @@ class Guidance:
         self.land_target: tuple[float, float] = (0.0, 0.0)  # n, e of LAND and the final descent
 
     def limits(self) -> Limits:
+        """The speed/acceleration limits in force: WPNAV_*, RTL_SPEED in RTL, DO_CHANGE_SPEED overrides."""
         v = self.v
         if self.lim_cache is None:
             p = v.params
@@ -96,6 +97,7 @@ class Guidance:
         v.leg = (v.true_prev[0], v.true_prev[1], tn, te)
 
     def goto(self, n: float, e: float, d: float) -> None:
+        """Fly to (n, e, d); the first target in GUIDED starts the waypoint controller at WPNAV_SPEED."""
         v = self.v
         if v.mode == GUIDED and not v.guided_wp_active:
             v.guided_wp_active = True
@@ -178,6 +180,7 @@ class Guidance:
             k.step_velocity(v.wind.north + v.gust[0], v.wind.east + v.gust[1], 2.5, lim, dt)
 
     def land_descent_speed(self, b: tuple[float, float, float]) -> float:
+        """LAND_SPEED_HIGH above LAND_ALT_LOW, LAND_SPEED below."""
         v = self.v
         alt = -b[2]
         if alt > v.params["LAND_ALT_LOW"] / 100.0:
@@ -186,12 +189,14 @@ class Guidance:
         return max(0.1, v.params["LAND_SPEED"] / 100.0)
 
     def land_step(self, lim: Limits, dt: float, b: tuple[float, float, float]) -> None:
+        """Descend at the landing speed over the land target."""
         v = self.v
         ln, le = self.land_target
         llim = Limits(lim.speed_xy, lim.accel_xy, lim.speed_up, self.land_descent_speed(b), lim.accel_z)
         v.kin.position_step(ln, le, 1000.0, llim, dt, b[0], b[1], b[2])
 
     def start_rtl(self) -> None:
+        """Return altitude: RTL_ALT (at least RTL_CLIMB_MIN up), capped by an altitude fence."""
         v = self.v
         b = v.belief()
         alt = -b[2]
@@ -207,6 +212,7 @@ class Guidance:
         v.leg = None
 
     def rtl_step(self, lim: Limits, dt: float, b: tuple[float, float, float]) -> None:
+        """RTL: climb, return at the return altitude, loiter RTL_LOIT_TIME, descend to RTL_ALT_FINAL or land."""
         v = self.v
         k = v.kin
         hn, he, hd = v.home_ned

@@ -64,6 +64,7 @@ class Inbound:
             v.mission.handle(msg, wall_now)
 
     def send_param(self, name: str, index: int | None = None) -> None:
+        """PARAM_VALUE for ``name`` (its index unless the list being sent says otherwise)."""
         v = self.v
         v.send(
             mav.MAVLink_param_value_message(
@@ -76,6 +77,7 @@ class Inbound:
         )
 
     def request_data_stream(self, msg: mav.MAVLink_message) -> None:
+        """REQUEST_DATA_STREAM: set the interval of every message of the group (or all groups)."""
         v = self.v
         sid = msg.req_stream_id
         groups = list(STREAM_GROUPS) if sid == mav.MAV_DATA_STREAM_ALL else [sid]

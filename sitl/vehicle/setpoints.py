@@ -46,6 +46,7 @@ class Setpoints:
             v.leg = None
 
     def local_ned(self, msg: mav.MAVLink_message) -> None:
+        """SET_POSITION_TARGET_LOCAL_NED: LOCAL_NED, LOCAL_OFFSET_NED or BODY frames; velocity-only masks."""
         v = self.v
         if v.mode != GUIDED or not v.armed or (v.landed and v.takeoff_alt is None):
             return

@@ -23,10 +23,10 @@ class NullLink:
     """The link of a vehicle no endpoint has attached yet: everything is dropped."""
 
     def send(self, msg: mav.MAVLink_message) -> None:
-        pass
+        """Dropped."""
 
     def set_message_interval(self, msgid: int, interval_s: float | None) -> None:
-        pass
+        """Ignored."""
 
 
 @dataclass(slots=True, frozen=True)
