@@ -212,7 +212,7 @@ class Guidance:
         v.leg = None
 
     def rtl_step(self, lim: Limits, dt: float, b: tuple[float, float, float]) -> None:
-        """RTL: climb, return at the return altitude, loiter RTL_LOIT_TIME, descend to RTL_ALT_FINAL or land."""
+        """RTL: climb, return, loiter RTL_LOIT_TIME, then descend to RTL_ALT_FINAL or land."""
         v = self.v
         k = v.kin
         hn, he, hd = v.home_ned
