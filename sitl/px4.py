@@ -1,7 +1,7 @@
 """The PX4 personality: the simulated copter as PX4 v1.16 (SITL, SIH) shows itself to a ground station.
 
 Flight (physics, position controller, landing, fence geometry, battery physics) is the engine of
-sitl/vehicle.py; this module changes what the ground station sees and what it may do, as observed on
+sitl/vehicle/; this module changes what the ground station sees and what it may do, as observed on
 the real PX4 with pymavlink (/work/shared/notes/px4-behaviour.md and the probes in docs/simulator.md):
 
 * HEARTBEAT autopilot MAV_AUTOPILOT_PX4, ``custom_mode = main << 16 | sub << 24``; DO_SET_MODE takes
