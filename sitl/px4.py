@@ -118,7 +118,7 @@ class Px4MissionProtocol(MissionProtocol):
     return-to-launch item outside MAV_FRAME_MISSION refused (MAV_MISSION_UNSUPPORTED, upload ended).
 
     PX4 keeps no home at seq 0: its item 0 is the first mission item. The engine's stored list keeps
-    ArduPilot's layout (a home placeholder at 0, added by :meth:`Px4Vehicle._mission_stored`), so
+    ArduPilot's layout (a home placeholder at 0, added by :meth:`Px4Vehicle.mission_stored`), so
     MISSION counts and downloads here are shifted by one.
     """
 
