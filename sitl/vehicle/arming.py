@@ -51,7 +51,7 @@ class Arming:
         v.arm_time = v.t
         v.landed = True
         v.landed_since = v.t
-        v.batt_low_since = None
+        v.failsafes.batt_low_since = None
         v.ekf_failsafe = v.gcs_failsafe = False
         b = v.belief()
         v.target = (b[0], b[1], b[2])

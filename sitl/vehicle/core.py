@@ -86,14 +86,7 @@ class SimVehicle:
         # nothing may be computed from "where the vehicle is" before that. Default: the fix comes
         # when the pre-arm checks would pass.
         self.gps_boot_s = prearm_delay_s if gps_boot_s is None else gps_boot_s
-        self.params = ParamStore()
-        self.params.define("SYSID_THISMAV", self.sysid)
-        for k, v in (params or {}).items():
-            if k.upper() in self.params:
-                self.params.set(k.upper(), float(v))
-            else:
-                self.params.define(k, float(v))
-        self.params.on_change = self._param_changed
+        self.params = self._engine_params(params or {})
         self.kin = Kinematics()
         self.wind = Wind(self.rng, wind[0], wind[1], gust_mps)
         self.wind_n = wind[0]
@@ -154,7 +147,6 @@ class SimVehicle:
         self.gust = (0.0, 0.0)
         self.prearm_announced = False
         # failsafes
-        self.batt_low_since: float | None = None
         self.batt_failsafe = False
         self.gcs_failsafe = False
         self.ekf_failsafe = False
@@ -164,6 +156,18 @@ class SimVehicle:
         self.leg: tuple[float, float, float, float] | None = None  # start n,e -> end n,e (true frame)
         self.true_prev = (0.0, 0.0, 0.0)
         self.failures: list[Failure] = []
+
+    def _engine_params(self, given: Mapping[str, float]) -> ParamStore:
+        """ArduCopter's table with ``given`` applied (unknown names are added)."""
+        store = ParamStore()
+        store.define("SYSID_THISMAV", self.sysid)
+        for k, v in given.items():
+            if k.upper() in store:
+                store.set(k.upper(), float(v))
+            else:
+                store.define(k, float(v))
+        store.on_change = self._param_changed
+        return store
 
     # ------------------------------------------------------------------ shared helpers
     def send(self, msg: mav.MAVLink_message) -> None:

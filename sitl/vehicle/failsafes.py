@@ -22,6 +22,7 @@ class Failsafes:
 
     def __init__(self, v: SimVehicle) -> None:
         self.v = v
+        self.batt_low_since: float | None = None  # pack below BATT_LOW_VOLT since (sim s)
 
     def check(self) -> None:
         """One step of the three failsafes; each acts once until it clears."""
@@ -30,9 +31,9 @@ class Failsafes:
         # battery (raw voltage against BATT_LOW_VOLT for BATT_LOW_TIMER seconds)
         low = p["BATT_LOW_VOLT"]
         if low > 0 and v.battery.voltage_v < low and v.armed:
-            if v.batt_low_since is None:
-                v.batt_low_since = v.t
-            elif not v.batt_failsafe and v.t - v.batt_low_since >= p["BATT_LOW_TIMER"]:
+            if self.batt_low_since is None:
+                self.batt_low_since = v.t
+            elif not v.batt_failsafe and v.t - self.batt_low_since >= p["BATT_LOW_TIMER"]:
                 v.batt_failsafe = True
                 bat = v.battery
                 v.statustext(
@@ -44,8 +45,8 @@ class Failsafes:
                         v.set_mode(LAND)
                     elif act in (2, 3, 4) and v.mode != RTL:
                         v.set_mode(RTL)
-        elif v.batt_low_since is not None and v.battery.voltage_v >= low:
-            v.batt_low_since = None
+        elif self.batt_low_since is not None and v.battery.voltage_v >= low:
+            self.batt_low_since = None
         # EKF failsafe on GPS loss in a position mode
         if (
             v.gps_lost_since is not None
