@@ -1,7 +1,7 @@
 """The PX4 personality: the simulated copter as PX4 v1.16 (SITL, SIH) shows itself to a ground station.
 
 Flight (physics, position controller, landing, fence geometry, battery physics) is the engine of
-sitl/vehicle.py; this module changes what the ground station sees and what it may do, as observed on
+sitl/vehicle/; this module changes what the ground station sees and what it may do, as observed on
 the real PX4 with pymavlink (/work/shared/notes/px4-behaviour.md and the probes in docs/simulator.md):
 
 * HEARTBEAT autopilot MAV_AUTOPILOT_PX4, ``custom_mode = main << 16 | sub << 24``; DO_SET_MODE takes
@@ -41,7 +41,8 @@ from sitl.vehicle import (
     STABILIZE,
     Failure,
     SimVehicle,
-    _pname,
+    Telemetry,
+    param_name,
 )
 
 # PX4 (main, sub) modes (px4_custom_mode.h)
@@ -117,7 +118,7 @@ class Px4MissionProtocol(MissionProtocol):
     return-to-launch item outside MAV_FRAME_MISSION refused (MAV_MISSION_UNSUPPORTED, upload ended).
 
     PX4 keeps no home at seq 0: its item 0 is the first mission item. The engine's stored list keeps
-    ArduPilot's layout (a home placeholder at 0, added by :meth:`Px4Vehicle._mission_stored`), so
+    ArduPilot's layout (a home placeholder at 0, added by :meth:`Px4Vehicle.mission_stored`), so
     MISSION counts and downloads here are shifted by one.
     """
 
@@ -164,6 +165,65 @@ class Px4MissionProtocol(MissionProtocol):
         return super().handle(msg, now)
 
 
+class Px4Telemetry(Telemetry):
+    """PX4's HEARTBEAT, AUTOPILOT_VERSION and MISSION_CURRENT numbering; the rest as the engine's."""
+
+    def __init__(self, v: Px4Vehicle) -> None:
+        super().__init__(v)
+        self.px4 = v
+
+    def msg_heartbeat(self) -> mav.MAVLink_message:
+        """HEARTBEAT: quadrotor, MAV_AUTOPILOT_PX4, PX4 custom mode and base mode flags."""
+        v = self.px4
+        main = v.px4_mode[0]
+        base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if main in (1, 2, 3, 5, 7):
+            base |= mav.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
+        if main not in (1, 5):
+            base |= mav.MAV_MODE_FLAG_STABILIZE_ENABLED
+        if main in (3, 4, 6):
+            base |= mav.MAV_MODE_FLAG_GUIDED_ENABLED
+        if main in (4, 6):
+            base |= mav.MAV_MODE_FLAG_AUTO_ENABLED
+        if v.armed:
+            base |= mav.MAV_MODE_FLAG_SAFETY_ARMED
+        if v.booting:
+            status = mav.MAV_STATE_UNINIT
+        elif v.batt_failsafe or v.ekf_failsafe or v.gcs_failsafe:
+            status = mav.MAV_STATE_CRITICAL
+        else:
+            status = mav.MAV_STATE_ACTIVE if v.armed else mav.MAV_STATE_STANDBY
+        return mav.MAVLink_heartbeat_message(
+            mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, v.wire_custom_mode(), status, 3
+        )
+
+    def msg_mission_current(self) -> mav.MAVLink_message:
+        """MISSION_CURRENT in PX4's numbering (no home item)."""
+        msg = super().msg_mission_current()
+        msg.seq = max(0, msg.seq - 1)
+        return msg
+
+    def msg_autopilot_version(self) -> mav.MAVLink_message:
+        """AUTOPILOT_VERSION of PX4 v1.16.0 (byte-wise parameters advertised)."""
+        v = self.px4
+        c = mav
+        caps = (
+            c.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
+            | c.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+            | c.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+            | c.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+            | c.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+            | c.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+            | c.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+            | c.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
+            | c.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
+        )
+        version = (1 << 24) | (16 << 16) | (0 << 8) | c.FIRMWARE_VERSION_TYPE_OFFICIAL
+        return mav.MAVLink_autopilot_version_message(
+            caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, v.sysid, [0] * 18
+        )
+
+
 class Px4Vehicle(SimVehicle):
     """One simulated quadrotor with PX4's personality (see the module docstring)."""
 
@@ -194,8 +254,9 @@ class Px4Vehicle(SimVehicle):
         self.px4_params.on_change = lambda _name, _value: self._sync_engine()
         self._sync_engine()
         self.mission = Px4MissionProtocol(
-            self.sysid, self.send, self._home_item, self._can_clear, self._mission_stored, False
+            self.sysid, self.send, self.auto.home_item, self.auto.can_clear, self.mission_stored, False
         )
+        self.telemetry = Px4Telemetry(self)
         self.px4_mode = HOLD
         self.shown_only = False  # px4_mode was taken while disarmed but cannot run (nothing flies)
         self.mode = LOITER  # PX4 boots in Hold
@@ -238,7 +299,7 @@ class Px4Vehicle(SimVehicle):
             for i, name in enumerate(p):
                 self._send_param(name, i)
             return
-        name = _pname(msg.param_id)
+        name = param_name(msg.param_id)
         if t == "PARAM_REQUEST_READ":
             if msg.param_index >= 0:
                 name = p.name_at(msg.param_index) or ""
@@ -343,11 +404,11 @@ class Px4Vehicle(SimVehicle):
                 return ACCEPTED, []
             if not self.landed and not force:
                 return REJECTED, ["Disarming denied: not landed"]
-            self._disarm("Disarmed by external command")
+            self.disarm("Disarmed by external command")
             return ACCEPTED, []
         if self.armed:
             return ACCEPTED, []
-        if not force and self._prearm_failure() is not None:
+        if not force and self.arming.prearm_failure() is not None:
             return REJECTED, [ARMING_DENIED]
         if self.shown_only or self.px4_mode in (RETURN, LAND_MODE):
             return REJECTED, [ARMING_DENIED]
@@ -387,8 +448,8 @@ class Px4Vehicle(SimVehicle):
         self.px4_mode = TAKEOFF
         self.speed_up_override = self.px4_params["MPC_TKO_SPEED"]
 
-    def _disarm(self, reason: str = "") -> None:
-        super()._disarm("")
+    def disarm(self, reason: str = "") -> None:
+        super().disarm("")
         if reason:
             self.statustext(SEV_INFO, reason)
         self.flew = False
@@ -398,22 +459,23 @@ class Px4Vehicle(SimVehicle):
         self.px4_mode = HOLD
         self.cruise = None
 
-    def _control(self, dt: float) -> None:
+    def control(self, dt: float) -> None:
         """Auto-disarm as PX4 (COM_DISARM_LAND after a flight, COM_DISARM_PRFLT before), then the engine."""
         p = self.px4_params
         if self.armed and self.landed and self.takeoff_alt is None:
             if self.flew:
                 if self.t - self.landed_since >= p["COM_DISARM_LAND"]:
-                    if self.mode == AUTO and not self.mis_complete and (self.mis_land or self.mis_rtl):
-                        self._auto_advance()
-                    self._disarm("Disarmed by landing")
+                    auto = self.auto
+                    if self.mode == AUTO and not auto.complete and (auto.landing or auto.returning):
+                        auto.advance()
+                    self.disarm("Disarmed by landing")
                 return
             if p["COM_DISARM_PRFLT"] > 0 and self.t - self.arm_time >= p["COM_DISARM_PRFLT"]:
-                self._disarm("Disarmed by auto preflight disarming")
+                self.disarm("Disarmed by auto preflight disarming")
                 return
         if self.armed and not self.landed:
             self.flew = True
-        super()._control(dt)
+        super().control(dt)
         if self.px4_mode == TAKEOFF and self.takeoff_alt is not None:
             if -self.belief()[2] >= self.takeoff_alt - p["NAV_MC_ALT_RAD"]:
                 self.px4_mode = HOLD  # PX4 calls the take-off done NAV_MC_ALT_RAD early; Hold climbs on
@@ -421,7 +483,7 @@ class Px4Vehicle(SimVehicle):
         elif self.px4_mode == TAKEOFF and self.takeoff_alt is None and not self.landed:
             self.px4_mode = HOLD
 
-    def _start_rtl(self) -> None:
+    def start_rtl(self) -> None:
         """PX4's return altitude: RTL_RETURN_ALT, lowered near home by the RTL_CONE_ANG cone."""
         p = self.px4_params
         b = self.belief()
@@ -437,9 +499,9 @@ class Px4Vehicle(SimVehicle):
                 ret = min(dist / math.tan(math.radians(min(89.0, max(1.0, cone)))), ret)
             ret = max(ret, 2.0 * acc)
         ret = max(ret, -(b[2] - hd))  # never descends to return
-        self.rtl_alt = ret - hd
-        self.rtl_state = RTL_CLIMB
-        self.target = (b[0], b[1], -self.rtl_alt)
+        self.guidance.rtl_alt = ret - hd
+        self.guidance.rtl_state = RTL_CLIMB
+        self.target = (b[0], b[1], -self.guidance.rtl_alt)
         self.leg = None
 
     # ------------------------------------------------------------------ simulation step
@@ -477,23 +539,17 @@ class Px4Vehicle(SimVehicle):
             self.sim_bat_pct = self.battery.remaining_pct
 
     # ------------------------------------------------------------------ missions (PX4 seq = engine seq - 1)
-    def _item_reached(self, seq: int) -> None:
-        super()._item_reached(seq - 1)
+    def item_reached(self, seq: int) -> None:
+        super().item_reached(seq - 1)
         self.reached = (seq - 1, self.t, self.t + 1.0)
 
-    def _mission_stored(self, mission_type: int) -> None:
+    def mission_stored(self, mission_type: int) -> None:
         if mission_type == MISSION_TYPE and self.mission.stores[MISSION_TYPE]:
-            self.mission.stores[MISSION_TYPE].insert(0, self._home_item())
-        super()._mission_stored(mission_type)
+            self.mission.stores[MISSION_TYPE].insert(0, self.auto.home_item())
+        super().mission_stored(mission_type)
 
-    def _set_mission_current(self, seq: int) -> bool:
-        return super()._set_mission_current(seq + 1)
-
-    def msg_mission_current(self) -> mav.MAVLink_message:
-        """MISSION_CURRENT in PX4's numbering (no home item)."""
-        msg = super().msg_mission_current()
-        msg.seq = max(0, msg.seq - 1)
-        return msg
+    def set_mission_current(self, seq: int) -> bool:
+        return super().set_mission_current(seq + 1)
 
     # ------------------------------------------------------------------ messages and commands
     def handle(self, msg: mav.MAVLink_message, wall_now: float) -> None:
@@ -516,7 +572,7 @@ class Px4Vehicle(SimVehicle):
                 return
         super().handle(msg, wall_now)
 
-    def _command_result(self, msg: mav.MAVLink_message, is_int: bool) -> tuple[int | None, list[str]]:
+    def command_result(self, msg: mav.MAVLink_message, is_int: bool) -> tuple[int | None, list[str]]:
         """PX4's answers to the commands where it differs from ArduCopter; the rest as the engine."""
         cmd = msg.command
         p1, p2 = msg.param1, msg.param2
@@ -543,16 +599,16 @@ class Px4Vehicle(SimVehicle):
                 return mav.MAV_RESULT_DENIED, []
             self._start_mission()
             if int(p1) > 0:
-                self._set_mission_current(int(p1))
+                self.set_mission_current(int(p1))
             return ACCEPTED, []
         if cmd in (mav.MAV_CMD_CONDITION_YAW, mav.MAV_CMD_DO_PAUSE_CONTINUE):
             return UNSUPPORTED, []
-        return super()._command_result(msg, is_int)
+        return super().command_result(msg, is_int)
 
-    def _command(self, msg: mav.MAVLink_message, is_int: bool) -> None:
+    def command(self, msg: mav.MAVLink_message, is_int: bool) -> None:
         """As the engine, but PX4's refusals are warnings, not ArduPilot's PreArm criticals."""
         if msg.command == mav.MAV_CMD_COMPONENT_ARM_DISARM:
-            result, texts = self._command_result(msg, is_int)
+            result, texts = self.command_result(msg, is_int)
             for text in texts:
                 self.statustext(SEV_CRITICAL, text)
             self.send(
@@ -561,7 +617,7 @@ class Px4Vehicle(SimVehicle):
                 )
             )
             return
-        super()._command(msg, is_int)
+        super().command(msg, is_int)
 
     def _px4_change_speed(self, speed_type: int, speed: float) -> tuple[int, list[str]]:
         """DO_CHANGE_SPEED: always ACCEPTED; the speed holds for repositions until the mode changes."""
@@ -597,50 +653,7 @@ class Px4Vehicle(SimVehicle):
             n, e = latlon_to_local(self.origin[0], self.origin[1], lat, lon)
         if math.isfinite(alt):
             d = -(alt - self.origin[2])
-        self._goto(n, e, d)
+        self.guidance.goto(n, e, d)
         vmax = self.px4_params["MPC_XY_VEL_MAX"]
         self.speed_xy_override = min(msg.param1, vmax) if msg.param1 > 0 else self.cruise
         return result, []
-
-    def msg_heartbeat(self) -> mav.MAVLink_message:
-        """HEARTBEAT: quadrotor, MAV_AUTOPILOT_PX4, PX4 custom mode and base mode flags."""
-        main = self.px4_mode[0]
-        base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
-        if main in (1, 2, 3, 5, 7):
-            base |= mav.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED
-        if main not in (1, 5):
-            base |= mav.MAV_MODE_FLAG_STABILIZE_ENABLED
-        if main in (3, 4, 6):
-            base |= mav.MAV_MODE_FLAG_GUIDED_ENABLED
-        if main in (4, 6):
-            base |= mav.MAV_MODE_FLAG_AUTO_ENABLED
-        if self.armed:
-            base |= mav.MAV_MODE_FLAG_SAFETY_ARMED
-        if self.booting:
-            status = mav.MAV_STATE_UNINIT
-        elif self.batt_failsafe or self.ekf_failsafe or self.gcs_failsafe:
-            status = mav.MAV_STATE_CRITICAL
-        else:
-            status = mav.MAV_STATE_ACTIVE if self.armed else mav.MAV_STATE_STANDBY
-        return mav.MAVLink_heartbeat_message(
-            mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, base, self.wire_custom_mode(), status, 3
-        )
-
-    def msg_autopilot_version(self) -> mav.MAVLink_message:
-        """AUTOPILOT_VERSION of PX4 v1.16.0 (byte-wise parameters advertised)."""
-        c = mav
-        caps = (
-            c.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
-            | c.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
-            | c.MAV_PROTOCOL_CAPABILITY_MISSION_INT
-            | c.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-            | c.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
-            | c.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
-            | c.MAV_PROTOCOL_CAPABILITY_MAVLINK2
-            | c.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
-            | c.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
-        )
-        version = (1 << 24) | (16 << 16) | (0 << 8) | c.FIRMWARE_VERSION_TYPE_OFFICIAL
-        return mav.MAVLink_autopilot_version_message(
-            caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.sysid, [0] * 18
-        )

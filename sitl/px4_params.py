@@ -4,7 +4,7 @@ PX4 (v1.16, read from the real SITL) sends an INT32 parameter in PARAM_VALUE as 
 the integer (``MAV_SYS_ID`` = 1 arrives as 1.4e-45), and takes PARAM_SET of an INT32 parameter the same
 way: a GCS that casts (sends 2.0) sets 1073741824. ArduPilot casts both ways (sitl/params.py).
 
-The vehicle engine (sitl/vehicle.py) reads ArduCopter-named parameters, so every PX4 parameter that
+The vehicle engine (sitl/vehicle/) reads ArduCopter-named parameters, so every PX4 parameter that
 changes its behaviour is translated into the hidden ArduCopter table (:data:`TO_ENGINE`); the GCS only
 ever sees the PX4 names.
 """
