@@ -7,7 +7,7 @@
         async for name, status in gcs.statuses():               # live status reports
             ...
 
-Responses are the API's own pydantic models (gcs.api_models), so a client and the server
+Responses are the API's own pydantic models (gcs.http.models), so a client and the server
 cannot drift apart silently. Errors raise :class:`ApiError` with the problem+json reason.
 See examples/ and docs/api.md.
 """
@@ -26,7 +26,7 @@ from typing import Any, Literal, TypeVar
 import httpx
 from pydantic import BaseModel, TypeAdapter
 
-from gcs.api_models import (
+from gcs.http.models import (
     AgentView,
     Delivered,
     FleetCommandResult,

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
-from gcs.api_models import FleetCommand, FleetCommandResult
+from gcs.http.models import FleetCommand, FleetCommandResult
 from gcs.cluster.node import AIRSPACE_LEASE
 
 if TYPE_CHECKING:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from gcs.api_models import AgentView
+from gcs.http.models import AgentView
 from gcs.commands._api import CommandError, api_arguments, call
 
 

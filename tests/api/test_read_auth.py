@@ -1,4 +1,4 @@
-"""Reads need the token beyond loopback (gcs/http_guard.py).
+"""Reads need the token beyond loopback (gcs/http/guard.py).
 
 The guard decides from the configured bind address. No test binds beyond loopback: the app of a
 daemon whose configuration says ``http_host = "0.0.0.0"`` is served by uvicorn on 127.0.0.1 and
@@ -22,9 +22,9 @@ from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from websockets.typing import Subprotocol
 
-from gcs.api import create_app
+from gcs.http import create_app
 from gcs.client import FleetClient
-from gcs.http_guard import is_loopback_bind
+from gcs.http.guard import is_loopback_bind
 from tests.api.fleet import Fleet, running_fleet
 
 pytestmark = pytest.mark.timeout(120)
