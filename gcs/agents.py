@@ -397,7 +397,9 @@ class AgentManager:
         if session.open:
             raise RetireRefused(409, "agent connected", f"{identity} is connected: stop its agent first")
         if mission is not None:
-            raise RetireRefused(409, "agent in a mission", f"{identity} flies mission {mission}: abort it first")
+            raise RetireRefused(
+                409, "agent in a mission", f"{identity} flies mission {mission}: abort it first"
+            )
         del self.sessions[identity]
         self.lost.discard(identity)
         return session

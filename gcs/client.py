@@ -26,6 +26,9 @@ from typing import Any, Literal, TypeVar
 import httpx
 from pydantic import BaseModel, TypeAdapter
 
+from gcs.api_planning import PlanPreview, PsaPlanRequest, RsaPlanRequest, SearchPlanRequest
+from gcs.config import default_data_dir
+from gcs.events import Event
 from gcs.http.models import (
     AgentView,
     Delivered,
@@ -36,9 +39,6 @@ from gcs.http.models import (
     MissionSummary,
     Retired,
 )
-from gcs.api_planning import PlanPreview, PsaPlanRequest, RsaPlanRequest, SearchPlanRequest
-from gcs.config import default_data_dir
-from gcs.events import Event
 from gcs.live import StatusSample
 from gcs.missions import MissionProgress
 from protocol.packets import Geofence, StatusReport

@@ -11,10 +11,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import fastapi.routing
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import BaseRoute
 
 from gcs.http.deps import TOKEN, ApiProblem, problem
 from gcs.http.guard import HttpGuard
@@ -92,3 +94,12 @@ def _install_problem_handlers(app: FastAPI) -> None:
     @app.exception_handler(Exception)
     async def _crash(_: Request, exc: Exception) -> JSONResponse:
         return problem(500, "internal error", f"{type(exc).__name__}: {exc}"[:500])
+
+
+def flat_routes(app: FastAPI) -> list[BaseRoute]:
+    """Every route of ``app``, those of included routers too (FastAPI >= 0.13x keeps an included
+    router as one entry of ``app.routes``; older versions copy its routes there)."""
+    contexts = getattr(fastapi.routing, "iter_route_contexts", None)
+    if contexts is None:
+        return list(app.routes)
+    return [context.original_route for context in contexts(app.routes)]

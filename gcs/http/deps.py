@@ -89,7 +89,9 @@ def require_token(conn: HTTPConnection, authorization: str | None = Header(defau
     if authorization is None or not hmac.compare_digest(
         authorization.encode("utf-8", "replace"), expected.encode()
     ):
-        raise ApiProblem(401, "unauthorized", "this call needs 'Authorization: Bearer <token>' (see api.token)")
+        raise ApiProblem(
+            401, "unauthorized", "this call needs 'Authorization: Bearer <token>' (see api.token)"
+        )
 
 
 TOKEN = [Depends(require_token)]

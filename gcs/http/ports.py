@@ -9,7 +9,8 @@ mypy checks where the ports are built.
 
 from __future__ import annotations
 
-from collections.abc import AbstractSet, Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, Protocol
 

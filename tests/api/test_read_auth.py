@@ -22,8 +22,9 @@ from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from websockets.typing import Subprotocol
 
-from gcs.http import create_app
 from gcs.client import FleetClient
+from gcs.http import create_app
+from gcs.http.app import flat_routes
 from gcs.http.guard import is_loopback_bind
 from tests.api.fleet import Fleet, running_fleet
 
@@ -60,7 +61,7 @@ def _app_bound_to(fleet: Fleet, host: str, **config: object) -> FastAPI:
 
 
 def _get_routes(app: FastAPI) -> list[str]:
-    paths = [r.path for r in app.routes if isinstance(r, APIRoute) and "GET" in (r.methods or ())]
+    paths = [r.path for r in flat_routes(app) if isinstance(r, APIRoute) and "GET" in (r.methods or ())]
     return [p.format(**PATH_VALUES) for p in paths if p not in OPEN] + ["/metrics"]
 
 

@@ -28,7 +28,12 @@ router = APIRouter()
 
 @router.get("/api/v1/health")
 async def health(agents: Agents, missions: Missions) -> Health:
-    return Health(ok=True, agents_connected=len(agents.connected()), missions=len(missions.active), server_time=time.time())
+    return Health(
+        ok=True,
+        agents_connected=len(agents.connected()),
+        missions=len(missions.active),
+        server_time=time.time(),
+    )
 
 
 @router.get("/api/v1/ui-config")

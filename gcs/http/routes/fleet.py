@@ -59,7 +59,9 @@ async def fleet_hold(operator: Operator, hub: Hub, command: FleetCommand | None 
 
 
 @router.post("/api/v1/fleet/resume", dependencies=TOKEN)
-async def fleet_resume(operator: Operator, hub: Hub, command: FleetCommand | None = None) -> FleetCommandResult:
+async def fleet_resume(
+    operator: Operator, hub: Hub, command: FleetCommand | None = None
+) -> FleetCommandResult:
     """Drop the operator's hold; lower sources' holds (collision...) still apply until they clear."""
     return await _fleet_pause(operator, hub, "resume", command)
 

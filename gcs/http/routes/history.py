@@ -26,7 +26,9 @@ async def history(
     hub: Hub,
     since: Annotated[float, Query(ge=0, le=1e12, description="UNIX time; samples after it")] = 0.0,
     until: Annotated[float | None, Query(ge=0, le=1e12, description="UNIX time; up to it")] = None,
-    limit: Annotated[int, Query(ge=1, le=MAX_HISTORY_LIMIT, description="the newest n samples of the range")] = 1000,
+    limit: Annotated[
+        int, Query(ge=1, le=MAX_HISTORY_LIMIT, description="the newest n samples of the range")
+    ] = 1000,
     every: Annotated[int, Query(ge=1, le=10_000, description="keep every n-th sample")] = 1,
 ) -> Response:
     """The newest ``limit`` samples in (since, until], oldest first; bounded and read off the loop."""

@@ -47,7 +47,9 @@ async def missions(
 ) -> list[MissionSummary]:
     rows = archive.missions(state)[-limit:][::-1]
     return [
-        MissionSummary(id=m.id, name=m.name, state=m.state, created=m.created, finished=m.finished, result=m.result)
+        MissionSummary(
+            id=m.id, name=m.name, state=m.state, created=m.created, finished=m.finished, result=m.result
+        )
         for m in rows
     ]
 
@@ -84,7 +86,9 @@ async def mission_geometry(mission_id: str, archive: Archive, hub: Hub) -> Missi
             targets=planned.targets,
             swath_m=planned.swath_m,
         )
-    return MissionGeometry(mission_id=mission_id, paths=task_paths(TaskFile.model_validate_json(stored.task_json)))
+    return MissionGeometry(
+        mission_id=mission_id, paths=task_paths(TaskFile.model_validate_json(stored.task_json))
+    )
 
 
 @router.get("/api/v1/missions/{mission_id}/coverage")
@@ -147,7 +151,9 @@ async def _mission_command(
     return progress_of(control, mission_id)
 
 
-def _covered_pct(area: list[tuple[float, float]], tracks: list[list[tuple[float, float]]], swath: float) -> float:
+def _covered_pct(
+    area: list[tuple[float, float]], tracks: list[list[tuple[float, float]]], swath: float
+) -> float:
     """Percent of ``area`` within swath/2 of the flown tracks (local frame of the area)."""
     import numpy as np
     import shapely

@@ -28,7 +28,9 @@ async def preview(request: Annotated[PlanRequest, Body(discriminator="method")],
 
 
 @router.post("/api/v1/missions/plan", status_code=201, dependencies=TOKEN)
-async def plan_and_fly(request: Annotated[PlanRequest, Body(discriminator="method")], ports: Ports) -> MissionCreated:
+async def plan_and_fly(
+    request: Annotated[PlanRequest, Body(discriminator="method")], ports: Ports
+) -> MissionCreated:
     """Plan, then submit the plan's task file as a mission."""
     planned = await _plan(ports, request)
     mission_id = await submit_task(ports.missions, planned.taskfile)
@@ -51,7 +53,9 @@ def drone_infos(agents: AgentDirectory, missions: MissionControl, names: list[st
     """Planner inputs for the named agents, or for every connected agent not busy with a mission."""
     if not names:
         busy = {a for m in missions.active.values() for a in missions.members(m)}
-        names = [s.identity for s in sorted(agents.connected(), key=lambda s: s.cid) if s.identity not in busy]
+        names = [
+            s.identity for s in sorted(agents.connected(), key=lambda s: s.cid) if s.identity not in busy
+        ]
     infos = []
     for name in names:
         session = agents.sessions.get(name)
@@ -61,5 +65,7 @@ def drone_infos(agents: AgentDirectory, missions: MissionControl, names: list[st
         home = (session.home.lat, session.home.lon) if session.home else None
         if home is None and session.status is not None and session.status.position is not None:
             home = (session.status.position.lat, session.status.position.lon)
-        infos.append(DroneInfo(name=name, capabilities=session.capabilities, home=home, status=session.status))
+        infos.append(
+            DroneInfo(name=name, capabilities=session.capabilities, home=home, status=session.status)
+        )
     return infos
