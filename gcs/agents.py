@@ -117,6 +117,14 @@ class RateLimited(Exception):
     """An authenticated peer sent frames faster than its allowance."""
 
 
+class RetireRefused(Exception):
+    """Why an agent cannot leave the fleet list now: ``status`` 404 (not on it) or 409 (in use)."""
+
+    def __init__(self, status: int, title: str, detail: str) -> None:
+        super().__init__(detail)
+        self.status, self.title, self.detail = status, title, detail
+
+
 class TokenBucket:
     """``rate`` tokens per second, at most ``burst`` saved up; one token per frame."""
 
@@ -376,6 +384,25 @@ class AgentManager:
 
     def connected(self) -> list[AgentSession]:
         return [s for s in self.sessions.values() if s.open]
+
+    def retire(self, identity: str, mission: str | None = None) -> AgentSession:
+        """Take a disconnected agent off the fleet list (a ghost, a drone gone for good).
+
+        ``mission`` is the mission it still flies, if any: then it stays. Its CID stays reserved in
+        the store, so if it ever comes back it re-joins as before. Raises :class:`RetireRefused`.
+        """
+        session = self.sessions.get(identity)
+        if session is None:
+            raise RetireRefused(404, "no such agent", f"agent {identity!r} is not on the fleet list")
+        if session.open:
+            raise RetireRefused(409, "agent connected", f"{identity} is connected: stop its agent first")
+        if mission is not None:
+            raise RetireRefused(
+                409, "agent in a mission", f"{identity} flies mission {mission}: abort it first"
+            )
+        del self.sessions[identity]
+        self.lost.discard(identity)
+        return session
 
     async def send(self, identity: str, body: Body, *, urgent: bool | None = None) -> bool:
         """Queue ``body`` for ``identity`` and wait until it is written and drained.

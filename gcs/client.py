@@ -7,7 +7,7 @@
         async for name, status in gcs.statuses():               # live status reports
             ...
 
-Responses are the API's own pydantic models (gcs.api_models), so a client and the server
+Responses are the API's own pydantic models (gcs.http.models), so a client and the server
 cannot drift apart silently. Errors raise :class:`ApiError` with the problem+json reason.
 See examples/ and docs/api.md.
 """
@@ -26,7 +26,10 @@ from typing import Any, Literal, TypeVar
 import httpx
 from pydantic import BaseModel, TypeAdapter
 
-from gcs.api_models import (
+from gcs.api_planning import PlanPreview, PsaPlanRequest, RsaPlanRequest, SearchPlanRequest
+from gcs.config import default_data_dir
+from gcs.events import Event
+from gcs.http.models import (
     AgentView,
     Delivered,
     FleetCommandResult,
@@ -36,9 +39,6 @@ from gcs.api_models import (
     MissionSummary,
     Retired,
 )
-from gcs.api_planning import PlanPreview, PsaPlanRequest, RsaPlanRequest, SearchPlanRequest
-from gcs.config import default_data_dir
-from gcs.events import Event
 from gcs.live import StatusSample
 from gcs.missions import MissionProgress
 from protocol.packets import Geofence, StatusReport

@@ -24,6 +24,7 @@ from gcs.cooperation.return_coordinator import ReturnCoordinator, ReturnSettings
 from gcs.events import EventBus, Severity
 from gcs.extensions import load_extensions
 from gcs.keys import KeyRing, load_or_create_key_file
+from gcs.live import LiveHub
 from gcs.missions import MissionRunner
 from gcs.operator import OperatorCommands
 from gcs.store import Store
@@ -170,6 +171,7 @@ class Daemon:
         self.geofences: dict[str, Geofence] = {}  # the fence each agent was last sent
         self.telemetry = TelemetryRecorder(config.telemetry)
         self.services: list[Service] = [self.telemetry]
+        self._live_hub: LiveHub | None = None  # built by live_hub(), for the HTTP API
         self.services += load_extensions(config)  # user modules listed in the configuration
         self.services.extend(cooperation_services(config.cooperation))
 
@@ -276,13 +278,15 @@ class Daemon:
     async def _start_http(self) -> None:
         import uvicorn
 
-        from gcs.api import create_app
+        from gcs.http import create_app
 
         _QuietServer = _quiet_server_class()
 
         assert self.config.http_host is not None
+        hub = self.live_hub()
+        await hub.start()
         server_config = uvicorn.Config(
-            create_app(self),
+            create_app(self, hub),
             host=self.config.http_host,
             port=self.config.http_port,
             log_level="warning",
@@ -333,6 +337,19 @@ class Daemon:
         if self.missions.beacon is not None:
             self.missions.beacon.close()
         self.store.close()
+
+    def live_hub(self) -> LiveHub:
+        """The live hub the HTTP API serves (status rings, stream, metrics), built once on first call.
+
+        Registered as a service so :meth:`stop` stops it; started at once if the loop runs (else by
+        the caller, or on first use). Built after the services, so its hooks run after theirs.
+        """
+        if self._live_hub is None:
+            self._live_hub = LiveHub(self)
+            self.services.append(self._live_hub)
+            with contextlib.suppress(RuntimeError):  # no running loop yet: started on first use
+                asyncio.get_running_loop().create_task(self._live_hub.start())
+        return self._live_hub
 
     async def set_geofence(self, geofence: Geofence | None, agents: list[str] | None = None) -> list[str]:
         """Send a type-3 geofence to the given (default: all connected) agents; returns who got it."""

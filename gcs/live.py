@@ -279,7 +279,7 @@ class LiveHub:
         Recent history comes from the in-memory ring (``since`` and ``until`` compare with the
         daemon's receive time); a ``since`` older than the ring reads the telemetry log (agent
         time) in a worker thread. Building and serialising the page also runs off the loop: the
-        caller bounds ``limit`` and ``limit * every`` (see gcs/api.py).
+        caller bounds ``limit`` and ``limit * every`` (see gcs/http/routes/history.py).
         """
         ring = self.history.get(identity, ())
         telemetry = getattr(self.daemon, "telemetry", None)

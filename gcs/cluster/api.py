@@ -15,8 +15,8 @@ from typing import TYPE_CHECKING, Any, Literal
 from fastapi import APIRouter
 from pydantic import BaseModel, Field
 
-from gcs.api_models import FleetCommand, FleetCommandResult
 from gcs.cluster.node import AIRSPACE_LEASE
+from gcs.http.models import FleetCommand, FleetCommandResult
 
 if TYPE_CHECKING:
     from gcs.daemon import Daemon

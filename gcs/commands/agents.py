@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from gcs.api_models import AgentView
 from gcs.commands._api import CommandError, api_arguments, call
+from gcs.http.models import AgentView
 
 
 def _row(agent: AgentView) -> str:

@@ -154,7 +154,7 @@ function onEvent(ev) {
 function connect() {
   const proto = location.protocol === "https:" ? "wss:" : "ws:";
   // A browser cannot set headers on a WebSocket: the token (needed when the daemon listens beyond
-  // loopback) travels as the subprotocol "bearer.<token>" beside "fleetgcs" (gcs/http_guard.py).
+  // loopback) travels as the subprotocol "bearer.<token>" beside "fleetgcs" (gcs/http/guard.py).
   const token = $("token").value.trim();
   const ws = new WebSocket(`${proto}//${location.host}/api/v1/stream?max_rate_hz=10`,
     token ? ["fleetgcs", "bearer." + token] : undefined);

@@ -1,4 +1,4 @@
-"""Reads need the token beyond loopback (gcs/http_guard.py).
+"""Reads need the token beyond loopback (gcs/http/guard.py).
 
 The guard decides from the configured bind address. No test binds beyond loopback: the app of a
 daemon whose configuration says ``http_host = "0.0.0.0"`` is served by uvicorn on 127.0.0.1 and
@@ -22,9 +22,10 @@ from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from websockets.typing import Subprotocol
 
-from gcs.api import create_app
 from gcs.client import FleetClient
-from gcs.http_guard import is_loopback_bind
+from gcs.http import create_app
+from gcs.http.app import flat_routes
+from gcs.http.guard import is_loopback_bind
 from tests.api.fleet import Fleet, running_fleet
 
 pytestmark = pytest.mark.timeout(120)
@@ -60,7 +61,7 @@ def _app_bound_to(fleet: Fleet, host: str, **config: object) -> FastAPI:
 
 
 def _get_routes(app: FastAPI) -> list[str]:
-    paths = [r.path for r in app.routes if isinstance(r, APIRoute) and "GET" in (r.methods or ())]
+    paths = [r.path for r in flat_routes(app) if isinstance(r, APIRoute) and "GET" in (r.methods or ())]
     return [p.format(**PATH_VALUES) for p in paths if p not in OPEN] + ["/metrics"]
 
 

@@ -1,4 +1,4 @@
-"""HTTP API bounds (gcs/http_guard.py), each hit while a mission is flying: the daemon keeps serving it."""
+"""HTTP API bounds (gcs/http/guard.py), each hit while a mission is flying: the daemon keeps serving it."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Pydantic models of the HTTP API, shared by the server (``gcs.api``), the client (``gcs.client``)
+"""Pydantic models of the HTTP API, shared by the server (``gcs.http``), the client (``gcs.client``)
 and the OpenAPI schema, so the three never disagree."""
 
 from __future__ import annotations
