@@ -119,7 +119,8 @@ async def test_fleet_and_mission_control_from_the_shell(tmp_path: Path) -> None:
         assert code == 1 and one_line(err) == "gcs fleet: land reached no drone: none of ghost is connected"
 
         async with fleet.client() as http:
-            task = survey_mission(["drone-1", "drone-2"], sync_legs=3).model_dump(mode="json")
+            # long enough (legs to 90 m north) to outlast four CLI processes on a loaded machine
+            task = survey_mission(["drone-1", "drone-2"], sync_legs=9).model_dump(mode="json")
             created = await http.post("/api/v1/missions", json=task)
             mission_id = created.json()["mission_id"]
         code, out, err = await gcs("mission", "pause", *api)
