@@ -36,7 +36,7 @@ from agent.autopilot.base import (
     Telemetry,
 )
 from agent.autopilot.flavours import Flavour, flavour_for
-from agent.autopilot.flavours.base import HoldSettler, ShownMode, base_altitude_amsl
+from agent.autopilot.flavours.base import ShownMode, base_altitude_amsl
 from agent.autopilot.mavlink_link import MavlinkLink, mavlink, mission_result_name
 
 log = logging.getLogger(__name__)
@@ -139,7 +139,6 @@ class MavlinkAutopilot(Autopilot):
         self._pending_speed: float | None = None  # set_speed in a mode that refuses it
         self._leg_speed: float | None = None  # PX4: the last speed asked for, sent with each reposition
         self._shown = ShownMode()  # PX4: GUIDED while our reposition leg is flown, LOITER once held
-        self._settler = HoldSettler()  # PX4: the second step of a reposition hold
         self._streams_ready = False
         self._stream_requested_at: dict[str, float] = {}
         self._refused_streams: set[str] = set()  # SET_MESSAGE_INTERVAL refused: never re-asserted
@@ -169,7 +168,6 @@ class MavlinkAutopilot(Autopilot):
         if self._closed:
             return
         self._closed = True
-        self._settler.cancel()
         self._connected = False
         await asyncio.get_running_loop().run_in_executor(None, self._link.stop)
 
@@ -390,7 +388,6 @@ class MavlinkAutopilot(Autopilot):
 
     async def set_mode(self, name: str) -> None:
         """Switch flight mode by name (ArduPilot custom mode / PX4 main+sub mode); waits for the ACK."""
-        self._settler.cancel()
         name = name.upper()
         what = f"mode {name}"
         vehicle = self._link.vehicle
@@ -620,20 +617,21 @@ class MavlinkAutopilot(Autopilot):
         await self.set_mode("RTL")
 
     async def hold(self) -> None:
-        """Stop where the vehicle is: ArduPilot BRAKE (LOITER if refused); PX4 DO_REPOSITION here.
+        """Stop where the vehicle is: ArduPilot BRAKE (LOITER if refused); PX4 its own pause.
 
         PX4 flies a goto (DO_REPOSITION) in Hold already, so switching to Hold would change
-        nothing; a reposition to the current point stops it, and :func:`settle_hold` then re-aims
-        at its stopping point so it does not fly back (measured: 0.14 m/s at 2.8 s from 4.6 m/s).
+        nothing; a DO_REPOSITION without position, altitude or yaw (:meth:`Flavour.pause_params`)
+        makes it brake and hold where it comes to rest. Asked again (collision holds repeat every
+        2 s) it re-aims at the stopping point from where the vehicle is then: no flying back.
         """
         flavour = self.flavour
         tel = self.telemetry()
-        if flavour.hold_by_reposition and tel.armed and not tel.landed and tel.position_known:
-            if self._settler.running:
-                return  # already stopping (a collision hold is re-sent every 2 s): do not re-aim back
-            await self._reposition("hold", tel.lat, tel.lon, tel.alt_amsl, None)
+        pause = flavour.pause_params()
+        if pause is not None and tel.armed and not tel.landed:
+            await self._link.command(
+                "hold", mavlink.MAV_CMD_DO_REPOSITION, pause, int_frame=mavlink.MAV_FRAME_GLOBAL
+            )
             self._set_leg_active(False)
-            self._settler.start(self.telemetry, self._settle_reposition)
             return
         for i, mode in enumerate(flavour.hold_modes):
             try:
@@ -644,14 +642,10 @@ class MavlinkAutopilot(Autopilot):
                     raise
                 log.info("%s refused (%s); trying %s", mode, exc.reason, flavour.hold_modes[i + 1])
 
-    async def _settle_reposition(self, lat: float, lon: float, alt_amsl: float) -> None:
-        await self._reposition("hold (settle)", lat, lon, alt_amsl, None)
-
     async def _reposition(
         self, what: str, lat: float, lon: float, alt_amsl: float, speed: float | None
     ) -> None:
         """MAV_CMD_DO_REPOSITION as COMMAND_INT (PX4 ignores the frame: z is AMSL)."""
-        self._settler.cancel()
         params = self.flavour.reposition_params(lat, lon, alt_amsl, speed)
         await self._link.command(
             what, mavlink.MAV_CMD_DO_REPOSITION, params, int_frame=mavlink.MAV_FRAME_GLOBAL

@@ -82,6 +82,14 @@ class ParamCodec(Protocol):
     def encode_param(self, value: float, param_type: int) -> float: ...
 
 
+INT32_MAX = 0x7FFFFFFF  # COMMAND_INT x/y: "no position" (PX4 reads it as NaN lat/lon)
+
+
+def _int_degrees(degrees: float) -> int:
+    """COMMAND_INT x/y for a latitude/longitude in degrees; NaN (no position) as INT32_MAX."""
+    return round(degrees * 1e7) if math.isfinite(degrees) else INT32_MAX
+
+
 def mav_result_name(result: int) -> str:
     entry = mavlink.enums["MAV_RESULT"].get(result)
     return entry.name if entry is not None else f"MAV_RESULT({result})"
@@ -483,7 +491,8 @@ class MavlinkLink:
     ) -> None:
         """Send COMMAND_LONG (or COMMAND_INT when ``int_frame`` is given) and wait for its ACK.
 
-        For COMMAND_INT, params 5 and 6 are lat/lon in degrees (sent x1e7) and 7 is the altitude.
+        For COMMAND_INT, params 5 and 6 are lat/lon in degrees (sent x1e7; NaN as INT32_MAX, "no
+        position") and 7 is the altitude.
         Returns on MAV_RESULT_ACCEPTED; IN_PROGRESS keeps waiting.
         """
         timeout = self.command_timeout_s if timeout_s is None else timeout_s
@@ -522,8 +531,8 @@ class MavlinkLink:
                                 p[1],
                                 p[2],
                                 p[3],
-                                round(p[4] * 1e7),
-                                round(p[5] * 1e7),
+                                _int_degrees(p[4]),
+                                _int_degrees(p[5]),
                                 p[6],
                             )
                         )

@@ -14,8 +14,8 @@ pymavlink-style strings the other backend takes (``tcp:host:port``, ``udpin:0.0.
 What differs per firmware comes from the vehicle's :class:`~agent.autopilot.flavours.Flavour`,
 shared with the pymavlink backend. Mapping: arm → ``Action.arm`` (retried on refusal until the
 deadline), takeoff → ``MAV_CMD_NAV_TAKEOFF`` with the flavour's params (PX4: AMSL), goto → PX4
-``DO_REPOSITION`` with the speed in param1 (ArduPilot: GUIDED + ``Action.goto_location``), hold → PX4
-``DO_REPOSITION`` to the current point (``Action.hold`` only switches to Hold, which a PX4 goto is
+``DO_REPOSITION`` with the speed in param1 (ArduPilot: GUIDED + ``Action.goto_location``), hold → PX4's
+pause, ``DO_REPOSITION`` without position (``Action.hold`` only switches to Hold, which a PX4 goto is
 already flown in), land → ``Action.land`` (after a goto when lat/lon are given), RTL →
 ``Action.return_to_launch`` after the return altitude, speed → ``Action.set_current_speed``, fence →
 ``Geofence.upload_geofence`` + the flavour's parameters, mission → ``MissionRaw``. Raw commands
@@ -49,8 +49,8 @@ from agent.autopilot.base import (
     Telemetry,
 )
 from agent.autopilot.flavours import Flavour, flavour_for
-from agent.autopilot.flavours.base import HoldSettler, ShownMode, base_altitude_amsl
-from agent.autopilot.mavlink_link import mavlink
+from agent.autopilot.flavours.base import ShownMode, base_altitude_amsl
+from agent.autopilot.mavlink_link import INT32_MAX, mavlink
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +172,6 @@ class MavsdkAutopilot(Autopilot):
         self._autopilot_type = mavlink.MAV_AUTOPILOT_GENERIC
         self._mode_from_heartbeat = False
         self._shown = ShownMode()  # PX4: GUIDED while our reposition leg is flown, LOITER once held
-        self._settler = HoldSettler()  # PX4: the second step of a reposition hold
         self._leg_speed: float | None = None  # PX4: the last speed asked for, sent with each reposition
         self._param_is_int: dict[str, bool] = {}
         self._mission_seq = -1
@@ -245,7 +244,6 @@ class MavsdkAutopilot(Autopilot):
         if self._closed:
             return
         self._closed = True
-        self._settler.cancel()
         mavsdk, self._mavsdk = self._mavsdk, None
         if mavsdk is not None:
             await asyncio.get_running_loop().run_in_executor(None, mavsdk.destroy)
@@ -467,29 +465,30 @@ class MavsdkAutopilot(Autopilot):
         from mavsdk.plugins.mavlink_direct import MavlinkMessage
 
         self.ensure_link(what)
-        # JSON has no NaN and MavlinkDirect turns a "NaN" string into 0 (measured). Our only NaN is
-        # param4, the yaw ("keep heading") of NAV_TAKEOFF and DO_REPOSITION: send the heading instead.
+        # JSON has no NaN and MavlinkDirect turns a "NaN" string into 0 (measured); a JSON null is
+        # NaN in a float field (MAVSDK 4.x libcmavsdk). COMMAND_INT lat/lon NaN: INT32_MAX.
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
-        if not math.isfinite(p[3]):
-            p[3] = self.telemetry().heading_deg
-        if not all(math.isfinite(x) for x in p):
-            raise ValueError(f"{what}: non-finite command parameter {params!r}")
+        if any(math.isinf(x) for x in p):
+            raise ValueError(f"{what}: infinite command parameter {params!r}")
+        if int_frame is None and not all(math.isfinite(x) for x in p[4:6]):
+            raise ValueError(f"{what}: NaN lat/lon needs COMMAND_INT {params!r}")
+        f: list[float | None] = [x if math.isfinite(x) else None for x in p]
         fields: dict[str, Any] = {
             "target_system": self._sysid,
             "target_component": self._compid,
             "command": command,
         }
         if int_frame is None:
-            fields |= {"confirmation": 0, **{f"param{i + 1}": p[i] for i in range(7)}}
+            fields |= {"confirmation": 0, **{f"param{i + 1}": f[i] for i in range(7)}}
         else:
             fields |= {
                 "frame": int_frame,
                 "current": 0,
                 "autocontinue": 0,
-                **{f"param{i + 1}": p[i] for i in range(4)},
-                "x": round(p[4] * 1e7),
-                "y": round(p[5] * 1e7),
-                "z": p[6],
+                **{f"param{i + 1}": f[i] for i in range(4)},
+                "x": round(p[4] * 1e7) if math.isfinite(p[4]) else INT32_MAX,
+                "y": round(p[5] * 1e7) if math.isfinite(p[5]) else INT32_MAX,
+                "z": f[6],
             }
         message = MavlinkMessage(
             message_name="COMMAND_LONG" if int_frame is None else "COMMAND_INT",
@@ -528,7 +527,6 @@ class MavsdkAutopilot(Autopilot):
 
     async def _set_mode(self, name: str) -> None:
         """MAV_CMD_DO_SET_MODE by name, encoded by the flavour (a no-op when already in it)."""
-        self._settler.cancel()
         if self.telemetry().mode == name:
             return
         try:
@@ -583,13 +581,9 @@ class MavsdkAutopilot(Autopilot):
     def _amsl(self, alt_rel_m: float) -> float:
         return base_altitude_amsl(self.telemetry()) + alt_rel_m
 
-    async def _settle_reposition(self, lat: float, lon: float, alt_amsl: float) -> None:
-        await self._reposition("hold (settle)", lat, lon, alt_amsl, None)
-
     async def _reposition(
         self, what: str, lat: float, lon: float, alt_amsl: float, speed: float | None
     ) -> None:
-        self._settler.cancel()
         params = self.flavour.reposition_params(lat, lon, alt_amsl, speed)
         await self._direct_command(
             what, mavlink.MAV_CMD_DO_REPOSITION, params, int_frame=mavlink.MAV_FRAME_GLOBAL
@@ -618,7 +612,6 @@ class MavsdkAutopilot(Autopilot):
             raise ValueError("land: give both lat and lon, or neither")
         if lat is not None and lon is not None:
             await self.approach_landing_point(lat, lon)
-        self._settler.cancel()
         await self._call("land", self._action.land)
 
     async def return_to_launch(self, alt_rel_m: float | None = None) -> None:
@@ -632,20 +625,20 @@ class MavsdkAutopilot(Autopilot):
                 await self._call("rtl altitude", self._action.set_return_to_launch_altitude, float(alt_rel_m))
             except (CommandRefused, CommandTimeout) as exc:  # a return must not fail for its altitude
                 log.warning("return altitude %.1f m not set (%s); returning at the vehicle's", alt_rel_m, exc)
-        self._settler.cancel()
         await self._call("rtl", self._action.return_to_launch)
         self._set_leg_active(False)
 
     async def hold(self) -> None:
-        """Stop where the vehicle is: ArduPilot BRAKE (LOITER if refused); PX4 DO_REPOSITION here."""
+        """Stop where the vehicle is: ArduPilot BRAKE (LOITER if refused); PX4 its own pause
+        (:meth:`Flavour.pause_params`; ``Action.hold`` would only ask for the Hold it flies in)."""
         flavour = self.flavour
         tel = self.telemetry()
-        if flavour.hold_by_reposition and tel.armed and not tel.landed and tel.position_known:
-            if self._settler.running:
-                return  # already stopping (a collision hold is re-sent every 2 s): do not re-aim back
-            await self._reposition("hold", tel.lat, tel.lon, tel.alt_amsl, None)
+        pause = flavour.pause_params()
+        if pause is not None and tel.armed and not tel.landed:
+            await self._direct_command(
+                "hold", mavlink.MAV_CMD_DO_REPOSITION, pause, int_frame=mavlink.MAV_FRAME_GLOBAL
+            )
             self._set_leg_active(False)
-            self._settler.start(self.telemetry, self._settle_reposition)
             return
         for i, mode in enumerate(flavour.hold_modes):
             try:
@@ -754,5 +747,4 @@ class MavsdkAutopilot(Autopilot):
             self._update_mission_current()
 
     async def start_mission(self) -> None:
-        self._settler.cancel()
         await self._call("mission start", self._mission_raw.start_mission)

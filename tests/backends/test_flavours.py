@@ -6,7 +6,6 @@ the real-vehicle scenarios are in tests/px4 and tests/ardupilot.
 
 from __future__ import annotations
 
-import asyncio
 import math
 import struct
 
@@ -14,16 +13,9 @@ import pytest
 
 from agent.autopilot.base import FenceCircle, FenceSpec, Telemetry
 from agent.autopilot.flavours import ARDUPILOT, PX4, ArduPilotFlavour, Px4Flavour, flavour_for
-from agent.autopilot.flavours.base import (
-    RETURN_ALT_FLOOR_M,
-    SETTLE_DECEL_MPS2,
-    HoldSettler,
-    ShownMode,
-    settle_hold,
-)
+from agent.autopilot.flavours.base import RETURN_ALT_FLOOR_M, ShownMode
 from agent.autopilot.flavours.px4 import PX4_SET
 from agent.autopilot.mavlink_link import mavlink
-from protocol.geo import distance_m
 
 QUAD = mavlink.MAV_TYPE_QUADROTOR
 
@@ -82,8 +74,13 @@ def test_px4_reposition_carries_the_speed() -> None:
         ARDUPILOT.reposition_params(47.1, 8.2, 500.0, 3.0)
 
 
-def test_hold_is_a_reposition_on_px4_and_a_mode_on_ardupilot() -> None:
-    assert PX4.hold_by_reposition and not ARDUPILOT.hold_by_reposition
+def test_hold_is_px4s_pause_and_a_mode_on_ardupilot() -> None:
+    """PX4: DO_REPOSITION with NaN position, altitude and yaw is its pause (brake, hold where it stops);
+    any finite one of them would keep flying the leg's setpoint (PX4 navigator_main.cpp)."""
+    pause = PX4.pause_params()
+    assert pause is not None and pause[1] == mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE
+    assert all(math.isnan(v) for v in pause[3:7])
+    assert ARDUPILOT.pause_params() is None
     assert ARDUPILOT.hold_modes == ("BRAKE", "LOITER")
     assert PX4.guided_mode is None and ARDUPILOT.guided_mode == "GUIDED"
 
@@ -142,66 +139,3 @@ def test_px4_mode_shown_tells_a_leg_from_a_hold() -> None:
     ardu = ShownMode()
     ardu.from_heartbeat(ARDUPILOT, "LOITER")
     assert ardu.leg(ARDUPILOT, True) == "LOITER"  # ArduPilot shows the vehicle's mode as it is
-
-
-class _Braking:
-    """Telemetry of a vehicle braking north from 4 m/s at 2 m/s² (time from the event loop)."""
-
-    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
-        self.loop = loop
-        self.t0 = loop.time()
-
-    def __call__(self) -> Telemetry:
-        t = self.loop.time() - self.t0
-        v = max(0.0, 4.0 - 2.0 * t)
-        return _tel(vn=v, ve=0.0)
-
-
-def test_settle_hold_reaims_at_the_stopping_point() -> None:
-    async def run() -> tuple[bool, list[tuple[float, float, float]], Telemetry]:
-        tel = _Braking(asyncio.get_running_loop())
-        sent: list[tuple[float, float, float]] = []
-
-        async def reposition(lat: float, lon: float, alt: float) -> None:
-            sent.append((lat, lon, alt))
-
-        ok = await settle_hold(tel, reposition, timeout_s=5.0)
-        return ok, sent, tel()
-
-    ok, sent, now = asyncio.run(run())
-    assert ok and len(sent) == 1
-    lat, lon, alt = sent[0]
-    ahead = distance_m(now.lat, now.lon, lat, lon)
-    assert lat > now.lat and 0.0 < ahead <= 1.5**2 / (2 * SETTLE_DECEL_MPS2) + 1e-6
-    assert alt == now.alt_amsl
-
-
-def test_settle_hold_gives_up_and_stops_on_the_ground() -> None:
-    async def run(tel: Telemetry) -> tuple[bool, int]:
-        sent: list[object] = []
-
-        async def reposition(lat: float, lon: float, alt: float) -> None:
-            sent.append(lat)
-
-        return await settle_hold(lambda: tel, reposition, timeout_s=1.0), len(sent)
-
-    assert asyncio.run(run(_tel(vn=5.0))) == (False, 0)  # never slowed within the timeout
-    assert asyncio.run(run(_tel(landed=True))) == (False, 0)
-
-
-def test_hold_settler_is_cancelled_by_the_next_command() -> None:
-    async def run() -> tuple[bool, int]:
-        sent: list[object] = []
-
-        async def reposition(lat: float, lon: float, alt: float) -> None:
-            sent.append(lat)
-
-        settler = HoldSettler()
-        settler.start(lambda: _tel(vn=5.0), reposition)
-        await asyncio.sleep(0.05)
-        running = settler.running
-        settler.cancel()
-        await asyncio.sleep(0.7)
-        return running and not settler.running, len(sent)
-
-    assert asyncio.run(run()) == (True, 0)

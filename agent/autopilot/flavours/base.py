@@ -12,23 +12,11 @@ firmware). Measured behaviours and the tests that pin them: ``docs/autopilot-bac
 from __future__ import annotations
 
 import abc
-import asyncio
-import logging
 import math
-import time
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Mapping
 from typing import ClassVar
 
 from agent.autopilot.base import FenceSpec, Telemetry
-from protocol.geo import offset_latlon
-
-log = logging.getLogger(__name__)
-
-# A reposition hold is re-aimed at the vehicle's stopping point (see settle_hold) once it has
-# braked below this speed, assuming this deceleration for the rest of the stop.
-SETTLE_SPEED_MPS = 1.5
-SETTLE_DECEL_MPS2 = 2.0
-SETTLE_TIMEOUT_S = 8.0
 
 # Used when a return is asked for without an altitude and the autopilot's own default is a poor
 # fit (PX4: RTL_RETURN_ALT 30 m for every drone): return at the current altitude, never below this.
@@ -42,9 +30,6 @@ class Flavour(abc.ABC):
     mav_autopilot: int = 0
     # Mode to enter before arming, taking off and sending position targets (ArduPilot GUIDED).
     guided_mode: str | None = None
-    # Hold by repositioning to the current point (PX4, whose goto already flies in Hold) instead of
-    # switching to one of :attr:`hold_modes`.
-    hold_by_reposition: bool = False
     hold_modes: tuple[str, ...] = ()
     # Mission seq 0 is the home position (ArduPilot), not the first point.
     mission_home_item: bool = False
@@ -70,6 +55,12 @@ class Flavour(abc.ABC):
     ) -> tuple[float, ...]:
         """MAV_CMD_DO_REPOSITION params 1-7 (COMMAND_INT, frame GLOBAL: z is AMSL)."""
         raise NotImplementedError(f"{self.name} does not fly DO_REPOSITION")
+
+    def pause_params(self) -> tuple[float, ...] | None:
+        """MAV_CMD_DO_REPOSITION params 1-7 that make a flying vehicle brake and hold where it comes to
+        rest (NaN: no position, altitude or yaw), or None when the flavour holds by switching to one
+        of :attr:`hold_modes` (ArduPilot BRAKE). Sent as COMMAND_INT, NaN lat/lon as x = y = INT32_MAX."""
+        return None
 
     def speed_accepted_in(self, mode: str) -> bool:
         """Whether MAV_CMD_DO_CHANGE_SPEED takes effect in ``mode`` (else keep it for the next target)."""
@@ -139,70 +130,3 @@ class ShownMode:
         """Mark a leg started or ended; the mode to show now (None before any heartbeat)."""
         self.leg_active = active
         return flavour.shown_mode(self.raw, active) if self.raw else None
-
-
-async def settle_hold(
-    telemetry: Callable[[], Telemetry],
-    reposition: Callable[[float, float, float], Awaitable[None]],
-    timeout_s: float = SETTLE_TIMEOUT_S,
-) -> bool:
-    """Second step of a reposition hold: re-aim at the point where the vehicle will come to rest.
-
-    PX4 brakes past a reposition target at the current point (6.9 m from 4.5 m/s, < 0.5 m/s
-    after 3 s) and then flies back to it at up to 1.7 m/s. Once it has braked below
-    :data:`SETTLE_SPEED_MPS`, a reposition to its remaining stopping point (v²/2a ahead) ends
-    the stop there. Aiming there from the start does not work: PX4 then creeps the last metres
-    at about 1 m/s. Runs as a task the backend cancels with its next command; False when the
-    vehicle never slowed within ``timeout_s``.
-    """
-    deadline = time.monotonic() + timeout_s
-    await asyncio.sleep(0.5)  # the first reposition needs a moment to take effect
-    while time.monotonic() < deadline:
-        tel = telemetry()
-        if not tel.armed or tel.landed:
-            return False
-        speed = math.hypot(tel.vn, tel.ve)
-        if speed < SETTLE_SPEED_MPS:
-            ahead = speed / (2 * SETTLE_DECEL_MPS2)  # (v / v) * v² / 2a along the velocity
-            lat, lon = offset_latlon(tel.lat, tel.lon, tel.vn * ahead, tel.ve * ahead)
-            await reposition(lat, lon, tel.alt_amsl)
-            return True
-        await asyncio.sleep(0.1)
-    return False
-
-
-class HoldSettler:
-    """Owns the :func:`settle_hold` task of one backend: started by a hold, cancelled by any
-    later command (goto, mode change, return, landing) so a settle never overrides it."""
-
-    def __init__(self) -> None:
-        self._task: asyncio.Task[bool] | None = None
-
-    def start(
-        self,
-        telemetry: Callable[[], Telemetry],
-        reposition: Callable[[float, float, float], Awaitable[None]],
-    ) -> None:
-        self.cancel()
-        self._task = asyncio.get_running_loop().create_task(self._run(telemetry, reposition))
-
-    async def _run(
-        self,
-        telemetry: Callable[[], Telemetry],
-        reposition: Callable[[float, float, float], Awaitable[None]],
-    ) -> bool:
-        try:
-            return await settle_hold(telemetry, reposition)
-        except Exception as exc:  # a hold that does not settle is still a hold: never crash on it
-            log.info("hold settle step failed: %s", exc)
-            return False
-
-    def cancel(self) -> None:
-        """Stop a pending settle (no-op from inside the settle itself, or when none runs)."""
-        task, self._task = self._task, None
-        if task is not None and not task.done() and task is not asyncio.current_task():
-            task.cancel()
-
-    @property
-    def running(self) -> bool:
-        return self._task is not None and not self._task.done()

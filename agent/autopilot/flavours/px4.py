@@ -56,15 +56,14 @@ _INT_TYPES = frozenset(
 class Px4Flavour(Flavour):
     """PX4 (v1.16 measured). There is no GUIDED: a goto is DO_REPOSITION, which PX4 flies in Hold.
 
-    So asking for Hold while a reposition leg is flown changes nothing; :attr:`hold_by_reposition`
-    makes the backends hold with DO_REPOSITION to the current point instead. Because the vehicle
-    reports Hold in both cases, :meth:`shown_mode` reports ``GUIDED`` while one of our legs is
-    being flown and ``LOITER`` once held (or in any Hold we did not send a leg in).
+    So asking for Hold while a reposition leg is flown changes nothing; the backends hold with
+    :meth:`pause_params` instead, PX4's own pause. Because the vehicle reports Hold in both cases,
+    :meth:`shown_mode` reports ``GUIDED`` while one of our legs is being flown and ``LOITER`` once
+    held (or in any Hold we did not send a leg in).
     """
 
     name = "px4"
     mav_autopilot = mavlink.MAV_AUTOPILOT_PX4
-    hold_by_reposition = True
     hold_modes = ("LOITER",)  # on the ground / disarmed, where DO_REPOSITION is refused
     params_bytewise = True
     return_alt_param = "RTL_RETURN_ALT"
@@ -92,6 +91,13 @@ class Px4Flavour(Flavour):
         # drone still in AUTO.TAKEOFF and be lost. param2 CHANGE_MODE (0 gives UNSUPPORTED).
         speed = speed_mps if speed_mps is not None and speed_mps > 0 else -1.0
         return (speed, mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, lat, lon, alt_amsl)
+
+    def pause_params(self) -> tuple[float, ...]:
+        # PX4's pause (navigator: "All three set to NaN - pause vehicle", as QGroundControl's Pause):
+        # a multicopter brakes with its own jerk and acceleration limits and holds at the point where
+        # it comes to rest. A reposition to the current point overshoots and flies back, and one to
+        # a stopping point we estimate creeps the last metres at about 1 m/s (both measured).
+        return (-1.0, mavlink.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.nan, math.nan, math.nan, math.nan)
 
     def return_alt_value(self, alt_rel_m: float) -> float:
         return float(alt_rel_m)  # RTL_RETURN_ALT is in metres above home
