@@ -630,6 +630,13 @@ class Px4Vehicle(SimVehicle):
             self.speed_dn_override = speed
         return ACCEPTED, []
 
+    def _stopping_point(self, n: float, e: float) -> tuple[float, float]:
+        """Where braking at the effective horizontal deceleration (half MPC_ACC_HOR) ends."""
+        vn, ve = self.kin.vn, self.kin.ve
+        decel = max(self.px4_params["MPC_ACC_HOR"] * 0.5, 0.1)
+        reach = math.hypot(vn, ve) / (2.0 * decel)  # v^2 / 2a along the unit velocity: v / 2a per m/s
+        return n + vn * reach, e + ve * reach
+
     def _reposition(self, msg: mav.MAVLink_message, is_int: bool) -> tuple[int, list[str]]:
         """DO_REPOSITION: param2 bit 0 required (else UNSUPPORTED, though Hold still takes the target);
         z always AMSL whatever the frame; flown in Hold, only while armed and airborne."""
@@ -651,6 +658,8 @@ class Px4Vehicle(SimVehicle):
             alt = msg.param7
         if lat is not None and lon is not None:
             n, e = latlon_to_local(self.origin[0], self.origin[1], lat, lon)
+        else:  # no position: PX4's pause (navigator: brake, then hold where the vehicle comes to rest)
+            n, e = self._stopping_point(n, e)
         if math.isfinite(alt):
             d = -(alt - self.origin[2])
         self.guidance.goto(n, e, d)

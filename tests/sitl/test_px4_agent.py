@@ -13,11 +13,13 @@ from typing import Any
 
 import pytest
 
+from agent.autopilot.base import Autopilot
 from agent.autopilot.mavlink_backend import MavlinkAutopilot
+from agent.config import AgentSettings
+from gcs.cooperation.config import CollisionConfig, CooperationConfig
 from protocol.actions import Goto, Land, Takeoff
 from protocol.geo import distance_m, offset_latlon
 from sitl.fleet import FleetConfig, SimFleet
-from tests.ardupilot import rig as rig_module
 from tests.ardupilot.rig import HOME as RIG_HOME
 from tests.ardupilot.rig import SPACING_M, VEHICLES, Rig, at
 from tests.ardupilot.test_missions import task
@@ -74,7 +76,7 @@ class Px4Rig(Rig):
                 vehicles=VEHICLES,
                 home=RIG_HOME,
                 base_port=0,
-                speedup=rig_module.SPEEDUP,
+                speedup=PAUSE_SPEEDUP,
                 seed=7,
                 spacing_m=SPACING_M,
                 # PX4 SITL drains the battery 100 %/min (SIM_BAT_DRAIN 60) down to 50 %: the daemon's
@@ -83,9 +85,14 @@ class Px4Rig(Rig):
                 flavour="px4",
             )
         ).start()
-        self.thread.start()
+        autopilots: list[Autopilot] = [MavlinkAutopilot(e, telemetry_hz=10.0) for e in self.fleet.endpoints]
         try:
-            self.call(self._start(), timeout=60.0)
+            self.start_agents(
+                autopilots,
+                CooperationConfig(vehicle_time_scale=PAUSE_SPEEDUP, collision=CollisionConfig(enabled=False)),
+                AgentSettings(status_period_s=0.1),
+                arm_deadline_s=30.0,
+            )
         except BaseException:
             self.stop()
             raise
@@ -93,9 +100,8 @@ class Px4Rig(Rig):
 
 
 @pytest.mark.timeout(240)
-def test_daemon_pause_stops_a_px4_drone(tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_daemon_pause_stops_a_px4_drone(tmp_path: Any) -> None:
     """Mission pause mid-leg: each PX4 drone below 0.5 m/s within 3 s (sim time), then within 3 m for 10 s."""
-    monkeypatch.setattr(rig_module, "SPEEDUP", PAUSE_SPEEDUP)  # the fleet and the daemon's time scale
     rig = Px4Rig("ours", None, tmp_path).start()
     try:
         fleet = rig.fleet
@@ -111,7 +117,7 @@ def test_daemon_pause_stops_a_px4_drone(tmp_path: Any, monkeypatch: pytest.Monke
         mission_id = rig.submit(task("px4-pause", plans))
         rig.wait(
             lambda: (
-                all(v.state.groundspeed > 3.0 for v in fleet.vehicles)
+                all(v.state.groundspeed > 0.85 * LEG_SPEED for v in fleet.vehicles)
                 and all(a.queue.current_step == 1 for a in rig.agents.values())
             ),
             120.0,
