@@ -203,25 +203,9 @@ class Px4Telemetry(Telemetry):
         msg.seq = max(0, msg.seq - 1)
         return msg
 
-    def msg_autopilot_version(self) -> mav.MAVLink_message:
-        """AUTOPILOT_VERSION of PX4 v1.16.0 (byte-wise parameters advertised)."""
-        v = self.px4
-        c = mav
-        caps = (
-            c.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
-            | c.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
-            | c.MAV_PROTOCOL_CAPABILITY_MISSION_INT
-            | c.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-            | c.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
-            | c.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
-            | c.MAV_PROTOCOL_CAPABILITY_MAVLINK2
-            | c.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
-            | c.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
-        )
-        version = (1 << 24) | (16 << 16) | (0 << 8) | c.FIRMWARE_VERSION_TYPE_OFFICIAL
-        return mav.MAVLink_autopilot_version_message(
-            caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, v.sysid, [0] * 18
-        )
+    # AUTOPILOT_VERSION of PX4 v1.16.0, byte-wise parameters advertised
+    param_capability = mav.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+    firmware = (1, 16, 0)
 
 
 class Px4Vehicle(SimVehicle):

@@ -313,13 +313,16 @@ class Telemetry:
         """SYSTEM_TIME: Unix time unknown (0), sim boot time."""
         return mav.MAVLink_system_time_message(0, self.time_boot_ms())
 
+    # What AUTOPILOT_VERSION advertises: how parameters are encoded, and the firmware (major, minor, patch).
+    param_capability = mav.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+    firmware = (4, 5, 0)
+
     def msg_autopilot_version(self) -> mav.MAVLink_message:
         """AUTOPILOT_VERSION with the capabilities a GCS checks (MISSION_INT, COMMAND_INT, FENCE...)."""
-        v = self.v
         c = mav
         caps = (
             c.MAV_PROTOCOL_CAPABILITY_MISSION_FLOAT
-            | c.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+            | self.param_capability
             | c.MAV_PROTOCOL_CAPABILITY_MISSION_INT
             | c.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
             | c.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
@@ -328,9 +331,10 @@ class Telemetry:
             | c.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
             | c.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
         )
-        version = (4 << 24) | (5 << 16) | (0 << 8) | c.FIRMWARE_VERSION_TYPE_OFFICIAL
+        major, minor, patch = self.firmware
+        version = (major << 24) | (minor << 16) | (patch << 8) | c.FIRMWARE_VERSION_TYPE_OFFICIAL
         return mav.MAVLink_autopilot_version_message(
-            caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, v.sysid, [0] * 18
+            caps, version, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.v.sysid, [0] * 18
         )
 
 
