@@ -47,35 +47,48 @@ class Rig(FleetRig):
         self.binary = binary
         self.fleet: SimFleet | ArduPilotFleet | None = None
 
-    def start(self) -> Rig:
-        """Boot the simulator, the daemon and the agents; returns as soon as every agent has joined."""
+    speedup = SPEEDUP  # the simulator's speed-up, also the daemon's vehicle time scale
+
+    def boot_fleet(self) -> SimFleet | ArduPilotFleet:
+        """Start the simulator fleet this rig flies (a subclass may boot another one)."""
         if self.simulator == "arducopter":
             assert self.binary is not None
-            self.fleet = ArduPilotFleet(
-                self.binary, VEHICLES, HOME, SPACING_M, SPEEDUP, base_port=0, host="127.0.0.1", params=PARAMS
+            return ArduPilotFleet(
+                self.binary,
+                VEHICLES,
+                HOME,
+                SPACING_M,
+                self.speedup,
+                base_port=0,
+                host="127.0.0.1",
+                params=PARAMS,
             ).start()
-        else:
-            self.fleet = SimFleet(
-                FleetConfig(
-                    vehicles=VEHICLES,
-                    home=HOME,
-                    base_port=0,
-                    speedup=SPEEDUP,
-                    seed=5,
-                    spacing_m=SPACING_M,
-                    prearm_delay_s=OURS_PREARM_S,
-                    gps_boot_s=OURS_GPS_BOOT_S,
-                    params={"WPNAV_SPEED": 1000.0, **PARAMS},  # ArduCopter's default speed
-                )
+        fleet = SimFleet(
+            FleetConfig(
+                vehicles=VEHICLES,
+                home=HOME,
+                base_port=0,
+                speedup=self.speedup,
+                seed=5,
+                spacing_m=SPACING_M,
+                prearm_delay_s=OURS_PREARM_S,
+                gps_boot_s=OURS_GPS_BOOT_S,
+                params={"WPNAV_SPEED": 1000.0, **PARAMS},  # ArduCopter's default speed
             )
-            self.fleet.start()
+        )
+        fleet.start()
+        return fleet
+
+    def start(self) -> Rig:
+        """Boot the simulator, the daemon and the agents; returns as soon as every agent has joined."""
+        self.fleet = self.boot_fleet()
         autopilots: list[Autopilot] = [MavlinkAutopilot(e, telemetry_hz=10.0) for e in self.fleet.endpoints]
         try:
             self.start_agents(
                 autopilots,
                 # Collision avoidance (holds, climbs) would blur what the autopilot does by itself;
                 # the energy pre-flight check and the other services stay on.
-                CooperationConfig(vehicle_time_scale=SPEEDUP, collision=CollisionConfig(enabled=False)),
+                CooperationConfig(vehicle_time_scale=self.speedup, collision=CollisionConfig(enabled=False)),
                 AgentSettings(status_period_s=0.1),
                 arm_deadline_s=30.0,
             )

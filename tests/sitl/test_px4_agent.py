@@ -13,10 +13,7 @@ from typing import Any
 
 import pytest
 
-from agent.autopilot.base import Autopilot
 from agent.autopilot.mavlink_backend import MavlinkAutopilot
-from agent.config import AgentSettings
-from gcs.cooperation.config import CollisionConfig, CooperationConfig
 from protocol.actions import Goto, Land, Takeoff
 from protocol.geo import distance_m, offset_latlon
 from sitl.fleet import FleetConfig, SimFleet
@@ -70,13 +67,15 @@ LEG_SPEED = 3.0  # the issue's paused legs flew 2.3-2.9 m/s; PX4 brakes from 3 m
 class Px4Rig(Rig):
     """tests/ardupilot's rig (daemon + in-process agents) on our simulator's PX4 personality."""
 
-    def start(self) -> Px4Rig:
-        self.fleet = SimFleet(
+    speedup = PAUSE_SPEEDUP
+
+    def boot_fleet(self) -> SimFleet:
+        return SimFleet(
             FleetConfig(
                 vehicles=VEHICLES,
                 home=RIG_HOME,
                 base_port=0,
-                speedup=PAUSE_SPEEDUP,
+                speedup=self.speedup,
                 seed=7,
                 spacing_m=SPACING_M,
                 # PX4 SITL drains the battery 100 %/min (SIM_BAT_DRAIN 60) down to 50 %: the daemon's
@@ -85,18 +84,6 @@ class Px4Rig(Rig):
                 flavour="px4",
             )
         ).start()
-        autopilots: list[Autopilot] = [MavlinkAutopilot(e, telemetry_hz=10.0) for e in self.fleet.endpoints]
-        try:
-            self.start_agents(
-                autopilots,
-                CooperationConfig(vehicle_time_scale=PAUSE_SPEEDUP, collision=CollisionConfig(enabled=False)),
-                AgentSettings(status_period_s=0.1),
-                arm_deadline_s=30.0,
-            )
-        except BaseException:
-            self.stop()
-            raise
-        return self
 
 
 @pytest.mark.timeout(240)
