@@ -31,8 +31,13 @@ def make_autopilot(
     speedup: float,
     tlog: str | None = None,
     signing_key_file: str | None = None,
+    mavlink_out: Sequence[str] = (),
 ) -> Autopilot:
     """The backend named on the command line. ``memory`` takes 'LAT,LON[,ALT]' as its connection."""
+    if backend != "mavlink" and (tlog or signing_key_file or mavlink_out):
+        raise SystemExit(
+            "agent: --tlog, --mavlink-signing-key-file and --mavlink-out need --autopilot-backend mavlink"
+        )
     if backend == "memory":
         from agent.autopilot.memory import MemoryAutopilot
         from agent.config_file import AutopilotSection
@@ -55,8 +60,8 @@ def make_autopilot(
             options["tlog_path"] = tlog
         if signing_key_file:
             options["signing_key"] = Path(signing_key_file).read_text().strip()
-    elif tlog or signing_key_file:
-        raise SystemExit("agent: --tlog and --mavlink-signing-key-file need --autopilot-backend mavlink")
+        if mavlink_out:
+            options["mavlink_out"] = list(mavlink_out)
     return create_autopilot(backend, connection, **options)
 
 
@@ -120,6 +125,7 @@ def flag_overrides(args: argparse.Namespace) -> tuple[dict[str, object], dict[st
         ("speedup", "speedup"),
         ("tlog", "tlog"),
         ("mavlink_signing_key_file", "mavlink_signing_key_file"),
+        ("mavlink_out", "mavlink_out"),
     ):
         if _flag(args, flag) is not None:
             autopilot[field] = _flag(args, flag)
@@ -154,6 +160,7 @@ def agent_from_args(args: argparse.Namespace) -> tuple[AgentConfig, Autopilot, L
         a.speedup,
         str(a.tlog) if a.tlog else None,
         str(a.mavlink_signing_key_file) if a.mavlink_signing_key_file else None,
+        a.mavlink_out,
     )
     logging_set = args.config is not None or any(k.startswith(LOG_PREFIX) for k in os.environ)
     return config, pilot, loaded.log if logging_set else None
@@ -199,6 +206,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--speedup", type=float, help="memory backend only: time speed-up [1]")
     p.add_argument("--tlog", help="append the MAVLink traffic to this .tlog file (replay with MAVProxy)")
     p.add_argument("--mavlink-signing-key-file", help="MAVLink 2 signing key (64 hex digits or a passphrase)")
+    p.add_argument(
+        "--mavlink-out",
+        action="append",
+        metavar="SCHEME:HOST:PORT",
+        help="another ground station sharing the autopilot link (repeatable): udp:HOST:PORT sends to a "
+        "QGroundControl there, udpin:/tcpin:HOST:PORT listen; its commands count as the pilot's",
+    )
     p.add_argument("--tls-ca", type=Path, help="PEM CA: connect to the daemon over TLS and verify it")
     p.add_argument("--tls-cert", type=Path, help="PEM client certificate (mutual TLS)")
     p.add_argument("--tls-key", type=Path, help="PEM private key of --tls-cert")

@@ -139,6 +139,7 @@ class CommandQueue:
     async def interrupt(self) -> None:
         """Empty the queue and cancel the running action or sync wait."""
         self._pending.clear()
+        self._executor.forget_anchor()
         current = self._current
         if current is not None and not current.done():
             current.cancel()
@@ -230,6 +231,7 @@ class CommandQueue:
         )
         if refusal is not None:
             self._pending.clear()
+            self._executor.forget_anchor()
             if self._on_refused is not None:
                 await self._on_refused(refusal)
             return

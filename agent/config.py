@@ -118,7 +118,7 @@ class AgentConfig(BaseModel):
     )
     arm_deadline_s: float = Field(default=60.0, gt=0.0)
     takeoff_tolerance: float = Field(default=0.95, gt=0.5, le=1.0, description="fraction of target altitude")
-    resend_target_s: float = Field(default=3.0, gt=0.0, description="re-send unacknowledged position targets")
+    resend_target_s: float = Field(default=3.0, gt=0.0, description="re-send a lost target")
     monitor_period_s: float = Field(default=0.25, gt=0.0)
     release_beacon: str | None = Field(
         default=None,

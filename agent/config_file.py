@@ -9,6 +9,7 @@
     [autopilot]
     backend = "mavlink"
     connection = "/dev/serial0:921600"
+    mavlink_out = ["udp:192.168.1.20:14550"]   # the pilot's QGroundControl (MAVLink router)
     [log]
     json_format = true
 
@@ -23,8 +24,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from agent.autopilot.mavlink_router import parse_endpoint
 from agent.config import AgentConfig
 from protocol.settings_file import (
     ConfigFileError,
@@ -53,6 +55,23 @@ class AutopilotSection(BaseModel):
     speedup: float = Field(default=1.0, gt=0.0, description="memory backend only")
     tlog: Path | None = Field(default=None, description="append MAVLink traffic to this .tlog")
     mavlink_signing_key_file: Path | None = None
+    mavlink_out: list[str] = Field(
+        default_factory=list,
+        description="mavlink backend: extra ground stations sharing the autopilot link (the agent's "
+        "MAVLink router), e.g. udp:192.168.1.20:14550 for QGroundControl; udpin:HOST:PORT and "
+        "tcpin:HOST:PORT listen; what they command counts as the pilot's (docs/raspberry-pi.md)",
+    )
+
+    @field_validator("mavlink_out", mode="before")
+    @classmethod
+    def _split_endpoints(cls, value: object) -> object:
+        if isinstance(value, str):  # FLEETGCS_AUTOPILOT_MAVLINK_OUT=udp:...,tcpin:...
+            value = [part for part in value.split(",") if part.strip()]
+        if isinstance(value, list):
+            for text in value:
+                if isinstance(text, str):
+                    parse_endpoint(text)  # RouterConfigError (a ValueError) names it and why
+        return value
 
 
 class AgentFile(BaseModel):

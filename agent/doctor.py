@@ -27,7 +27,7 @@ from typing import Literal
 from agent.autopilot.base import Autopilot
 from agent.beacon import beacon_socket
 from agent.config import AgentConfig
-from agent.link import client_tls_context
+from agent.link import V1_FALLBACK_AFTER, client_tls_context
 from protocol import auth
 from protocol.beacon import parse_beacon_address
 from protocol.packets import SUPPORTED_VERSIONS, Close, CloseReason
@@ -38,6 +38,7 @@ from protocol.wire import ProtocolError
 Verdict = Literal["ok", "warn", "fail", "skip"]
 OFFSET_WARN_S, OFFSET_FAIL_S = 0.2, 1.0
 DRIFT_WARN_PPM = 100.0
+FIRST_REPORT_WAIT_S = 5.0  # GPS_RAW_INT is streamed at 2 Hz once the link is up
 
 
 @dataclass
@@ -81,6 +82,7 @@ class Handshake:
     cid: int | None  # None: the daemon answered the probe without a CID, as it should
     rtt_s: float
     offset_s: float  # daemon clock - our clock
+    version: int = 2  # the protocol version the daemon accepted
 
 
 class HandshakeError(Exception):
@@ -132,6 +134,7 @@ async def check_autopilot(report: Report, autopilot: Autopilot, timeout: float) 
         )
         return
     try:
+        await _first_reports(autopilot, min(timeout, FIRST_REPORT_WAIT_S))
         t = autopilot.telemetry()
         seen = (
             f"heartbeat {time.monotonic() - t.last_heartbeat_monotonic:.1f} s ago"
@@ -157,6 +160,21 @@ async def check_autopilot(report: Report, autopilot: Autopilot, timeout: float) 
             await autopilot.close()
 
 
+async def _first_reports(autopilot: Autopilot, wait_s: float) -> None:
+    """Wait (bounded) for the GPS, home and battery reports that follow the first heartbeat.
+
+    Why: ``connect`` returns at the first heartbeat; GPS_RAW_INT and the others are streamed at
+    1-2 Hz after it, so reading at once showed "fix 0 (0 satellites)" for a vehicle with a fix.
+    A vehicle really without a fix costs ``wait_s`` and is then reported as it is.
+    """
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        t = autopilot.telemetry()
+        if t.gps_fix >= 3 and t.home_lat is not None and t.battery_pct is not None:
+            return
+        await asyncio.sleep(0.1)
+
+
 def serial_hint(error: str) -> str:
     """What to check when a serial autopilot cannot be opened ('' when it is not that kind of error).
 
@@ -174,12 +192,16 @@ def serial_hint(error: str) -> str:
 async def handshake(config: AgentConfig, identity: str, timeout: float) -> Handshake:
     """One full authenticated handshake (a probe); measures round trip and clock offset (midpoint method).
 
-    A version-1 daemon refuses the v2 hello without a code; the probe is then repeated in v1.
+    A version-1 daemon refuses the v2 hello without a code (an unauthenticated answer anyone on the
+    path could forge); as the agent's link does, the probe speaks v1 only after
+    ``V1_FALLBACK_AFTER`` such answers in a row.
     """
-    try:
-        return await _probe(config, identity, timeout, SUPPORTED_VERSIONS)
-    except _OldDaemon:
-        return await _probe(config, identity, timeout, (1,))
+    for _ in range(V1_FALLBACK_AFTER):
+        try:
+            return await _probe(config, identity, timeout, SUPPORTED_VERSIONS)
+        except _OldDaemon:
+            continue
+    return await _probe(config, identity, timeout, (1,))
 
 
 class _OldDaemon(Exception):
@@ -219,7 +241,7 @@ async def _probe(config: AgentConfig, identity: str, timeout: float, versions: t
             raise HandshakeError("the daemon sent no server_time", "upgrade the daemon")
         offset = accepted.server_time - (sent + received) / 2
         await stream.close(Close(reason=CloseReason.NORMAL, message="agent doctor"))
-        return Handshake(cid=accepted.cid, rtt_s=received - sent, offset_s=offset)
+        return Handshake(cid=accepted.cid, rtt_s=received - sent, offset_s=offset, version=accepted.version)
     except Refused as exc:
         if exc.code == V1_DAEMON and versions != (1,):
             raise _OldDaemon from None
@@ -277,7 +299,7 @@ async def check_daemon(
         "daemon link",
         "ok",
         f"{config.gcs_host}:{config.gcs_port} accepted {identity} {joined}, "
-        f"round trip {first.rtt_s * 1000:.1f} ms",
+        f"protocol v{first.version}, round trip {first.rtt_s * 1000:.1f} ms",
     )
     off = first.offset_s
     verdict: Verdict = "ok" if abs(off) < OFFSET_WARN_S else ("warn" if abs(off) < OFFSET_FAIL_S else "fail")

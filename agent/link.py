@@ -99,6 +99,7 @@ def _milestone(report: StatusReport) -> tuple[object, ...]:
         failure,
         tuple(report.exceptions),
         report.failsafe,
+        report.pilot,
     )
 
 

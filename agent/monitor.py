@@ -3,7 +3,8 @@
 Each exception fires its reaction once when it starts (edge-triggered) and stays listed in
 the status report while it lasts, so a flapping condition cannot spam the autopilot and the
 daemon always sees what is active. Reactions that move the vehicle (rtl, land, hold) first
-empty the command queue, so stale commands cannot fly it back into trouble.
+empty the command queue, so stale commands cannot fly it back into trouble. While a pilot has
+the vehicle (agent/pilot.py) every reaction only reports: the pilot has the last word.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 
 from agent.autopilot.base import HEARTBEAT_TIMEOUT_S, Autopilot, AutopilotError, Telemetry
 from agent.config import AgentSettings
+from agent.pilot import MODE_REACTIONS, PilotWatch, failsafe_name, landing_without_position
 from protocol.packets import Geofence
 
 log = logging.getLogger("agent.monitor")
@@ -27,6 +29,7 @@ class Condition:
     name: str
     reaction: str  # report | rtl | land | hold | continue
     detail: str
+    vehicle: bool = False  # the autopilot's own failsafe (it chose the mode), not the agent's reaction
 
 
 def fence_violation(t: Telemetry, fence: Geofence | None) -> str | None:
@@ -53,6 +56,7 @@ class ExceptionMonitor:
         self.geofence: Geofence | None = None
         self.active: dict[str, Condition] = {}
         self.failsafe: Condition | None = None  # latched vehicle-moving reaction (see latch_failsafe)
+        self.pilot = PilotWatch(autopilot)
 
     def failsafe_text(self) -> str | None:
         return f"{self.failsafe.name}: {self.failsafe.reaction}" if self.failsafe else None
@@ -99,6 +103,18 @@ class ExceptionMonitor:
             await self._report("failsafe_ended", f"{self.failsafe.name}: vehicle landed")
             self.failsafe = None
         current = {c.name: c for c in self.conditions(telemetry, now)}
+        await self._follow_pilot(telemetry, set(current))
+        if (
+            self.failsafe is None
+            and not self.pilot.active
+            and landing_without_position(telemetry, set(current))
+        ):
+            self.failsafe = Condition(
+                "gnss", "land", "the vehicle's own failsafe while landing", vehicle=True
+            )
+            await self._report(
+                "vehicle_failsafe_mode", "the vehicle's own failsafe (gnss) while landing: mode LAND"
+            )
         for name, condition in current.items():
             if name not in self.active:
                 await self._react(condition)
@@ -106,8 +122,51 @@ class ExceptionMonitor:
             await self._report(f"{name}_cleared", "")
         self.active = current
 
+    async def _follow_pilot(self, telemetry: Telemetry, conditions: set[str]) -> None:
+        """A pilot takes the vehicle (nothing more is sent to move it), flies on, or hands back."""
+        change = self.pilot.update(telemetry, conditions)
+        if change is None:
+            return
+        mode = telemetry.pilot_mode or telemetry.mode
+        if change == "took":
+            log.warning("pilot in control: mode %s set by someone else; the agent stops commanding", mode)
+            self.failsafe = None  # the pilot outranks the agent's own failsafe too
+            await self._interrupt_queue()
+            await self._report("pilot", f"pilot in control: mode {mode}; queue emptied, nothing sent")
+        elif change == "changed":
+            await self._report("pilot", f"pilot in control: mode {mode}")
+        elif change == "handed_back":
+            log.warning("pilot handed back: vehicle in %s again", telemetry.mode)
+            await self._report("pilot_handback", f"vehicle in {telemetry.mode} again; the agent commands it")
+        else:
+            # Latched like the agent's own failsafe: the queue is emptied (nothing the agent had
+            # queued may fly it out of its failsafe), lower-priority orders are refused and the
+            # daemon sees StatusReport.failsafe (e.g. "gnss: land") and goes on without it.
+            name = failsafe_name(telemetry, conditions)
+            reaction = MODE_REACTIONS.get(mode, "hold")
+            log.warning("the vehicle's own failsafe (%s): mode %s", name, mode)
+            self.failsafe = Condition(
+                name, reaction, f"the vehicle's own failsafe: mode {mode}", vehicle=True
+            )
+            await self._interrupt_queue()
+            await self._report("vehicle_failsafe_mode", f"the vehicle's own failsafe ({name}): mode {mode}")
+
     async def _react(self, condition: Condition) -> None:
         log.warning("exception %s (%s): reaction %s", condition.name, condition.detail, condition.reaction)
+        if self.pilot.active and condition.reaction not in ("report", "continue"):
+            detail = f"{condition.detail}; reaction {condition.reaction} withheld: pilot in control"
+            await self._report(condition.name, detail)
+            return
+        if (
+            self.failsafe is not None
+            and self.failsafe.vehicle
+            and condition.reaction not in ("report", "continue")
+        ):
+            # The autopilot flies its own failsafe (e.g. a GNSS landing): an agent reaction would
+            # fight it (an RTL without position is refused anyway); only the operator overrides.
+            detail = f"{condition.detail}; reaction {condition.reaction} withheld: the vehicle's own failsafe"
+            await self._report(condition.name, detail)
+            return
         await self._report(condition.name, f"{condition.detail}; reaction {condition.reaction}")
         if condition.reaction in ("report", "continue"):
             return

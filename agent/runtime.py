@@ -23,7 +23,7 @@ from agent.limits import Place, Refusal, first_crossing, project, queue_refusal
 from agent.link import DaemonLink
 from agent.monitor import ExceptionMonitor, finite_or_zero
 from agent.tasks import cancel_and_wait
-from protocol.actions import Action
+from protocol.actions import Action, GoBy
 from protocol.auth import parse_key
 from protocol.beacon import parse_beacon_address
 from protocol.packets import (
@@ -70,6 +70,7 @@ def build_status(
     autopilot_link: bool,
     failure: ActionFailure | None = None,
     failsafe: str | None = None,
+    pilot: str | None = None,
 ) -> StatusReport:
     """A type-2 report from telemetry and queue state (no position before the first 3-D fix)."""
     return StatusReport(
@@ -100,6 +101,7 @@ def build_status(
         exceptions=exceptions[:32],
         autopilot_link=autopilot_link,
         failsafe=failsafe,
+        pilot=pilot[:32] if pilot else None,
     )
 
 
@@ -162,13 +164,18 @@ class Agent:
             await self.shutdown()
 
     async def shutdown(self) -> None:
+        """Stop every part, each even when one before it fails: a part left running (above all
+        the autopilot link's reader thread, which reconnects by itself) outlives the agent."""
         await cancel_and_wait(self._tasks)
         self._tasks = []
-        await self.link.stop()
+        steps = [self.link.stop, self.queue.stop, self.autopilot.close]
         if self.beacon is not None:
-            await self.beacon.close()
-        await self.queue.stop()
-        await self.autopilot.close()
+            steps.insert(1, self.beacon.close)
+        for step in steps:
+            try:
+                await step()
+            except Exception:
+                log.exception("agent shutdown: %s failed", getattr(step, "__qualname__", step))
 
     # --- status ---------------------------------------------------------------------------------
 
@@ -190,6 +197,7 @@ class Agent:
             link_ok,
             self.executor.failure,
             self.monitor.failsafe_text(),
+            self.monitor.pilot.mode,
         )
 
     def exception_list(self) -> list[str]:
@@ -222,6 +230,10 @@ class Agent:
     async def _on_actions(self, packet: PerformActions) -> None:
         if packet.release_anchor is not None and self.beacon is not None:
             await self.beacon.arm(packet.mission_id, packet.release_anchor)
+        if self.monitor.pilot.active:
+            await self._pilot_has_it(packet)
+            self._status_wakeup.set()
+            return
         failsafe = self.monitor.failsafe
         if failsafe is not None:
             if packet.source != "operator":
@@ -245,6 +257,28 @@ class Agent:
         else:
             await self._take_actions(packet)
         self._status_wakeup.set()
+
+    async def _pilot_has_it(self, packet: PerformActions) -> None:
+        """A type-4 order while a pilot flies the vehicle: refused, but for the operator's release."""
+        pilot = self.monitor.pilot
+        who = packet.source or "daemon"
+        if packet.mode != "resume" or packet.source != "operator":
+            await self._on_exception(
+                "command_refused",
+                f"{packet.mode} from {who} refused: pilot in control in {pilot.mode}; the pilot hands "
+                "back by selecting the agent's mode, or the operator releases (resume)",
+            )
+            return
+        t = self.autopilot.telemetry()
+        refusal = pilot.release_refusal(t)
+        if refusal is not None:
+            await self._on_exception("command_refused", f"release from operator refused: {refusal}")
+            return
+        log.warning("operator released the pilot's control in %s", pilot.mode)
+        mode = pilot.mode
+        pilot.release()
+        self.queue.resume()
+        await self._on_exception("pilot_released", f"by the operator in {mode}; the agent commands it again")
 
     async def _take_actions(self, packet: PerformActions) -> None:
         """Queue a replace/append batch within the agent's limits (agent/limits.py).
@@ -313,10 +347,11 @@ class Agent:
         return Place(t.lat, t.lon, alt)
 
     def _vet(self, action: Action) -> Refusal | None:
-        """The last check before ``action`` starts: its limits from the actual position."""
-        return first_crossing(
-            [action], self._place(), self.config.limits, self._home_latlon(), self.monitor.geofence
-        )
+        """The last check before ``action`` starts: its limits from the actual position (a go_by
+        from the point the plan so far leads to, where the executor takes it from)."""
+        anchor = self.executor.anchor
+        start = Place(*anchor) if isinstance(action, GoBy) and anchor is not None else self._place()
+        return first_crossing([action], start, self.config.limits, self._home_latlon(), self.monitor.geofence)
 
     async def _on_refused(self, refusal: Refusal, detail: str | None = None) -> None:
         """An action refused by the agent's limits: reported like a failure, the vehicle holds."""
@@ -327,6 +362,8 @@ class Agent:
             time=time.time(),
         )
         await self._on_exception("command_refused", detail or f"{refusal.reason}; queue emptied, holding")
+        if self.monitor.pilot.active:
+            return  # the pilot flies it: nothing that moves the vehicle
         with contextlib.suppress(AutopilotError):
             await self.executor.hold_vehicle()
 
@@ -355,6 +392,8 @@ class Agent:
 
     async def _on_action_failed(self, action: Action, reason: str) -> None:
         await self._on_exception("action_failed", reason)
+        if self.monitor.pilot.active:
+            return  # the pilot flies it: nothing that moves the vehicle
         with contextlib.suppress(AutopilotError):
             await self.executor.hold_vehicle()
 

@@ -23,7 +23,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gcs.demo import DemoOptions, run_demo  # noqa: E402
+from gcs.commands.demo_mission import DemoOptions, run_demo  # noqa: E402
 
 DEFAULT_BINARY = ROOT.parent / "shared" / "ardupilot" / "arducopter"
 

@@ -32,7 +32,7 @@ import struct
 import time
 from multiprocessing.connection import Connection
 
-from gcs.beacon import LOOPBACK_BROADCAST, free_udp_port
+from gcs.link.beacon import LOOPBACK_BROADCAST, free_udp_port
 
 FRAME = b"\x00" * 60
 TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
@@ -67,10 +67,10 @@ def _drain(conn: Connection, kind: str, port: int, count: int, rounds: int) -> N
         deadline = time.monotonic() + 10.0
         while got < count * len(FRAME) and time.monotonic() < deadline:
             for key, _ in selector.select(1.0):
-                sock = key.fileobj
-                assert isinstance(sock, socket.socket)
+                ready = key.fileobj
+                assert isinstance(ready, socket.socket)
                 try:
-                    data, ancillary, _, _ = sock.recvmsg(4096, socket.CMSG_SPACE(16))
+                    data, ancillary, _, _ = ready.recvmsg(4096, socket.CMSG_SPACE(16))
                 except BlockingIOError:
                     continue
                 got += len(data)

@@ -3,6 +3,13 @@
 * takeover: two `gcs serve --cluster` processes share one long mission; the leader is killed with
   SIGKILL, the time until the other one reports leading it is measured; the killed one is started
   again and the next kill hits the new leader (repeated ``--kills`` times).
+* takeover after a pause: the leader is paused (SIGSTOP) ``--pause`` seconds instead; the time
+  until the standby leads, until the woken one steps down, and what it decided after waking.
+* leaderless time after a NATS node loss: the two daemons on a three-node NATS cluster (every
+  bucket replicated 3 times) share one long mission; one NATS node is killed (in turn the one the
+  leader is connected to, then the standby's), the time no daemon leads the mission (lease good by
+  its own clock) is summed over the ``--window`` seconds that follow; the node is started again
+  and left to catch up before the next kill (``--losses`` times).
 * barrier release latency: three in-process agents (memory autopilot) fly ``--barriers`` short
   sync legs; per barrier, from the last agent sending 'finished' to the last agent getting the
   release. One embedded daemon, one clustered daemon, two clustered daemons with the agents split.
@@ -10,8 +17,9 @@
   embedded daemon, one clustered daemon, and two clustered daemons with half the agents each
   (each also mirrors the other's reports): loss, ingest rate, latency, daemon CPU.
 
-Run: python bench/bench_cluster.py [--kills 10]   (about 3 minutes; writes bench/results/cluster.json)
+Run: python bench/bench_cluster.py [--kills 10]   (about 6 minutes; writes bench/results/cluster.json)
      python bench/bench_cluster.py --only throughput   (one part, printed only)
+     python bench/bench_cluster.py --only nats --lease-ttl 8   (NATS node losses, about 3 minutes)
 """
 
 from __future__ import annotations
@@ -33,13 +41,13 @@ sys.path.insert(0, str(ROOT / "bench"))
 import bench_load  # noqa: E402
 import httpx  # noqa: E402
 
-from gcs.cluster.natsrun import NatsServer, missing_reason  # noqa: E402
-from gcs.daemon import Daemon  # noqa: E402
+from gcs.cluster.natsrun import NatsCluster, NatsServer, missing_reason  # noqa: E402
+from gcs.core.daemon import Daemon  # noqa: E402
 from protocol.actions import GoBy, Hold, Land, Takeoff  # noqa: E402
 from protocol.packets import SyncSignal  # noqa: E402
 from protocol.taskfile import AgentPlan, TaskFile  # noqa: E402
 from tests.backbone.helpers import daemon_config, new_key, start_agent, stop_agents, wait_for  # noqa: E402
-from tests.cluster.procs import start_serve  # noqa: E402
+from tests.cluster.procs import ServeProcess, start_serve  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 
@@ -65,6 +73,23 @@ def _long_task(names: list[str]) -> TaskFile:
     return TaskFile.model_validate({"name": "takeover-bench", "plans": [p.model_dump() for p in plans]})
 
 
+async def _start_long_mission(client: httpx.AsyncClient, serve: ServeProcess, names: list[str]) -> str:
+    """Once the cluster's fleet shows every agent of ``names`` connected (bounded: 100 polls), a long
+    mission for them submitted to ``serve``; its id."""
+    for _ in range(100):
+        rows = (await client.get(f"{serve.api}/api/v1/cluster/fleet")).json()
+        if sum(1 for r in rows if r["connected"]) == len(names):
+            break
+        await asyncio.sleep(0.1)
+    created = await client.post(
+        f"{serve.api}/api/v1/missions",
+        content=_long_task(names).model_dump_json(),
+        headers={"Authorization": f"Bearer {serve.token}", "Content-Type": "application/json"},
+    )
+    assert created.status_code == 201, created.text
+    return str(created.json()["mission_id"])
+
+
 async def _leader(api: httpx.AsyncClient, mission_id: str) -> bool:
     with contextlib.suppress(httpx.HTTPError):
         return mission_id in (await api.get("/api/v1/cluster")).json()["leading"]
@@ -82,22 +107,7 @@ async def takeover_trials(base: Path, nats: NatsServer, kills: int, lease_ttl_s:
     times: list[float] = []
     try:
         async with httpx.AsyncClient(timeout=5) as client:
-            api = serves["gcs-a"].api
-            for _ in range(100):
-                rows = (await client.get(f"{api}/api/v1/cluster/fleet")).json()
-                if sum(1 for r in rows if r["connected"]) == 2:
-                    break
-                await asyncio.sleep(0.1)
-            created = await client.post(
-                f"{api}/api/v1/missions",
-                content=_long_task(["k0", "k1"]).model_dump_json(),
-                headers={
-                    "Authorization": f"Bearer {serves['gcs-a'].token}",
-                    "Content-Type": "application/json",
-                },
-            )
-            assert created.status_code == 201, created.text
-            mission_id = created.json()["mission_id"]
+            mission_id = await _start_long_mission(client, serves["gcs-a"], ["k0", "k1"])
             leader = "gcs-a"
             for trial in range(kills):
                 other = "gcs-b" if leader == "gcs-a" else "gcs-a"
@@ -124,6 +134,177 @@ async def takeover_trials(base: Path, nats: NatsServer, kills: int, lease_ttl_s:
         "p99_s": round(percentile(times, 99), 3),
         "max_s": round(max(times), 3),
     }
+
+
+async def pause_trials(
+    base: Path, nats: NatsServer, pauses: int, lease_ttl_s: float, pause_s: float
+) -> dict[str, Any]:
+    """The leader is paused (SIGSTOP) ``pause_s`` and continued, ``pauses`` times: how long until
+    the standby leads, how long the woken one takes to step down, what it decided after waking
+    (fencing: nothing)."""
+    key = new_key()
+    serves = {n: start_serve(n, base, nats.url, key, lease_ttl_s) for n in ("gcs-a", "gcs-b")}
+    ports = {n: f"127.0.0.1:{s.agent_port}" for n, s in serves.items()}
+    agents = [
+        start_agent("p0", serves["gcs-a"].agent_port, key, 0, daemons=[ports["gcs-b"]]),
+        start_agent("p1", serves["gcs-b"].agent_port, key, 1, daemons=[ports["gcs-a"]]),
+    ]
+    takeover: list[float] = []
+    step_down: list[float] = []
+    decided = 0
+    try:
+        async with httpx.AsyncClient(timeout=5) as client:
+            mission_id = await _start_long_mission(client, serves["gcs-a"], ["p0", "p1"])
+            leader = "gcs-a"
+            for trial in range(pauses):
+                other = "gcs-b" if leader == "gcs-a" else "gcs-a"
+                await asyncio.sleep(1.0 + 0.37 * trial % 1.0)
+                serves[leader].pause()
+                paused, paused_wall = time.monotonic(), time.time()
+                async with httpx.AsyncClient(base_url=serves[other].api, timeout=2) as other_api:
+                    while time.monotonic() - paused < 30 and not await _leader(other_api, mission_id):
+                        await asyncio.sleep(0.02)
+                takeover.append(time.monotonic() - paused)
+                await asyncio.sleep(max(0.0, pause_s - (time.monotonic() - paused)))
+                serves[leader].resume()
+                woke = time.monotonic()
+                async with httpx.AsyncClient(base_url=serves[leader].api, timeout=5) as old_api:
+                    while time.monotonic() - woke < 30 and await _leader(old_api, mission_id):
+                        await asyncio.sleep(0.01)
+                    step_down.append(time.monotonic() - woke)
+                    events = (
+                        await old_api.get(
+                            "/api/v1/events",
+                            params={"mission_id": mission_id, "limit": 10_000},
+                            headers={"Authorization": f"Bearer {serves[leader].token}"},
+                        )
+                    ).json()
+                decided += sum(
+                    1
+                    for e in events
+                    if e["time"] >= paused_wall
+                    and e["kind"] != "mission_step_down"
+                    and e["kind"].startswith(("mission_", "sync_", "agent_excluded"))
+                )
+                print(
+                    f"  pause {trial + 1}: {other} leads after {takeover[-1]:.2f} s, "
+                    f"{leader} stepped down {step_down[-1]:.3f} s after waking",
+                    flush=True,
+                )
+                leader = other
+    finally:
+        await stop_agents(agents)
+        for serve in serves.values():
+            serve.stop()
+    return {
+        "lease_ttl_s": lease_ttl_s,
+        "pause_s": pause_s,
+        "pauses": len(takeover),
+        "takeover_p50_s": round(percentile(takeover, 50), 3),
+        "takeover_p99_s": round(percentile(takeover, 99), 3),
+        "step_down_after_wake_p50_s": round(percentile(step_down, 50), 3),
+        "step_down_after_wake_max_s": round(max(step_down), 3),
+        "decisions_after_wake": decided,
+    }
+
+
+# --- leaderless time after a NATS node loss ---------------------------------------------------------
+
+
+async def _sample_leading(api: str, mission_id: str, until: float, seen: list[tuple[float, bool]]) -> None:
+    """One request every 0.05 s, each in flight on its own (an answer slowed by a NATS election
+    must not thin the samples); each records whether the daemon led the mission when asked."""
+
+    async def ask(client: httpx.AsyncClient, at: float) -> None:
+        with contextlib.suppress(httpx.HTTPError, ValueError, KeyError):
+            seen.append((at, mission_id in (await client.get("/api/v1/cluster")).json()["leading"]))
+
+    async with httpx.AsyncClient(base_url=api, timeout=5) as client:
+        asks = []
+        while time.monotonic() < until:
+            asks.append(asyncio.create_task(ask(client, time.monotonic())))
+            await asyncio.sleep(0.05)
+        await asyncio.gather(*asks)
+
+
+def _leaderless(
+    samples: dict[str, list[tuple[float, bool]]], start: float, end: float
+) -> tuple[float, float]:
+    """(total, longest) time in [start, end] during which no daemon's latest answer said it led."""
+    events = sorted((at, name, led) for name, rows in samples.items() for at, led in rows)
+    state = {name: True for name in samples}  # both answered "leading" or "not" before: unknown = led
+    total = longest = 0.0
+    since: float | None = None
+    for at, name, led in events:
+        if at < start or at > end:
+            continue
+        state[name] = led
+        if not any(state.values()) and since is None:
+            since = at
+        elif any(state.values()) and since is not None:
+            total, longest, since = total + at - since, max(longest, at - since), None
+    if since is not None:
+        total, longest = total + end - since, max(longest, end - since)
+    return total, longest
+
+
+async def nats_loss_trials(base: Path, losses: int, lease_ttl_s: float, window_s: float) -> dict[str, Any]:
+    cluster = NatsCluster(base / "nats3")
+    cluster.start()
+    key = new_key()
+    env = {"FLEETGCS_CLUSTER_REPLICAS": "3"}
+    serves: dict[str, Any] = {}
+    agents = []
+    rows: list[dict[str, Any]] = []
+    try:
+        for name in ("gcs-a", "gcs-b"):
+            serves[name] = start_serve(name, base / "nats-loss", cluster.urls, key, lease_ttl_s, env=env)
+        ports = {n: f"127.0.0.1:{s.agent_port}" for n, s in serves.items()}
+        agents = [
+            start_agent("l0", serves["gcs-a"].agent_port, key, 0, daemons=[ports["gcs-b"]]),
+            start_agent("l1", serves["gcs-b"].agent_port, key, 1, daemons=[ports["gcs-a"]]),
+        ]
+        async with httpx.AsyncClient(timeout=5) as client:
+            mission_id = await _start_long_mission(client, serves["gcs-a"], ["l0", "l1"])
+            for trial in range(losses):
+                await asyncio.sleep(2.0 + 0.37 * trial % 1.0)
+                infos = {n: (await client.get(f"{s.api}/api/v1/cluster")).json() for n, s in serves.items()}
+                leader = next((n for n, i in infos.items() if mission_id in i["leading"]), "gcs-a")
+                standby = "gcs-b" if leader == "gcs-a" else "gcs-a"
+                whose = leader if trial % 2 == 0 else standby
+                url = infos[whose]["connected_url"]
+                shared = infos[leader]["connected_url"] == infos[standby]["connected_url"]
+                server = next(s for s in cluster.servers if s.url == url)
+                killed = time.monotonic()
+                server.kill()
+                samples: dict[str, list[tuple[float, bool]]] = {n: [] for n in serves}
+                await asyncio.gather(
+                    *(
+                        _sample_leading(s.api, mission_id, killed + window_s, samples[n])
+                        for n, s in serves.items()
+                    )
+                )
+                total, longest = _leaderless(samples, killed, killed + window_s)
+                kind = "leader's" if whose == leader else "standby's"
+                rows.append(
+                    {"node": "shared" if shared else kind, "leaderless_s": total, "longest_s": longest}
+                )
+                print(f"  loss {trial + 1} ({rows[-1]['node']} node): leaderless {total:.2f} s", flush=True)
+                server.start()  # the same port and store: it rejoins and catches up
+                await asyncio.sleep(8.0)
+    finally:
+        await stop_agents(agents)
+        for serve in serves.values():
+            serve.stop()
+        cluster.stop()
+    every = [r["leaderless_s"] for r in rows]
+    summary: dict[str, Any] = {"lease_ttl_s": lease_ttl_s, "window_s": window_s, "losses": len(rows)}
+    summary["leaderless_p50_s"] = round(percentile(every, 50), 3)
+    summary["leaderless_p99_s"] = round(percentile(every, 99), 3)
+    summary["leaderless_max_s"] = round(max(every, default=float("nan")), 3)
+    summary["longest_gap_p99_s"] = round(percentile([r["longest_s"] for r in rows], 99), 3)
+    summary["trials"] = [{k: round(v, 3) if isinstance(v, float) else v for k, v in r.items()} for r in rows]
+    return summary
 
 
 # --- barrier release latency ---------------------------------------------------------------------
@@ -237,12 +418,18 @@ def throughput(nats_url: str | None, daemons: int, agents: int, seconds: float) 
 async def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--kills", type=int, default=10)
+    parser.add_argument("--pauses", type=int, default=5, help="SIGSTOP/SIGCONT of the leader")
+    parser.add_argument("--pause", type=float, default=5.0, help="seconds each pause lasts")
     parser.add_argument("--lease-ttl", type=float, default=3.0)
+    parser.add_argument("--losses", type=int, default=6, help="NATS node kills (3-node cluster)")
+    parser.add_argument("--window", type=float, default=15.0, help="seconds watched after each loss")
     parser.add_argument("--barriers", type=int, default=20)
     parser.add_argument("--agents", type=int, default=400, help="synthetic agents at 10 Hz")
     parser.add_argument("--seconds", type=float, default=4.0)
     parser.add_argument(
-        "--only", choices=["takeover", "barriers", "throughput"], help="run one part (results to stdout)"
+        "--only",
+        choices=["takeover", "pause", "nats", "barriers", "throughput"],
+        help="run one part (results to stdout)",
     )
     args = parser.parse_args()
     reason = missing_reason()
@@ -264,6 +451,18 @@ async def main() -> int:
                     base / "takeover", nats, args.kills, args.lease_ttl
                 )
                 print(json.dumps(results["takeover"]), flush=True)
+            if args.only in (None, "pause"):
+                print(f"takeover after a pause (SIGSTOP {args.pause:g} s of the leader):", flush=True)
+                results["pause"] = await pause_trials(
+                    base / "pause", nats, args.pauses, args.lease_ttl, args.pause
+                )
+                print(json.dumps(results["pause"]), flush=True)
+            if args.only in (None, "nats"):
+                print("leaderless time after a NATS node loss (one of three):", flush=True)
+                results["nats_loss"] = await nats_loss_trials(
+                    base / "nats-loss", args.losses, args.lease_ttl, args.window
+                )
+                print(json.dumps(results["nats_loss"]), flush=True)
             if args.only in (None, "barriers"):
                 print("barrier release latency:", flush=True)
                 results["barriers"] = [

@@ -2,7 +2,7 @@
 
 Why: the full load bench (bench_load.py) measures every service at once with the clients on the
 same two cores, so its per-service figures move with the machine's load. Here only the hook
-runs, on real status-table ticks (compact bodies, slices of 128 rows as gcs/agents.py hands
+runs, on real status-table ticks (compact bodies, slices of 128 rows as gcs/link/status_tick.py hands
 them over), in two modes back to back in one process:
 
 * ``gated``: the service as it is (the tick's rows into the fleet's arrays, only the rows a
@@ -27,16 +27,16 @@ from typing import Any
 
 import numpy as np
 
-from gcs.agents_table import StatusTable, StatusTick
 from gcs.cooperation.config import CooperationConfig
 from gcs.cooperation.intents import Intent
 from gcs.cooperation.service import CooperationService
+from gcs.link.agents_table import StatusTable, StatusTick
 from protocol import status_binary
 from protocol.actions import Action, Goto, Takeoff
 from protocol.geo import offset_latlon
 from protocol.packets import Battery, GeoPoint, Gps, Position, StatusReport
 
-SLICE = 128  # gcs/agents.py TICK_SLICE
+SLICE = 128  # gcs/link/status_tick.py TICK_SLICE
 GRID_M = 40.0
 HOME = (47.397742, 8.545594)
 

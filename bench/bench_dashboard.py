@@ -34,8 +34,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from gcs.config import DaemonConfig  # noqa: E402
-from gcs.daemon import Daemon  # noqa: E402
+from gcs.core.config import DaemonConfig  # noqa: E402
+from gcs.core.daemon import Daemon  # noqa: E402
 from protocol import auth  # noqa: E402
 from protocol.geo import offset_latlon  # noqa: E402
 from protocol.packets import (  # noqa: E402

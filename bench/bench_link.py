@@ -32,11 +32,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import httpx
 
-from gcs.config import DaemonConfig, TelemetryConfig
-from gcs.daemon import Daemon
-from gcs.live import LiveHub
-from gcs.store import Store
-from gcs.telemetry import TelemetryWriter
+from gcs.core.config import DaemonConfig, TelemetryConfig
+from gcs.core.daemon import Daemon
+from gcs.observe.live import LiveHub
+from gcs.observe.telemetry import TelemetryWriter
+from gcs.storage.store import Store
 from tests.backbone.helpers import telemetry_row
 from tests.link.test_history import LoopLag, fill_log
 

@@ -3,7 +3,7 @@
 Run: python bench/bench_load.py [--quick]
 Prints a table; writes bench/results/load.json. About 3-4 minutes on 2 cores.
 
-Set-up, all on loopback: the daemon (an in-process ``gcs.daemon.Daemon``, with its SQLite store
+Set-up, all on loopback: the daemon (an in-process ``gcs.core.daemon.Daemon``, with its SQLite store
 and telemetry recorder, as ``gcs serve`` runs it) lives in its own process. Synthetic agents are
 lightweight protocol clients (real handshake, then pre-templated status frames; no simulator)
 hosted many per process in worker processes, so client cost does not land on the daemon's core.
@@ -147,17 +147,21 @@ async def _server(
             gc.set_threshold(2000, 10, 1_000_000)
     if os.environ.get("BENCH_SLOW_CALLBACK_MS"):
         asyncio.get_running_loop().slow_callback_duration = float(os.environ["BENCH_SLOW_CALLBACK_MS"]) / 1000
-    from gcs.config import DaemonConfig
-    from gcs.daemon import Daemon
+    from gcs.core.config import DaemonConfig
+    from gcs.core.daemon import Daemon
 
     if os.environ.get("BENCH_STEP_BUDGET_S"):  # diagnosis: the hook consumers' time slice
-        import gcs.dispatch
+        import gcs.link.dispatch
 
-        gcs.dispatch.STEP_BUDGET_S = float(os.environ["BENCH_STEP_BUDGET_S"])
+        gcs.link.dispatch.STEP_BUDGET_S = float(os.environ["BENCH_STEP_BUDGET_S"])
     if os.environ.get("BENCH_STATUS_TICK_S"):  # diagnosis: the status tick
-        import gcs.agents
+        import importlib
 
-        gcs.agents.STATUS_TICK_S = float(os.environ["BENCH_STATUS_TICK_S"])
+        try:  # the status tick is a part of its own since issue 24 (gcs/link/status_tick.py)
+            tick_module = importlib.import_module("gcs.link.status_tick")
+        except ImportError:
+            tick_module = importlib.import_module("gcs.link.agents")
+        tick_module.STATUS_TICK_S = float(os.environ["BENCH_STATUS_TICK_S"])
     from protocol.taskfile import TaskFile
     from protocol.wire import HEADER, HEADER_SIZE, FrameDecoder
 
@@ -167,7 +171,7 @@ async def _server(
     completed: dict[int, float] = {}  # step -> when the mission runner found the barrier complete
     # step -> (sendto began, returned, sent, the thread's CPU seconds in it: the rest it was off the CPU)
     beacon_sent: dict[int, tuple[float, float, bool, float]] = {}
-    beacon_sender: Any = None  # the daemon's gcs.beacon.BeaconSender (release_beacon configured)
+    beacon_sender: Any = None  # the daemon's gcs.link.beacon.BeaconSender (release_beacon configured)
     release_parts: dict[int, list[float]] = {}  # step -> [row began, row done, event began, event done]
     # Arrays of doubles, not lists of floats: this process's RSS is the daemon's memory figure, and a
     # list costs 32 B per report (2-3 KiB per agent over a trial), an array 8.
@@ -179,6 +183,7 @@ async def _server(
     server: asyncio.base_events.Server | None = None
     data_dir = tempfile.TemporaryDirectory()
 
+    release_path = ["new"]
     if kind == "daemon":
         overrides: dict[str, Any] = {}
         if "max_frames_per_s" in DaemonConfig.model_fields:  # the flood trial must not be rate limited
@@ -207,7 +212,11 @@ async def _server(
 
         from protocol.packets import StatusReport, SyncSignal
 
-        handle = daemon.agents._handle
+        # The frame handling: the manager's frame ingest (gcs/link/ingest.py) since issue 24, the
+        # manager itself before (paired trials against an older tree).
+        frames = getattr(daemon.agents, "frames", None)
+        handle_owner, handle_name = (daemon.agents, "_handle") if frames is None else (frames, "handle")
+        handle = getattr(handle_owner, handle_name)
         unpack_time = struct.Struct("<d").unpack_from
 
         def stamp_ingest(payload: bytes) -> None:  # every compact report the ingest writes into the table
@@ -222,24 +231,31 @@ async def _server(
                 latencies.append(time.time() - frame.body.time)
             handle(session, frame)
 
-        burst = daemon.agents.burst
+        # The "release_path" command picks the TCP burst of the next releases ("old": before issue 29).
+        bursts = {"new": daemon.agents.burst, "old": _legacy_burst(daemon.agents)}
 
         def burst_and_stamp(identities: list[str], body: Any) -> int:
             started = time.time()
-            sent = burst(identities, body)
+            is_release = isinstance(body, SyncSignal) and body.kind == "release"
+            sent = bursts[release_path[0] if is_release else "new"](identities, body)
             if isinstance(body, SyncSignal) and body.kind == "release":
                 released[body.step] = time.time()  # every member's socket written
                 burst_started[body.step] = started
             return sent
 
-        if hasattr(daemon.missions, "_release_now"):
-            release = daemon.missions._release_now
+        # The release part of the runner (gcs/missions/releases.py, split out in issue 24), or the
+        # runner itself in older trees (paired trials): its own calls look the method up on it.
+        releases = getattr(daemon.missions, "_releases", None)
+        if releases is not None or hasattr(daemon.missions, "_release_now"):
+            name = "release_now" if releases is not None else "_release_now"
+            owner = releases if releases is not None else daemon.missions
+            release = getattr(owner, name)
 
             def release_and_stamp(mission: Any, step: int) -> None:
                 completed.setdefault(step, time.time())
                 release(mission, step)
 
-            daemon.missions._release_now = release_and_stamp  # type: ignore[method-assign]
+            setattr(owner, name, release_and_stamp)
             if os.environ.get("BENCH_RELEASE_PARTS"):  # diagnosis: where storing a release goes
                 _stamp_release_parts(daemon.missions, release_parts)
         else:  # the code before issue 16's round 4 (paired trials against an older tree)
@@ -250,7 +266,7 @@ async def _server(
                 await release_async(mission, step)
 
             daemon.missions._release = release_async_and_stamp  # type: ignore[method-assign]
-        daemon.agents._handle = handle_and_stamp  # type: ignore[method-assign]
+        setattr(handle_owner, handle_name, handle_and_stamp)
         daemon.agents.burst = burst_and_stamp  # type: ignore[method-assign]
         daemon.agents.ingest_probe = probe
         daemon.agents.on_status_tick.append(on_tick)
@@ -433,12 +449,23 @@ async def _server(
                         first_send - event_done,  # the commit, and to the first send
                     )
             conn.send(parts)
+        elif command == "release_path":  # ("new" | "old"): the TCP burst the next releases take
+            if daemon is not None:
+                release_path[0] = args[0]
+            conn.send(release_path[0] if daemon is not None else None)
+        elif command == "http":  # the API's port and token (http_host set in the daemon's overrides)
+            if profiler is not None:  # --only-rtl --profile: the fleet RTLs that follow
+                profiler.enable()
+            conn.send((daemon.http_port, daemon.api_token) if daemon is not None else (None, None))
         elif command == "beacon":  # (on): the release beacon for the next releases, or TCP only
             if daemon is not None and beacon_sender is not None:
                 # None is the runner's own "not configured" path; the mission keeps its chain.
                 daemon.missions.beacon = beacon_sender if args[0] else None
             conn.send(beacon_sender is not None)
         elif command == "stop":
+            if profiler is not None and profile:
+                profiler.disable()
+                profiler.dump_stats(profile)
             break
     stop_note = "clean"
     if daemon is not None and beacon_sender is not None:
@@ -454,9 +481,73 @@ async def _server(
     conn.send(stop_note)
 
 
+def _legacy_burst(manager: Any) -> Any:
+    """The TCP release burst as it was before issue 29 (``AgentManager.burst`` and
+    ``Outbox.write_now`` at 66afb5f), kept here so one run pairs it barrier by barrier with the
+    daemon's current burst (``--no-old-release`` leaves it out)."""
+    from gcs.link.outbox import _SEQ, _SEQ_OFFSET
+    from protocol.packets import packet_type_of
+    from protocol.wire import encode
+
+    def write_now(box: Any, frame: bytes, ptype: int, now: float) -> bool:
+        if not box.open:
+            return False
+        if box._queue:
+            return bool(box._enqueue_frame(type(box._queue[0])(frame, ptype, False)))
+        transport = box.writer.transport
+        try:
+            waiting = transport.get_write_buffer_size()
+            if len(frame) + waiting > box.max_pending_bytes:
+                box.cut_off(f"more than {box.max_pending_bytes} bytes waiting for a peer that does not read")
+                return False
+            box._seq += 1
+            out = bytearray(frame)
+            _SEQ.pack_into(out, _SEQ_OFFSET, box._seq % (1 << 32))
+            sent = 0
+            sock = box._sock
+            if sock is not None and not waiting and not transport.is_closing():
+                try:
+                    sent = sock.send(out)
+                except (BlockingIOError, InterruptedError):
+                    sent = 0
+            if sent < len(out):
+                transport.write(out[sent:] if sent else out)
+                if transport.get_write_buffer_size():
+                    box._drain_due = True
+                    box._wake()
+        except (OSError, RuntimeError, AttributeError) as exc:
+            box.cut_off(f"write failed: {exc}")
+            return False
+        box.last_tx = now
+        box.written += 1
+        return True
+
+    def burst(identities: list[str], body: Any) -> int:
+        frames: dict[int, bytes] = {}
+        ptype = packet_type_of(body)
+        sent = 0
+        now = time.monotonic()
+        for identity in identities:
+            session = manager.session(identity)
+            if session is None:
+                continue
+            if identity in manager.remote:
+                sent += session.post(body)
+                continue
+            frame = frames.get(session.version)
+            if frame is None:
+                frame = frames[session.version] = encode(body, 0, session.version)
+            if write_now(session.outbox, frame, ptype, now):
+                sent += 1
+        return sent
+
+    return burst
+
+
 def _stamp_release_parts(missions: Any, parts: dict[int, list[float]]) -> None:
     """Time the writes inside a release (``BENCH_RELEASE_PARTS=1``): the row and the event."""
-    store, events = missions._store, missions._events
+    core = getattr(missions, "_core", None)  # the runner's shared core (issue 24), or older trees' runner
+    store, events = (core.store, core.events) if core is not None else (missions._store, missions._events)
     record, publish = store.record_release, events.publish
 
     def record_and_stamp(mission_id: str, step: int) -> None:
@@ -619,6 +710,8 @@ class Client:
         self.beacon_read: dict[int, float] = {}  # step -> when this process read that beacon
         self.read_at: dict[int, float] = {}  # step -> when this process first read either
         self.release_event = asyncio.Event()
+        self.order_at: float | None = None  # kernel receive time of the newest fleet return order (type 4)
+        self.order_event = asyncio.Event()
         self.verifiers: dict[str, ReleaseVerifier] = {}  # mission id -> its chain's check
         self.rejected = 0  # datagrams on the beacon port that were not a verified, new release
         self.udp = _beacon_socket(beacon_port) if beacon_port is not None else None
@@ -726,6 +819,7 @@ async def _client_reader(client: Client) -> None:
     agent per machine); the first is when the release reached the agent. Reading goes through
     ``recvmsg`` on a duplicate of the socket (the transport's own reading is paused).
     """
+    from gcs.cooperation.returns import RETURN_PREFIX
     from protocol.beacon import ReleaseVerifier
     from protocol.packets import Close, PerformActions, SyncSignal
     from protocol.wire import ProtocolError
@@ -749,14 +843,18 @@ async def _client_reader(client: Client) -> None:
                 and body.mission_id not in client.verifiers
             ):
                 client.verifiers[body.mission_id] = ReleaseVerifier(bytes.fromhex(body.release_anchor))
+            elif isinstance(body, PerformActions) and body.mission_id.startswith(RETURN_PREFIX):
+                if client.order_at is None:  # the fleet RTL's order (reset by the orchestrator)
+                    client.order_at = kernel
+                    client.order_event.set()
             elif isinstance(body, Close):
                 client.closed = True
 
     now = time.time()
     note(list(stream.backlog), now, now)
     stream.backlog.clear()
-    transport.pause_reading()
-    buffered: bytearray = stream.reader._buffer  # type: ignore[attr-defined]  # read before the pause
+    transport.pause_reading()  # type: ignore[attr-defined]  # a socket transport: it reads too
+    buffered: bytearray = stream.reader._buffer  # read before the pause
     if buffered:
         leftover = bytes(buffered)
         buffered.clear()
@@ -910,6 +1008,19 @@ async def _worker(
                     for c in clients
                 ]
             )
+        elif command == "orders_reset":  # before a fleet RTL: forget the previous one's orders
+            for c in clients:
+                c.order_at = None
+                c.order_event.clear()
+            conn.send("ok")
+        elif command == "orders":  # (timeout): wait for every client's fleet RTL order; their stamps
+            deadline = time.monotonic() + args[0]
+            for c in clients:
+                while c.order_at is None and time.monotonic() < deadline and not c.closed:
+                    c.order_event.clear()
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(c.order_event.wait(), max(0.01, deadline - time.monotonic()))
+            conn.send([c.order_at for c in clients])
         elif command == "rejected":  # datagrams on the beacon port not taken as a release
             conn.send(sum(c.rejected for c in clients))
         elif command == "close":
@@ -947,12 +1058,13 @@ class Harness:
         workers: int = 2,
         authenticate: bool = True,
         beacon_port: int | None = None,
+        overrides: dict[str, Any] | None = None,
     ) -> None:
         self.ctx = mp.get_context("spawn")
         self.key_hex = secrets.token_hex(32)
         self.kind, self.agents = kind, agents
         self.server_conn, child = self.ctx.Pipe()
-        extra = dict(DAEMON_OVERRIDES)
+        extra = {**DAEMON_OVERRIDES, **(overrides or {})}
         if beacon_port is not None:
             extra["release_beacon"] = f"{BEACON_HOST}:{beacon_port}"
         self.server = self.ctx.Process(
@@ -1136,7 +1248,7 @@ class _BarrierStats:
         """
         last_arrival, complete, started, written, gc_s, beacon = daemon
         self.gc_in_release.append(gc_s)
-        if self.mode == "tcp" and beacon is not None:  # the runner must read its sender at each release
+        if self.mode != "beacon" and beacon is not None:  # the runner must read its sender at each release
             return "a beacon went out on a TCP-only barrier (the bench's switch did not hold)"
         if last_arrival is None or any(tcp is None for tcp, _, _, _ in stamps):
             return f"{sum(tcp is None for tcp, _, _, _ in stamps)} not released"
@@ -1214,16 +1326,22 @@ class _BarrierStats:
         }
 
 
-def barrier_trial(agents: int, steps: int, beacon: bool = True) -> list[dict[str, Any]]:
+def barrier_trial(
+    agents: int, steps: int, beacon: bool = True, old_path: bool = True
+) -> list[dict[str, Any]]:
     """Release latency of barriers with ``agents`` members streaming status at 10 Hz.
 
+    ``old_path``: one more mode, TCP only through the daemon's burst as it was before issue 29
+    (``_legacy_burst``), paired barrier by barrier with the others ("tcp_old").
+
     ``beacon``: the daemon sends release beacons (``release_beacon`` to the loopback broadcast
-    address on a port free for this run) and every member listens, and the barriers alternate
-    between the two modes in the same fleet: even steps are released with the beacon (then the
-    TCP burst), odd steps by the TCP burst only (the runner's sender set to None for them, the
-    daemon's own path when no beacon is configured). ``steps`` barriers per mode; the two rows
-    are paired barrier by barrier, so machine load hits both alike. Without ``beacon``: TCP only,
-    no UDP sockets, as before the beacon (one row).
+    address on a port free for this run) and every member listens, and the barriers take the
+    modes in turn in the same fleet: released with the beacon (then the TCP burst), by the TCP
+    burst only (the runner's sender set to None for them, the daemon's own path when no beacon
+    is configured), and by the old burst; the last two swap places every other round
+    (:func:`_mode_index`). ``steps`` barriers per mode; the rows are paired barrier by barrier,
+    so machine load hits all alike. Without ``beacon``: TCP only, no UDP sockets, as before the
+    beacon.
 
     A member's release is the earlier of its TCP release (the kernel's receive stamp) and its
     verified beacon. For a beacon the kernel's stamp is taken once, before the datagram is cloned
@@ -1235,9 +1353,11 @@ def barrier_trial(agents: int, steps: int, beacon: bool = True) -> list[dict[str
     from protocol.taskfile import AgentPlan, TaskFile
 
     modes = [_BarrierStats("beacon"), _BarrierStats("tcp")] if beacon else [_BarrierStats("tcp")]
+    if old_path:
+        modes.append(_BarrierStats("tcp_old"))
     beacon_port = None
     if beacon:
-        from gcs.beacon import free_udp_port  # (not at the top: paired trials run older trees too)
+        from gcs.link.beacon import free_udp_port  # (not at the top: paired trials run older trees too)
 
         beacon_port = free_udp_port()
     harness = Harness("daemon", agents, beacon_port=beacon_port)
@@ -1259,10 +1379,11 @@ def barrier_trial(agents: int, steps: int, beacon: bool = True) -> list[dict[str
         mission_id = harness.server_call("submit", task.model_dump_json())
         time.sleep(0.5 + agents / 2000)  # the type-4 batches reach everyone
         for step in range(total):
-            stats = modes[step % len(modes)]
+            stats = modes[_mode_index(step, len(modes))]
             if beacon and not harness.server_call("beacon", stats.mode == "beacon"):
                 failed = "the daemon has no beacon sender (release_beacon not configured?)"
                 break
+            harness.server_call("release_path", "old" if stats.mode == "tcp_old" else "new")
             stamps = [t for row in harness.workers_call("finish", mission_id, step, 30.0) for t in row]
             why = stats.add(stamps, harness.server_call("arrival", step))
             if why:
@@ -1282,11 +1403,21 @@ def barrier_trial(agents: int, steps: int, beacon: bool = True) -> list[dict[str
     return rows
 
 
+def _mode_index(step: int, count: int) -> int:
+    """Which mode a barrier step runs in: in turn, the last two swapping places every other round
+    (TCP now and TCP before each follow the other as often: the one right after a beacon barrier
+    meets clients still busy with it)."""
+    cycle, slot = divmod(step, count)
+    if count >= 2 and cycle % 2 and slot >= count - 2:
+        slot = 2 * count - 3 - slot
+    return slot
+
+
 def _print_release_parts(parts: dict[int, tuple[float, ...]], modes: list[str]) -> None:
     """Barrier complete -> first send, in parts, p50 / p99 per mode (``BENCH_RELEASE_PARTS=1``)."""
     names = ("gc off + write lock", "release row", "event", "commit -> first send")
     for index, mode in enumerate(modes):
-        rows = [v for step, v in parts.items() if step % len(modes) == index]
+        rows = [v for step, v in parts.items() if _mode_index(step, len(modes)) == index]
         cols = [[row[i] for row in rows] for i in range(len(names))]
         print(
             f"  {mode:>6} barrier complete -> first send, in parts (p50 / p99 ms): "
@@ -1338,16 +1469,18 @@ def _print_barrier_rows(rows: list[dict[str, Any]]) -> None:
     for row in rows:
         _print_barrier(row)
     by_mode = {row["mode"]: row for row in rows}
-    if "beacon" in by_mode and "tcp" in by_mode:
-        b, t = by_mode["beacon"], by_mode["tcp"]
-        print(
-            f"  {b['agents']:>13} agents  beacon / TCP only (paired barriers): "
-            f"p50 {b['last_release_p50_ms']:.2f} / {t['last_release_p50_ms']:.2f} ms "
-            f"= {b['last_release_p50_ms'] / t['last_release_p50_ms']:.2f}, "
-            f"p99 {b['last_release_p99_ms']:.2f} / {t['last_release_p99_ms']:.2f} ms "
-            f"= {b['last_release_p99_ms'] / t['last_release_p99_ms']:.2f}",
-            flush=True,
-        )
+    for one, other, what in (("beacon", "tcp", "beacon / TCP only"), ("tcp", "tcp_old", "TCP now / before")):
+        if one in by_mode and other in by_mode:
+            b, t = by_mode[one], by_mode[other]
+            print(
+                f"  {b['agents']:>13} agents  {what} (paired barriers): "
+                f"p50 {b['last_release_p50_ms']:.2f} / {t['last_release_p50_ms']:.2f} ms "
+                f"= {b['last_release_p50_ms'] / t['last_release_p50_ms']:.2f}, "
+                f"p99 {b['last_release_p99_ms']:.2f} / {t['last_release_p99_ms']:.2f} ms "
+                f"= {b['last_release_p99_ms'] / t['last_release_p99_ms']:.2f}; the burst itself p50 "
+                f"{b['burst_write_p50_ms']:.2f} / {t['burst_write_p50_ms']:.2f} ms",
+                flush=True,
+            )
 
 
 def throughput_trial(kind: str, clients: int, seconds: float) -> dict[str, Any]:
@@ -1372,6 +1505,91 @@ def throughput_trial(kind: str, clients: int, seconds: float) -> dict[str, Any]:
         "frames_per_s": stats["received"] / (elapsed + 0.5),
         "server_cpu_share": stats["cpu_s"] / (elapsed + 0.5),
     }
+
+
+def fleet_rtl_trial(agents: int, repeats: int, status_hz: float = STATUS_HZ) -> dict[str, Any]:
+    """``POST /api/v1/fleet/rtl`` to N airborne agents streaming status: to the last one's order.
+
+    Per repeat: from just before the request is written (the orchestrator's ``time.time()``) to
+    the kernel receive stamp of the return order (type 4, a ``return-`` mission) in the last
+    agent's socket; also the first agent's and the HTTP answer. Every agent reports armed and in
+    the air at its own spot, so each gets a deconflicted return program through the authority.
+    """
+    import http.client
+
+    harness = Harness("daemon", agents, overrides={"http_host": "127.0.0.1", "http_port": 0})
+    last: list[float] = []
+    first: list[float] = []
+    answered: list[float] = []
+    delivered: list[int] = []
+    failed = ""
+    try:
+        assert harness.connect() == agents
+        harness.workers_call("status", status_hz, 3600.0)
+        time.sleep(1.0 / status_hz + 1.0 + agents / 2000)  # every agent's first reports are in
+        port, token = harness.server_call("http")
+        api = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
+        headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/json"}
+        for repeat in range(repeats):
+            harness.workers_call("orders_reset")
+            started = time.time()
+            try:
+                api.request(
+                    "POST", "/api/v1/fleet/rtl", body=json.dumps({"reason": "bench"}), headers=headers
+                )
+                answer = api.getresponse()
+                payload = answer.read()
+            except (TimeoutError, OSError) as exc:
+                failed = f"repeat {repeat}: no HTTP answer ({exc!r}, timeout 60 s)"
+                break
+            answered.append(time.time() - started)
+            if answer.status != 200:
+                failed = f"repeat {repeat}: HTTP {answer.status} {payload[:200]!r}"
+                break
+            delivered.append(len(json.loads(payload)["delivered"]))
+            stamps = [t for row in harness.workers_call("orders", 30.0) for t in row]
+            if any(t is None for t in stamps):
+                failed = f"repeat {repeat}: {sum(t is None for t in stamps)} agents got no order within 30 s"
+                break
+            last.append(max(stamps) - started)
+            first.append(min(stamps) - started)
+            time.sleep(0.3)
+        api.close()
+    finally:
+        harness.close()
+    ms = {
+        name: (percentile(values, 0.5) * 1000, percentile(values, 0.99) * 1000)
+        for name, values in (("last_order", last), ("first_order", first), ("http_answer", answered))
+    }
+    return {
+        "agents": agents,
+        "repeats": len(last),
+        "first_repeat_ms": last[0] * 1000 if last else float("nan"),  # the API's first request: cold
+        "delivered": delivered,
+        **{f"{name}_p{p}_ms": v[i] for name, v in ms.items() for i, p in ((0, 50), (1, 99))},
+        "failed": failed,
+    }
+
+
+def _print_fleet_rtl(row: dict[str, Any]) -> None:
+    print(
+        f"  {row['agents']:>6} agents  POST /api/v1/fleet/rtl -> the last agent's order "
+        f"p50 {row['last_order_p50_ms']:8.2f} ms  p99 {row['last_order_p99_ms']:8.2f} ms  "
+        f"(the first agent's p50 {row['first_order_p50_ms']:.2f} ms; the HTTP answer "
+        f"p50 {row['http_answer_p50_ms']:.2f} ms p99 {row['http_answer_p99_ms']:.2f} ms; "
+        f"{row['repeats']} repeats, the first {row['first_repeat_ms']:.1f} ms: FastAPI builds its routes "
+        f"at the first request; delivered {sorted(set(row['delivered']))})"
+        + (f"  STOPPED: {row['failed']}" if row["failed"] else ""),
+        flush=True,
+    )
+
+
+def floor_trial(agents: int, rounds: int) -> dict[str, Any]:
+    """bench_burst_floor's TCP floor at ``agents`` sockets: a bare ``sock.send`` each (no daemon)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_burst_floor import floor
+
+    return {"agents": agents, **floor(agents, rounds, "tcp")}
 
 
 def agent_footprint(backend: str, seconds: float) -> dict[str, Any]:
@@ -1461,11 +1679,15 @@ def machine() -> dict[str, Any]:
     }
 
 
-def main() -> int:
+def _arguments() -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--quick", action="store_true", help="smaller sizes and shorter windows (smoke run)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="tiny sizes and short windows: checks every row prints (smoke run)",
+    )
     parser.add_argument("--seconds", type=float, default=4.0, help="fleet trial window")
     parser.add_argument("--start", type=int, default=250, help="first fleet size of the search")
     parser.add_argument(
@@ -1475,66 +1697,72 @@ def main() -> int:
     )
     parser.add_argument("--only-fleet", type=int, help="just one fleet trial of this size (diagnosis)")
     parser.add_argument("--only-barrier", type=int, help="just the barrier trial with this many agents")
+    parser.add_argument("--only-rtl", type=int, help="just the fleet RTL fan-out with this many agents")
     parser.add_argument(
         "--barrier-steps", type=int, default=40, help="barriers per barrier trial and mode (p99 over them)"
+    )
+    parser.add_argument("--rtl-repeats", type=int, default=20, help="fleet RTLs per fan-out trial")
+    parser.add_argument(
+        "--rtl-status-hz", type=float, default=STATUS_HZ, help="with --only-rtl: the agents' status rate"
+    )
+    parser.add_argument(
+        "--rtl-agents", type=int, nargs="+", default=[1000, 2000], help="fleet sizes of the RTL fan-out"
     )
     parser.add_argument(
         "--no-beacon",
         action="store_true",
         help="barrier trials over TCP only (no release beacon, no paired beacon barriers)",
     )
+    parser.add_argument(
+        "--no-old-release",
+        action="store_true",
+        help="no paired barriers through the TCP burst as it was before issue 29 ('tcp_old')",
+    )
     parser.add_argument("--json", action="store_true", help="clients send JSON status bodies (v1 agents)")
-    parser.add_argument("--profile", help="with --only-fleet: write the daemon's cProfile stats here")
-    args = parser.parse_args()
-    DAEMON_OVERRIDES.update(json.loads(args.daemon_config))
-    CLIENT["compact"] = not args.json
-    PROFILE["path"] = args.profile
-    if args.only_fleet:
-        row = fleet_trial(args.only_fleet, args.seconds)
-        _print_fleet(row)
-        print(f"  event-loop us per report: {row['services_us_per_report']}")
-        print(f"  events: {row['events']}")
-        print(f"  gc pauses: {row['gc_pauses']}")
-        return 0
-    if args.only_barrier:
-        rows = barrier_trial(args.only_barrier, args.barrier_steps, beacon=not args.no_beacon)
-        _print_barrier_rows(rows)
-        print(json.dumps(rows, indent=1))
-        return 0
-    began = time.monotonic()
-    seconds = 2.0 if args.quick else args.seconds
-    info = machine()
-    print(f"machine: {info}")
+    parser.add_argument(
+        "--profile", help="with --only-fleet or --only-rtl: write the daemon's cProfile stats here"
+    )
+    return parser.parse_args()
 
+
+def _print_floor(row: dict[str, Any]) -> None:
     print(
-        f"\nfleet search: status at {STATUS_HZ:g} Hz, pass = zero loss and p99 < {P99_LIMIT_MS:g} ms",
+        f"  {row['agents']:>6} sockets  loopback TCP send floor (bare sock.send each, no daemon) "
+        f"p50 {row['p50_ms']:7.2f} ms  p99 {row['p99_ms']:7.2f} ms  ({row['rounds']} bursts)",
         flush=True,
     )
-    trials, best = fleet_search(seconds, 50 if args.quick else args.start, 40 if args.quick else 120)
 
+
+def _load() -> str:
+    one, five, fifteen = os.getloadavg()
+    return f"load average {one:.2f} / {five:.2f} / {fifteen:.2f} (1 / 5 / 15 min) on {os.cpu_count()} CPUs"
+
+
+def _barriers_and_floor(args: argparse.Namespace) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The barrier trials (beacon, TCP only, TCP before issue 29; paired) and the send floor at each size."""
     print("\nsync barrier release latency (agents streaming status at 10 Hz):", flush=True)
-    barriers = []
-    for n in (10, 100) if args.quick else (10, 100, 1000):
-        rows = barrier_trial(n, 10 if args.quick else args.barrier_steps, beacon=not args.no_beacon)
+    barriers, floors = [], []
+    for n in (10, 50) if args.quick else (10, 100, 1000):
+        rows = barrier_trial(
+            n,
+            3 if args.quick else args.barrier_steps,
+            beacon=not args.no_beacon,
+            old_path=not args.no_old_release,
+        )
         barriers += rows
         _print_barrier_rows(rows)
+        if n >= 50:
+            floors.append(floor_trial(n, 5 if args.quick else args.barrier_steps))
+            _print_floor(floors[-1])
+    return barriers, floors
 
-    print("\nthroughput, the same status frames flooded by 20 clients:", flush=True)
-    flood_s = 2.0 if args.quick else 4.0
-    throughput = {kind: throughput_trial(kind, 20, flood_s) for kind in ("bare", "decode", "daemon")}
-    for kind, row in throughput.items():
-        print(
-            f"  {kind:>7}  {row['frames_per_s']:9.0f} frames/s  server cpu {row['server_cpu_share']:4.0%}",
-            flush=True,
-        )
-    ratio = throughput["daemon"]["frames_per_s"] / throughput["bare"]["frames_per_s"]
-    print(f"  daemon / bare asyncio = {ratio:.3f}")
 
+def _footprints(quick: bool) -> list[dict[str, Any]]:
     print("\nagent footprint (one `agent run`, one vehicle, status at 10 Hz):", flush=True)
     footprint = []
     for backend in ("memory", "mavlink"):
         try:
-            row = agent_footprint(backend, 5.0 if args.quick else 10.0)
+            row = agent_footprint(backend, 2.0 if quick else 10.0)
         except (RuntimeError, OSError) as exc:
             print(f"  {backend}: not measured ({exc})")
             continue
@@ -1545,17 +1773,15 @@ def main() -> int:
             f"({row['status_per_s']:.1f} status/s received)",
             flush=True,
         )
+    return footprint
 
+
+def _summary(out: dict[str, Any], best: int) -> None:
+    """The figures issue 29 asks for, one line each (every row of a full run, also of --quick)."""
+    trials = out["fleet_trials"]
     best_row = next((t for t in trials if t["agents"] == best), None)
-    summary = {
-        "client_status_body": "compact" if CLIENT["compact"] else "json",
-        "max_fleet_zero_loss_p99_under_50ms": best,
-        "rss_per_agent_kb_at_max": best_row["rss_per_agent_kb"] if best_row else None,
-        "daemon_over_bare_asyncio_throughput": ratio,
-    }
-    print(
-        f"\nlargest fleet sustained: {best} agents at {STATUS_HZ:g} Hz; wall {time.monotonic() - began:.0f} s"
-    )
+    print(f"\n{out['load_at_start']} at the start; {_load()} at the end")
+    print(f"largest fleet sustained (the knee): {best} agents at {STATUS_HZ:g} Hz")
     if best_row:
         print(f"daemon memory at the knee: {best_row['rss_per_agent_kb']:.1f} KiB RSS per agent")
         costs = best_row["services_us_per_report"]
@@ -1564,24 +1790,110 @@ def main() -> int:
             + ", ".join(f"{name} {us:.1f}" for name, us in costs.items())
             + f"; total {sum(costs.values()):.1f}"
         )
-    for row in barriers:
+    floors = {row["agents"]: row for row in out["send_floor"]}
+    for row in out["barriers"]:
+        floor = floors.get(row["agents"])
         print(
             f"barrier release at {row['agents']} agents ({row['mode']}): "
             f"p50 {row['last_release_p50_ms']:.2f} ms, p99 {row['last_release_p99_ms']:.2f} ms"
             + (f", {row['released_by_beacon_share']:.0%} by the beacon" if row["mode"] == "beacon" else "")
+            + (
+                f"; send floor p50 {floor['p50_ms']:.2f} ms, p99 {floor['p99_ms']:.2f} ms"
+                if floor and row["mode"] != "beacon"
+                else ""
+            )
         )
-    print(f"daemon / bare asyncio flood ratio: {ratio:.3f}")
-    RESULTS.mkdir(exist_ok=True)
+    for row in out["fleet_rtl"]:
+        print(
+            f"fleet RTL to the last of {row['agents']} agents: p50 {row['last_order_p50_ms']:.2f} ms, "
+            f"p99 {row['last_order_p99_ms']:.2f} ms ({row['repeats']} repeats)"
+            + (f" STOPPED: {row['failed']}" if row["failed"] else "")
+        )
+    print(f"daemon / bare asyncio flood ratio: {out['summary']['daemon_over_bare_asyncio_throughput']:.3f}")
+    for row in out["agent_footprint"]:
+        print(
+            f"agent RSS ({row['backend']} backend): {row['rss_mb']:.1f} MiB, "
+            f"CPU {row['cpu_share_of_one_core']:.1%} of one core"
+        )
+    print(f"wall {out['wall_s']:.0f} s")
+
+
+def main() -> int:
+    args = _arguments()
+    DAEMON_OVERRIDES.update(json.loads(args.daemon_config))
+    CLIENT["compact"] = not args.json
+    PROFILE["path"] = args.profile
+    load_at_start = _load()
+    print(load_at_start, flush=True)
+    if args.only_fleet:
+        row = fleet_trial(args.only_fleet, args.seconds)
+        _print_fleet(row)
+        print(f"  event-loop us per report: {row['services_us_per_report']}")
+        print(f"  events: {row['events']}")
+        print(f"  gc pauses: {row['gc_pauses']}")
+        return 0
+    if args.only_barrier:
+        rows = barrier_trial(
+            args.only_barrier, args.barrier_steps, beacon=not args.no_beacon, old_path=not args.no_old_release
+        )
+        _print_barrier_rows(rows)
+        _print_floor(floor_trial(args.only_barrier, args.barrier_steps))
+        print(json.dumps(rows, indent=1))
+        return 0
+    if args.only_rtl:
+        _print_fleet_rtl(fleet_rtl_trial(args.only_rtl, args.rtl_repeats, args.rtl_status_hz))
+        return 0
+    began = time.monotonic()
+    seconds = 2.0 if args.quick else args.seconds
+    info = machine()
+    print(f"machine: {info}")
+
+    print(
+        f"\nfleet search: status at {STATUS_HZ:g} Hz, pass = zero loss and p99 < {P99_LIMIT_MS:g} ms",
+        flush=True,
+    )
+    trials, best = fleet_search(seconds, 50 if args.quick else args.start, 1 if args.quick else 120)
+    barriers, floors = _barriers_and_floor(args)
+
+    print("\nfleet-wide safety order: POST /api/v1/fleet/rtl to the last agent's type-4 order:", flush=True)
+    fleet_rtl = []
+    for n in [20] if args.quick else args.rtl_agents:
+        fleet_rtl.append(fleet_rtl_trial(n, 2 if args.quick else args.rtl_repeats))
+        _print_fleet_rtl(fleet_rtl[-1])
+
+    print("\nthroughput, the same status frames flooded by 20 clients:", flush=True)
+    flood_s = 1.0 if args.quick else 4.0
+    throughput = {kind: throughput_trial(kind, 20, flood_s) for kind in ("bare", "decode", "daemon")}
+    for kind, row in throughput.items():
+        print(
+            f"  {kind:>7}  {row['frames_per_s']:9.0f} frames/s  server cpu {row['server_cpu_share']:4.0%}",
+            flush=True,
+        )
+    ratio = throughput["daemon"]["frames_per_s"] / throughput["bare"]["frames_per_s"]
+    print(f"  daemon / bare asyncio = {ratio:.3f}")
+    footprint = _footprints(args.quick)
+
+    best_row = next((t for t in trials if t["agents"] == best), None)
     out = {
         "machine": info,
+        "load_at_start": load_at_start,
         "quick": args.quick,
-        "summary": summary,
+        "summary": {
+            "client_status_body": "compact" if CLIENT["compact"] else "json",
+            "max_fleet_zero_loss_p99_under_50ms": best,
+            "rss_per_agent_kb_at_max": best_row["rss_per_agent_kb"] if best_row else None,
+            "daemon_over_bare_asyncio_throughput": ratio,
+        },
         "fleet_trials": trials,
         "barriers": barriers,
+        "send_floor": floors,
+        "fleet_rtl": fleet_rtl,
         "throughput": throughput,
         "agent_footprint": footprint,
         "wall_s": time.monotonic() - began,
     }
+    _summary(out, best)
+    RESULTS.mkdir(exist_ok=True)
     (RESULTS / ("load_quick.json" if args.quick else "load.json")).write_text(json.dumps(out, indent=2))
     return 0
 

@@ -178,6 +178,66 @@ def bench_planned_coverage(polygons: int = 120, seed: int = 0) -> list[dict]:
     return rows
 
 
+# Fields2Cover 2.1 (not installed here: it builds from its PyPI sdist against Debian's libgdal-dev and
+# libgeos-dev); its lengths measured by issue 27 on the same fields, swath 20 m, same footprint code
+F2C_REFERENCE_M = {"L-field": 3162.0}
+L_FIELD = np.array([(0, 0), (300, 0), (300, 120), (120, 120), (120, 300), (0, 300)], dtype=float)
+
+
+def random_concave(rng: np.random.Generator) -> np.ndarray:
+    """A star-shaped field: 5-12 vertices at radii 40-100 % of 100-400 m, angles jittered."""
+    n = int(rng.integers(5, 13))
+    radius = rng.uniform(100.0, 400.0)
+    ang = (np.arange(n) + rng.uniform(0.0, 0.7, n)) * 2 * math.pi / n
+    r = radius * rng.uniform(0.4, 1.0, n)
+    return np.column_stack([r * np.cos(ang), r * np.sin(ang)])
+
+
+def _fly(poly: np.ndarray, swath: float) -> dict:
+    """Plan one drone over ``poly`` (local metres, given to the planner in lat/lon as the CLI does)."""
+    from gcs.planning.areas import SearchArea
+    from gcs.planning.camera import spacing_from_swath
+    from gcs.planning.division import DroneSpec
+    from gcs.planning.geodesy import LocalFrame
+    from gcs.planning.planner import plan_search
+
+    frame = LocalFrame(47.0, 8.0)
+    area = SearchArea(vertices=[(float(a), float(b)) for a, b in frame.points_to_geodetic(poly)])
+    t0 = time.perf_counter()
+    plan = plan_search(area, [DroneSpec(name="a", endurance_s=1e6)], spacing_from_swath(swath, 30.0))
+    secs = time.perf_counter() - t0
+    covered = plan.coverage.covered_pct / 100.0 * float(plan.summary["area_m2"])
+    length = float(plan.summary["total_length_m"])
+    return {
+        "length_m": length,
+        "covered_pct": plan.coverage.covered_pct,
+        "m_per_ha": length / covered * 1e4,
+        "seconds": secs,
+    }
+
+
+def bench_path_per_area(fields: int = 20, seed: int = 27, swath: float = 20.0) -> dict:
+    """Path length per covered area on random convex and concave fields (issue 27's comparison)."""
+    out: dict = {}
+    for kind, gen in (("convex", random_convex), ("concave", random_concave)):
+        rng = np.random.default_rng(seed)
+        rows = [_fly(gen(rng), swath) for _ in range(fields)]
+        out[kind] = {
+            "fields": fields,
+            "median_m_per_ha": round(float(np.median([r["m_per_ha"] for r in rows])), 2),
+            "min_covered_pct": round(min(r["covered_pct"] for r in rows), 3),
+            "median_plan_s": round(float(np.median([r["seconds"] for r in rows])), 4),
+        }
+    lf = _fly(L_FIELD, swath)
+    out["L-field"] = {
+        "length_m": round(lf["length_m"], 1),
+        "covered_pct": lf["covered_pct"],
+        "f2c_m": F2C_REFERENCE_M["L-field"],
+        "vs_f2c": round(lf["length_m"] / F2C_REFERENCE_M["L-field"], 4),
+    }
+    return out
+
+
 def table(rows: list[dict], title: str) -> None:
     print(f"\n## {title}")
     keys = list(rows[0])
@@ -198,6 +258,7 @@ def main() -> int:
         "coverage": bench_coverage(sp.step, sp.swath),
         "paper_table3": PAPER_TABLE3,
         "planned_coverage": bench_planned_coverage(),
+        "path_per_area": bench_path_per_area(),
     }
     results["wall_s"] = round(time.perf_counter() - t0, 1)
     print(f"camera: h_max {sp.h_max:.2f} m, swath {sp.swath:.2f} m, step {sp.step:.2f} m (0 % overlap)")
@@ -212,6 +273,8 @@ def main() -> int:
         results["planned_coverage"],
         "planned coverage over random convex polygons (footprint = line step, on the plan itself)",
     )
+    print("\n## path per covered area, swath 20 m (issue 27; F2C reference where measured)")
+    print(json.dumps(results["path_per_area"], indent=1))
     out = Path(__file__).resolve().parent / "results" / "planning.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=2))

@@ -17,9 +17,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from gcs.agents import AgentSession
-from gcs.config import DaemonConfig
-from gcs.daemon import Daemon
+from gcs.core.config import DaemonConfig
+from gcs.core.daemon import Daemon
+from gcs.link.agents import AgentSession
 from protocol import status_binary
 from protocol.actions import Waypoint, Waypoints
 from protocol.packets import (

@@ -20,8 +20,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from gcs.api_planning import SearchPlanRequest, plan  # noqa: E402
 from gcs.cooperation.config import CooperationConfig  # noqa: E402
+from gcs.http.planning_requests import SearchPlanRequest, plan  # noqa: E402
 from protocol.taskfile import TaskFile  # noqa: E402
 from tests.cooperation.rig import SPEEDUP, Rig, rig, wait_for  # noqa: E402
 from tests.scenarios.scenarios import area, crossing_task, head_on, infos, separation, stack_task  # noqa: E402

@@ -25,9 +25,9 @@ sys.path.insert(0, str(ROOT))
 from agent.autopilot.mavlink_backend import MavlinkAutopilot  # noqa: E402
 from agent.config import AgentConfig, AgentSettings  # noqa: E402
 from agent.runtime import Agent  # noqa: E402
-from gcs.config import DaemonConfig  # noqa: E402
 from gcs.cooperation.config import CooperationConfig, EnergyConfig  # noqa: E402
-from gcs.daemon import Daemon  # noqa: E402
+from gcs.core.config import DaemonConfig  # noqa: E402
+from gcs.core.daemon import Daemon  # noqa: E402
 from protocol.actions import Action, Goto, Land, ReturnToLaunch, Takeoff, Waypoint, Waypoints  # noqa: E402
 from protocol.geo import offset_latlon  # noqa: E402
 from protocol.taskfile import AgentPlan, TaskFile  # noqa: E402

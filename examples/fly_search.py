@@ -11,8 +11,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 
-from gcs.api_planning import SearchPlanRequest
-from gcs.client import FleetClient, read_token, run_script
+from gcs.http.client import FleetClient, read_token, run_script
+from gcs.http.planning_requests import SearchPlanRequest
 
 
 async def main(args: argparse.Namespace) -> int:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from gcs.client import FleetClient, run_script
+from gcs.http.client import FleetClient, run_script
 
 
 async def main(api: str) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import pkgutil
 import sys
 from collections.abc import Callable, Sequence
@@ -51,6 +52,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_reporting_errors(f"gcs {args.command}", lambda: runner(args))
 
 
+def _quiet_stdout() -> None:
+    """Point stdout at /dev/null, so flushing it at exit raises no second BrokenPipeError."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+
+
 def run_reporting_errors(prog: str, body: Callable[[], int]) -> int:
     """``body()``, with the errors an operator can act on turned into one line on stderr."""
     import httpx
@@ -59,6 +67,9 @@ def run_reporting_errors(prog: str, body: Callable[[], int]) -> int:
 
     try:
         return body()
+    except BrokenPipeError:  # `gcs mission list | head`: the reader has what it wanted
+        _quiet_stdout()
+        return 0
     except KeyboardInterrupt:
         print(f"\n{prog}: interrupted", file=sys.stderr)
         return 130

@@ -257,6 +257,13 @@ class StatusReport(_Body):
         description="the agent's own failsafe in force ('name: reaction'), latched until landed or an "
         "operator command; while set the agent refuses lower-priority type-4 orders",
     )
+    pilot: str | None = Field(
+        default=None,
+        max_length=32,
+        description="v2: the mode a pilot (RC transmitter or another ground station) put the vehicle in, "
+        "a mode change the agent did not command; while set the agent sends nothing that moves the "
+        "vehicle and refuses every type-4 order but the operator's release (docs/cooperation.md)",
+    )
 
 
 # --- type 3: set geofence (and the other parameter settings) -----------------------------------

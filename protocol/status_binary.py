@@ -36,7 +36,7 @@ Layout (docs/protocol.md "Compact binary status body" documents it byte by byte)
     125+M  1    u8    mission_id length N     (0 = none)
     126+M  N    utf-8 mission_id
     126+M+N ... utf-8 JSON tail: an object with the fields that have no slot (exceptions,
-                      failure, failsafe) or did not fit theirs; present only when bit6 is set
+                      failure, failsafe, pilot) or did not fit theirs; present only when bit6 is set
 
 The protocol forbids NaN in every float field, so NaN is free to mean "none". A tail field
 overrides the fixed slot of the same name; a report with a tail is validated by pydantic in
@@ -111,6 +111,8 @@ def encode(status: StatusReport) -> bytes:
         tail["failure"] = status.failure.model_dump()
     if status.failsafe is not None:
         tail["failsafe"] = status.failsafe
+    if status.pilot is not None:
+        tail["pilot"] = status.pilot
     ints = {
         "step": status.step,
         "completed_step": status.completed_step,
@@ -219,7 +221,7 @@ def check_layout(payload: bytes) -> None:
     Length at least the fixed part and both length bytes, layout version, flag bits, ``mode`` and
     ``mission_id`` inside the body, UTF-8 and within the schema's lengths (32 and 64 characters),
     and bytes after ``mission_id`` exactly when the tail flag is set. The daemon runs this on every
-    compact body before it copies it into its fleet table (gcs/agents.py), so a row only ever holds
+    compact body before it copies it into its fleet table (gcs/link/agents.py), so a row only ever holds
     a body whose variable part is sound; cheap (byte checks, no decode for ASCII, well under 1 us).
     """
     size = len(payload)
@@ -381,13 +383,14 @@ def _values(
         "buffered": bool(flags & BUFFERED),
         "failure": None,
         "failsafe": None,
+        "pilot": None,
     }
 
 
 def from_checked(fields: tuple[Any, ...], mode: str, mission: str | None) -> StatusReport:
     """The report of a tail-less body whose fixed ``fields`` (in :data:`FIXED_FIELDS` order),
     ``mode`` and ``mission`` were checked against the protocol's ranges already (the daemon's fleet
-    table checks whole columns at once, gcs/agents_table.py): what :func:`decode` gives for it."""
+    table checks whole columns at once, gcs/link/agents_table.py): what :func:`decode` gives for it."""
     report: StatusReport = _model(StatusReport, _values(fields, mode, mission, _model))
     return report
 

@@ -58,6 +58,32 @@ class AgentPlan(BaseModel):
         return [a.step for a in self.actions if a.sync]
 
 
+class SurveyArea(BaseModel):
+    """The area a survey mission covers and its sensor footprint: the daemon's live coverage map.
+
+    Optional: planners (``gcs plan``, the API's plan) fill it so that a mission submitted as a
+    file still shows its area, swath band and seen/unseen map.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    area: list[tuple[float, float]] = Field(min_length=3, max_length=10_000, description="[lat, lon] ring")
+    swath_m: float = Field(gt=0.0, le=5000.0, description="ground width seen across track at altitude_m")
+    altitude_m: float | None = Field(default=None, gt=0.0, le=10_000.0, description="planned survey height")
+    retask: Literal["ask", "automatic", "off"] = Field(
+        default="ask",
+        description="a drone leaves the survey: propose its unseen share to the others and wait for the "
+        "operator (ask), fly the proposal at once (automatic), or do nothing (off)",
+    )
+
+    @model_validator(mode="after")
+    def _latlon(self) -> SurveyArea:
+        for lat, lon in self.area:
+            if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+                raise ValueError(f"survey area vertex ({lat}, {lon}) is not a lat/lon in degrees")
+        return self
+
+
 class TaskFile(BaseModel):
     """A whole mission."""
 
@@ -82,6 +108,7 @@ class TaskFile(BaseModel):
         description="accept plans whose last action is not a land or rtl (the drone stays armed in the air)",
     )
     plans: list[AgentPlan] = Field(min_length=1, max_length=1000)
+    survey: SurveyArea | None = Field(default=None, description="surveyed area and footprint (coverage map)")
 
     @model_validator(mode="after")
     def _flyable(self) -> TaskFile:
@@ -387,6 +414,9 @@ def parse_task_document(document: Any, *, allow_airborne_end: bool = False, gcj0
     """
     if isinstance(document, list):
         return from_couas(document, allow_airborne_end=allow_airborne_end, gcj02=gcj02)
+    not_a_task = _not_a_task(document)
+    if not_a_task:
+        raise TaskFileError(not_a_task)
     if allow_airborne_end and isinstance(document, dict):
         document = {**document, "allow_airborne_end": True}
     try:
@@ -397,10 +427,42 @@ def parse_task_document(document: Any, *, allow_airborne_end: bool = False, gcj0
     return task
 
 
+GEOJSON_TYPES = ("FeatureCollection", "Feature", "Polygon", "MultiPolygon")
+SUPPORTED = (
+    "a mission is a fleetgcs task file (JSON with 'plans'), a CoUAS task file (JSON array), or one "
+    "QGroundControl .plan / Mission Planner .waypoints file per drone"
+)
+
+
+def _not_a_task(document: Any) -> str | None:
+    """Why ``document`` is not a task document at all (another format), or None if it may be one."""
+    if not isinstance(document, dict):
+        return f"not a task file: a JSON {type(document).__name__}; {SUPPORTED}"
+    if "plans" in document or document.get("format") == "fleetgcs-task":
+        return None
+    if document.get("fileType") == "Plan":
+        return (
+            "a QGroundControl .plan is one drone's mission: run it as a file (`gcs run DRONE.plan`, "
+            "the file name names the drone) or POST it to /api/v1/missions/import"
+        )
+    if document.get("type") in GEOJSON_TYPES:
+        return (
+            "a GeoJSON area is not a mission: plan a search over it first "
+            "(`gcs plan AREA --out plan/`, then `gcs run plan/mission.json`)"
+        )
+    return f"not a task file (it has no 'plans'); {SUPPORTED}"
+
+
 def load_task_text(text: str, *, allow_airborne_end: bool = False, gcj02: bool = False) -> TaskFile:
     """Parse task-file JSON text of either format."""
+    body = text.lstrip("\ufeff").lstrip()
+    if body.startswith("<"):
+        raise TaskFileError(
+            "a KML (XML) document is not a mission: plan a search over its area first "
+            "(`gcs plan AREA.kml --out plan/`, then `gcs run plan/mission.json`)"
+        )
     try:
-        document = json.loads(text)
+        document = json.loads(body)
     except json.JSONDecodeError as exc:
-        raise TaskFileError(f"task file is not JSON: {exc}") from None
+        raise TaskFileError(f"task file is not JSON ({SUPPORTED}): {exc}") from None
     return parse_task_document(document, allow_airborne_end=allow_airborne_end, gcj02=gcj02)

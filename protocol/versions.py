@@ -78,7 +78,7 @@ V1_FIELDS: dict[type[BaseModel], frozenset[str]] = {
             "acceptance_radius_m",
         }
     ),
-    # type 2 (version 1 had no ``failsafe``)
+    # type 2 (version 1 had no ``failsafe`` or ``pilot``)
     StatusReport: frozenset(
         {
             "time",

@@ -186,7 +186,7 @@ class FrameDecoder:
         """Add ``data`` and yield ``(type byte, seq, body)`` of every frame it completes, CRC checked.
 
         The bodies are not decoded (:func:`decode_body` does that): the daemon's ingest copies a
-        compact status body into its fleet table as it is (gcs/agents_table.py).
+        compact status body into its fleet table as it is (gcs/link/agents_table.py).
         """
         if self._failed is not None:
             raise self._failed

@@ -8,8 +8,10 @@ removed at :meth:`ArduPilotFleet.stop` unless ``keep_logs``). Vehicle i is serve
 ArduPilot's TCP serial ports listen on every interface and cannot be bound to one address, so for
 any ``host`` but ``0.0.0.0`` SERIAL0 is turned around: the instance connects as a TCP *client*
 (``--serial0 tcpclient:127.0.0.1:P``) to a private loopback port of this process, and a relay
-thread serves it on ``host:port``, one client at a time, like SITL itself. SERIAL1/SERIAL2 are
-disabled. (The instance's UDP RC-input port, 5501+10*i, still listens on every interface.)
+thread serves it on ``host:port``, one client at a time, like SITL itself. SERIAL2 is disabled;
+SERIAL1 too, unless ``pilot_links``: then it is relayed the same way on ``host:base_port + 10*i + 2``
+(an ephemeral port with base_port 0), for a second ground station, a pilot's (issue 26). (The
+instance's UDP RC-input port, 5501+10*i, still listens on every interface.)
 
 Dataflash logs (about 28 MB per vehicle per 10 minutes) are written only with ``keep_logs``.
 The instances are our children: they get SIGTERM when :meth:`ArduPilotFleet.stop` runs, and on
@@ -111,6 +113,11 @@ class _Relay:
         self._sel.register(inside, selectors.EVENT_READ, (index, "accept-sitl"))
         return outside.getsockname()[1], inside.getsockname()[1]
 
+    @property
+    def pairs(self) -> int:
+        """How many ports are relayed (the index the next :meth:`add` gets)."""
+        return len(self._pairs)
+
     def sitl_connected(self, index: int) -> bool:
         with self._lock:
             return self._pairs[index]["sitl"] is not None
@@ -199,6 +206,7 @@ class ArduPilotFleet:
         host: str = "127.0.0.1",
         params: dict[str, float] | None = None,
         keep_logs: bool = False,
+        pilot_links: bool = False,
     ) -> None:
         if not 1 <= vehicles <= 250:
             raise ValueError("vehicles must be 1..250 (system ids 1..250)")
@@ -224,6 +232,10 @@ class ArduPilotFleet:
         self.workdir = tempfile.mkdtemp(prefix="fleetgcs-ardupilot-")
         self._relay: _Relay | None = None
         self._sitl_ports: list[int] = []
+        self._relay_index: list[int] = []  # the relay pair of each instance's SERIAL0
+        self.pilot_links = pilot_links
+        self._pilot_ports: list[int] = [base_port + 10 * i + 2 if base_port else 0 for i in range(vehicles)]
+        self._sitl_pilot_ports: list[int] = []
         # base_port 0: every instance gets its own ephemeral port (not 0, 10, 20...).
         self._ports: list[int] = [base_port + 10 * i if base_port else 0 for i in range(vehicles)]
 
@@ -237,6 +249,14 @@ class ArduPilotFleet:
         """SERIAL0 TCP endpoints, base_port + 10*i."""
         host = "127.0.0.1" if self.host == ALL_INTERFACES else self.host
         return [f"tcp:{host}:{port}" for port in self._ports]
+
+    @property
+    def pilot_endpoints(self) -> list[str]:
+        """SERIAL1 TCP endpoints for a second ground station (``pilot_links``), one per vehicle."""
+        if not self.pilot_links:
+            return []
+        host = "127.0.0.1" if self.host == ALL_INTERFACES else self.host
+        return [f"tcp:{host}:{port}" for port in self._pilot_ports]
 
     def _defaults_arg(self) -> str | None:
         files = [self.defaults] if self.defaults else []
@@ -264,11 +284,12 @@ class ArduPilotFleet:
             str(i + 1),
         ]
         if self.relayed and i < len(self._sitl_ports):
+            serial1 = f"tcpclient:127.0.0.1:{self._sitl_pilot_ports[i]}" if self.pilot_links else "none"
             cmd += [
                 "--serial0",
                 f"tcpclient:127.0.0.1:{self._sitl_ports[i]}",
                 "--serial1",
-                "none",
+                serial1,
                 "--serial2",
                 "none",
             ]
@@ -289,9 +310,14 @@ class ArduPilotFleet:
             if self.relayed:
                 self._relay = _Relay()
                 for i in range(self.n):
+                    self._relay_index.append(self._relay.pairs)
                     outside, inside = self._relay.add(self.host, self._ports[i])
                     self._ports[i] = outside
                     self._sitl_ports.append(inside)
+                    if self.pilot_links:
+                        outside, inside = self._relay.add(self.host, self._pilot_ports[i])
+                        self._pilot_ports[i] = outside
+                        self._sitl_pilot_ports.append(inside)
                 self._relay.start()
             for i in range(self.n):
                 wd = Path(self.workdir) / f"I{i}"
@@ -322,7 +348,7 @@ class ArduPilotFleet:
                 tail = self._log_tail(i)
                 raise RuntimeError(f"arducopter instance {i} exited early: {tail}")
             if self._relay is not None:
-                if self._relay.sitl_connected(i):
+                if self._relay.sitl_connected(self._relay_index[i]):
                     return
             else:
                 with (

@@ -110,6 +110,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--home, --spacing, --speedup, --base-port, --host, --param, --wind",
     )
     run.add_argument(
+        "--pilot-links",
+        action="store_true",
+        help="a second MAVLink link per vehicle for a pilot's ground station (ArduPilot: SERIAL1, port "
+        "P + 10*i + 2); what it sets counts as the pilot's (docs/simulator.md); printed as PILOT LINKS",
+    )
+    run.add_argument(
         "--keep-logs",
         action="store_true",
         help="--ardupilot: write dataflash logs and keep the instances' scratch directory (path on stderr)",
@@ -167,6 +173,7 @@ def _run_ardupilot(args: argparse.Namespace, home: tuple[float, ...], stop: _Sto
             host=args.host,
             params=params,
             keep_logs=args.keep_logs,
+            pilot_links=args.pilot_links,
         )
     except ValueError as exc:
         print(f"sitl: {exc}", file=sys.stderr)
@@ -178,6 +185,8 @@ def _run_ardupilot(args: argparse.Namespace, home: tuple[float, ...], stop: _Sto
         return 1
     if args.keep_logs:
         print(f"sitl: logs in {apf.workdir}", file=sys.stderr)
+    if apf.pilot_endpoints:
+        print("PILOT LINKS " + " ".join(apf.pilot_endpoints), flush=True)
     print("SITL READY " + " ".join(apf.endpoints), flush=True)
     try:
         stop.wait(apf.alive)
@@ -222,6 +231,7 @@ def main(argv: list[str] | None = None) -> int:
         params=dict(args.param),
         failures=list(args.fail),
         flavour=args.flavour,
+        pilot_links=args.pilot_links,
     )
     try:
         fleet = SimFleet(cfg)
@@ -229,6 +239,8 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError, RuntimeError) as exc:
         print(f"sitl: {exc}", file=sys.stderr)
         return 2
+    if fleet.pilot_endpoints:
+        print("PILOT LINKS " + " ".join(fleet.pilot_endpoints), flush=True)
     print("SITL READY " + " ".join(fleet.endpoints), flush=True)
     try:
         stop.wait(lambda: fleet.running)

@@ -7,7 +7,7 @@ Syntax (times in sim seconds since boot; several specs separated by ``;`` or giv
 ``VEH`` is the vehicle's system id (1-based, vehicle index + 1) or ``*`` for every vehicle. ``KIND``:
 
 * ``link_drop@T+D``  nothing sent and all input ignored from T for D seconds
-* ``gps_loss@T+D``   no GPS fix from T for D seconds (position dead-reckoned; EKF failsafe after 5 s airborne)
+* ``gps_loss@T+D``   no GPS fix from T for D seconds (position dead-reckoned; the position failsafe follows)
 * ``battery@T=PCT``  set the remaining charge to PCT percent at T (alias ``low_battery``)
 * ``wind@T=N,E``     set the steady wind to N m/s north, E m/s east at T
 

@@ -64,6 +64,10 @@ class FleetConfig:
     # binds it: udpin) and listens on base_port + 40 + i; base_port 0 = an ephemeral listening port
     # and no remote until the client speaks (udpout). ``params`` then holds PX4 names.
     flavour: str = "ardupilot"
+    # A second MAVLink link per vehicle for a pilot's ground station (ArduPilot SITL's SERIAL1: TCP
+    # base_port + 10*i + 2, ephemeral with base_port 0; PX4: UDP, the client speaks first). What
+    # it sends counts as a pilot's: a mode set there is a pilot's mode switch (docs/simulator.md).
+    pilot_links: bool = False
 
     def validate(self) -> None:
         """Raise ValueError for settings the simulator cannot honour."""
@@ -119,7 +123,9 @@ class SimFleet:
         for idx, failure in parse_failures(cfg.failures, cfg.vehicles):
             self._vehicles[idx].schedule(failure)
         self.dt = 1.0 / cfg.physics_hz
-        self._endpoints: list[Endpoint] = []
+        self._endpoints: list[Endpoint] = []  # each vehicle's own link (SERIAL0)
+        self._pilot_endpoints: list[Endpoint] = []  # cfg.pilot_links: a second link each
+        self._all: list[Endpoint] = []
         self._sel: selectors.BaseSelector | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -151,6 +157,11 @@ class SimFleet:
         return [ep.port for ep in self._endpoints]
 
     @property
+    def pilot_endpoints(self) -> list[str]:
+        """pymavlink connection strings of the pilots' links (``pilot_links``), one per vehicle."""
+        return [ep.url for ep in self._pilot_endpoints]
+
+    @property
     def vehicles(self) -> list[SimVehicle]:
         """All vehicles, index order."""
         return list(self._vehicles)
@@ -171,13 +182,19 @@ class SimFleet:
         try:
             for i, v in enumerate(self._vehicles):
                 self._endpoints.append(self._endpoint(i, v))
+                self._all.append(self._endpoints[-1])
+                if self.cfg.pilot_links:
+                    self._pilot_endpoints.append(self._pilot_endpoint(i, v))
+                    self._all.append(self._pilot_endpoints[-1])
         except OSError:
-            for ep in self._endpoints:
+            for ep in self._all:
                 ep.close()
             self._endpoints.clear()
+            self._pilot_endpoints.clear()
+            self._all.clear()
             raise
         sel = selectors.DefaultSelector()
-        for ep in self._endpoints:
+        for ep in self._all:
             if ep.listener is not None:
                 sel.register(ep.listener, selectors.EVENT_READ, (ep, "accept"))
             elif ep.conn is not None:
@@ -201,12 +218,19 @@ class SimFleet:
         port = cfg.base_port + 10 * i if cfg.base_port else 0
         return Endpoint(v, cfg.transport, cfg.host, port, self.dt)
 
+    def _pilot_endpoint(self, i: int, v: SimVehicle) -> Endpoint:
+        cfg = self.cfg
+        if cfg.flavour == "px4" or cfg.transport == "udp":
+            return Endpoint(v, "udp", cfg.host, 0, self.dt, name="pilot")
+        port = cfg.base_port + 10 * i + 2 if cfg.base_port else 0
+        return Endpoint(v, "tcp", cfg.host, port, self.dt, name="pilot")
+
     def stop(self) -> None:
         """Stop the simulation thread and close every socket (idempotent)."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(5.0)
-        for ep in self._endpoints:
+        for ep in self._all:
             ep.close()
         if self._sel is not None:
             self._sel.close()
@@ -285,7 +309,7 @@ class SimFleet:
         sel = self._sel
         assert sel is not None
         vehicles = self._vehicles
-        endpoints = self._endpoints
+        endpoints = self._all
         wall0 = time.monotonic()
         self._anchor_wall0 = wall0
         cpu0 = time.thread_time()
@@ -389,7 +413,7 @@ class SimFleet:
         ep.want_write = False
 
     def _flush_all(self, sel: selectors.BaseSelector) -> None:
-        for ep in self._endpoints:
+        for ep in self._all:
             if not ep.outbuf:
                 continue
             conn = ep.conn

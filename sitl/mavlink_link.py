@@ -24,6 +24,15 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 OUTBUF_LIMIT = 1 << 20  # bytes queued for a slow client before new messages are dropped
+LOGGED = frozenset(  # what a ground station asks of the vehicle: kept in SimVehicle.command_log
+    {
+        "COMMAND_LONG",
+        "COMMAND_INT",
+        "SET_POSITION_TARGET_GLOBAL_INT",
+        "SET_POSITION_TARGET_LOCAL_NED",
+        "SET_MODE",
+    }
+)
 
 
 class Endpoint:
@@ -37,7 +46,11 @@ class Endpoint:
         port: int,
         min_interval: float,
         remote: tuple[str, int] | None = None,
+        name: str = "gcs",
     ) -> None:
+        """``name`` "gcs" is the vehicle's own link (SERIAL0); any other (the "pilot" link, as a
+        second ground station on SERIAL1) is an extra one: it gets its own streams and the answers
+        to what it sends, the vehicle's other messages go to the "gcs" link."""
         if remote is not None and transport != "udp":
             raise ValueError("a remote address needs the udp transport")
         self.vehicle = vehicle
@@ -73,8 +86,10 @@ class Endpoint:
         self.dropped_msgs = 0
         self.handler_errors = 0
         self.sent_msgs = 0
+        self.name = name
         self.reset_streams()
-        vehicle.link = self
+        if name == "gcs":
+            vehicle.link = self
 
     @property
     def url(self) -> str:
@@ -230,11 +245,18 @@ class Endpoint:
         for msg in msgs or ():
             if msg.get_type() == "BAD_DATA":
                 continue
+            mtype = msg.get_type()
+            if mtype in LOGGED:
+                entry = (self.vehicle.t, self.name, mtype, getattr(msg, "command", None), msg.get_srcSystem())
+                self.vehicle.command_log.append(entry)
+            self.vehicle.reply_link = self  # answers (ACKs, parameters) go back where asked
             try:
                 self.vehicle.handle(msg, wall_now)
             except Exception:  # one odd message must not take the whole fleet down
                 self.handler_errors += 1
                 log.exception("vehicle %d failed to handle %s", self.vehicle.sysid, msg.get_type())
+            finally:
+                self.vehicle.reply_link = None
         return True
 
     def tick(self, wall_now: float) -> None:

@@ -52,11 +52,13 @@ DEFAULTS: dict[str, tuple[float, int]] = {
     "BATT_FS_LOW_ACT": (0, INT8),
     "BATT_FS_CRT_ACT": (0, INT8),
     "FS_EKF_ACTION": (1, INT8),
+    "FS_EKF_THRESH": (0.8, REAL32),
     "FS_GCS_ENABLE": (0, INT8),
     "SIM_WIND_SPD": (0.0, REAL32),
     "SIM_WIND_DIR": (180.0, REAL32),
     "SIM_WIND_TURB": (0.0, REAL32),
-    "SIM_GPS_DISABLE": (0, INT8),
+    "SIM_GPS_DISABLE": (0, INT8),  # older ArduPilot SITL
+    "SIM_GPS1_ENABLE": (1, INT8),  # ArduPilot 4.7 SITL: 0 = no GPS
     "SIM_SPEEDUP": (1.0, REAL32),
 }
 

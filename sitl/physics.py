@@ -11,9 +11,8 @@ import math
 import random
 from dataclasses import dataclass
 
-# ArduPilot's flat-earth scaling (AP_Math LATLON_TO_M = 0.011131884502145034 m per 1e-7 degree), so
-# local offsets match what a real ArduCopter would compute for the same lat/lon.
-METRES_PER_DEG = 111318.84502145034
+from protocol.geo import ARDUPILOT_EARTH_RADIUS_M, ned_offset_m, offset_latlon
+
 GRAVITY = 9.80665
 
 # Seed 000 eq. 9: path error (m) = a*sin(v - pi) + b*(v - 10)^2 + c, v in m/s.
@@ -32,17 +31,14 @@ def path_error_m(speed_mps: float) -> float:
 
 
 def local_to_latlon(lat0: float, lon0: float, north: float, east: float) -> tuple[float, float]:
-    """Flat-earth offset from an origin, the same approximation ArduPilot uses over short ranges."""
-    lat = lat0 + north / METRES_PER_DEG
-    lon = lon0 + east / (METRES_PER_DEG * math.cos(math.radians(lat0)))
-    return lat, lon
+    """Flat-earth offset from an origin with ArduPilot's radius, as ArduPilot does over short ranges
+    (``protocol.geo.offset_latlon``), so local offsets match a real ArduCopter's for the same lat/lon."""
+    return offset_latlon(lat0, lon0, north, east, ARDUPILOT_EARTH_RADIUS_M)
 
 
 def latlon_to_local(lat0: float, lon0: float, lat: float, lon: float) -> tuple[float, float]:
     """Inverse of :func:`local_to_latlon`: north/east metres of ``lat``/``lon`` from the origin."""
-    north = (lat - lat0) * METRES_PER_DEG
-    east = (lon - lon0) * METRES_PER_DEG * math.cos(math.radians(lat0))
-    return north, east
+    return ned_offset_m(lat0, lon0, lat, lon, ARDUPILOT_EARTH_RADIUS_M)
 
 
 def sqrt_controller(error: float, kp: float, accel: float) -> float:

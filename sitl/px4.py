@@ -248,6 +248,7 @@ class Px4Vehicle(SimVehicle):
         self.takeoff_pending: float | None = None  # AMSL target of a take-off sent while disarmed
         self.cruise: float | None = None  # DO_CHANGE_SPEED: the speed of repositions until a mode change
         self.last_setpoint_t = -math.inf  # last SET_POSITION_TARGET_* (PX4's offboard signal)
+        self.pauses: list[float] = []  # ground speed at each pause (a reposition without position)
         self.reached: tuple[int, float, float] | None = None  # seq, first sent, next repeat
         self.sim_bat_pct = 100.0
 
@@ -511,6 +512,26 @@ class Px4Vehicle(SimVehicle):
                 self.send(mav.MAVLink_mission_item_reached_message(seq))
                 self.reached = (seq, first, self.t + 1.0)
 
+    def gnss_failsafe_delay(self) -> float | None:
+        """EKF2 dead-reckons for EKF2_NOAID_TOUT (us) without GPS, then declares no position."""
+        return self.px4_params["EKF2_NOAID_TOUT"] / 1e6
+
+    def gnss_failsafe(self) -> None:
+        """PX4's mode fallback when the mode's position requirement fails (failsafe framework).
+
+        Position (POSCTL) falls back to Altitude; the position modes (Hold, Mission, Return, Offboard,
+        Takeoff) to Land, which needs a local position too, so to Descend, shown as AUTO.LAND.
+        The event says "Failsafe activated: Autopilot disengaged, switching to Descend"; the
+        STATUSTEXT a MAVLink ground station sees is "Failsafe activated".
+        """
+        if self.px4_mode in (MANUAL, ALTCTL, STABILIZED, ACRO_MODE, LAND_MODE):
+            return
+        self.set_mode(ALT_HOLD if self.px4_mode == POSCTL else LAND)
+        self.statustext(SEV_CRITICAL, "Failsafe activated")
+
+    def gnss_failsafe_cleared(self) -> None:
+        """PX4 stays in Descend until the pilot or a ground station selects another mode."""
+
     def set_battery(self, pct: float) -> None:
         """Set the charge; PX4's SITL drain goes on from there."""
         with self.lock:
@@ -644,6 +665,7 @@ class Px4Vehicle(SimVehicle):
             n, e = latlon_to_local(self.origin[0], self.origin[1], lat, lon)
         else:  # no position: PX4's pause (navigator: brake, then hold where the vehicle comes to rest)
             n, e = self._stopping_point(n, e)
+            self.pauses.append(math.hypot(*self.ground_velocity()))
         if math.isfinite(alt):
             d = -(alt - self.origin[2])
         self.guidance.goto(n, e, d)

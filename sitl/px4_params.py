@@ -58,6 +58,7 @@ PX4_DEFAULTS: dict[str, tuple[float, int]] = {
     "COM_DISARM_PRFLT": (10.0, REAL32),
     "COM_DISARM_LAND": (2.0, REAL32),
     "COM_ARM_WO_GPS": (1, INT32),
+    "EKF2_NOAID_TOUT": (5000000, INT32),
     "COM_LOW_BAT_ACT": (3, INT32),
     "COM_FLTMODE1": (-1, INT32),
     "BAT_LOW_THR": (0.15, REAL32),

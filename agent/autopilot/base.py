@@ -46,6 +46,10 @@ class CommandTimeout(AutopilotError):
         self.seconds = seconds
 
 
+class PilotInControl(AutopilotError):
+    """A pilot put the vehicle in a mode the agent did not ask for: nothing that moves it is sent."""
+
+
 class LinkLost(AutopilotError):
     """No heartbeat from the autopilot for longer than the backend's link timeout."""
 
@@ -85,7 +89,14 @@ class Telemetry:
     position_known: bool = False
     vehicle_time_s: float | None = None  # autopilot clock (time_boot_ms) of the position, if reported
     last_heartbeat_monotonic: float = 0.0
+    # A mode the vehicle was put in by someone else (a pilot's RC switch, another ground station),
+    # until it is back in the agent's mode; always None when the backend does not track it.
+    pilot_mode: str | None = None
     status_texts: list[str] = field(default_factory=list)
+    # The autopilot's heartbeat says MAV_STATE_CRITICAL or EMERGENCY: a failsafe of its own is active
+    # (PX4's failsafe framework, ArduCopter's failsafes). PX4 sends no STATUSTEXT on its onboard
+    # (API) link, so this is the only word of its failsafe an agent there gets.
+    autopilot_failsafe: bool = False
 
     def latch_position(self) -> None:
         """Set :attr:`position_known` when the current fix and position allow it (never clears)."""
@@ -128,6 +139,16 @@ class FenceSpec:
 
 class Autopilot(abc.ABC):
     """What the agent's queue and exception monitor need from a flight controller."""
+
+    def pilot_modes(self) -> tuple[tuple[str, ...], tuple[str, ...]] | None:
+        """(the vehicle's own failsafe modes, the modes an operator may release a pilot's control
+        from) when this backend tells a pilot's mode change from the agent's (``Telemetry.pilot_mode``);
+        None when it does not."""
+        return None
+
+    def adopt_mode(self) -> None:
+        """The operator released the pilot's control: the present mode is the agent's from now on."""
+        return None  # nothing to adopt where pilot_modes() is None
 
     @abc.abstractmethod
     async def connect(self, timeout: float = 30.0) -> None:

@@ -25,6 +25,7 @@ import hashlib
 import logging
 import math
 import os
+import re
 import struct
 import threading
 import time
@@ -37,10 +38,14 @@ from typing import Any, Protocol
 os.environ["MAVLINK20"] = "1"
 os.environ.setdefault("MAVLINK_DIALECT", "ardupilotmega")
 
-from pymavlink import mavutil
+from agent.autopilot.lean_mavutil import kept_out
+
+with kept_out():  # mavutil without the v1 "all" dialect and NumPy (agent/autopilot/lean_mavutil.py)
+    from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from agent.autopilot.base import CommandRefused, CommandTimeout, LinkLost
+from agent.autopilot.mavlink_router import MavlinkRouter, RouterConfigError
 
 log = logging.getLogger(__name__)
 
@@ -113,6 +118,9 @@ def signing_key_bytes(key: bytes | str) -> bytes:
     return hashlib.sha256(text.encode()).digest()
 
 
+BARE_DEVICE = re.compile(r"^(tty[A-Za-z]+\d*|serial\d+|cu\.[\w.-]+)([:,]\d+)?$")
+
+
 def parse_connection(connection: str) -> tuple[str, int | None]:
     """Split a connection string into (pymavlink device, serial baud or None for network links).
 
@@ -126,6 +134,8 @@ def parse_connection(connection: str) -> tuple[str, int | None]:
         if conn.startswith(prefix):
             conn, serial = conn[len(prefix) :], True
             break
+    if BARE_DEVICE.match(conn):  # ttyUSB0:57600 means /dev/ttyUSB0, not a UDP host named ttyUSB0
+        conn = "/dev/" + conn
     if serial or conn.startswith("/dev/") or conn.upper().startswith("COM"):
         for sep in (",", ":"):
             if sep in conn:
@@ -222,6 +232,8 @@ class MavlinkLink:
         self.param_codec: ParamCodec | None = None
         self._command_locks: dict[int, asyncio.Lock] = {}
         self._t0 = time.monotonic()
+        # Extra ground stations sharing this link (agent/autopilot/mavlink_router.py), or None.
+        self.router: MavlinkRouter | None = None
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -262,15 +274,25 @@ class MavlinkLink:
             self._conn.setup_signing(
                 self._signing_key, sign_outgoing=True, allow_unsigned_callback=allow_unsigned
             )
+        if self.router is not None:
+            try:
+                self.router.open()
+            except RouterConfigError as exc:
+                self.stop()
+                raise LinkLost(str(exc)) from exc
 
     def start(self) -> None:
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name=f"mavlink-{self.connection}", daemon=True)
         self._thread.start()
+        if self.router is not None:
+            self.router.start()
 
     def stop(self) -> None:
         """Stop the reader thread and close the port (blocking up to ~1 s). Idempotent."""
         self._stop.set()
+        if self.router is not None:
+            self.router.stop()
         thread, self._thread = self._thread, None
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout=2.0)
@@ -321,6 +343,20 @@ class MavlinkLink:
             conn.mav.send(msg)
             if conn.logfile is not None:
                 conn.logfile.write(struct.pack(">Q", int(time.time() * 1e6) & ~3) + msg.get_msgbuf())
+
+    def send_raw(self, frame: bytes) -> None:
+        """Write a whole MAVLink frame from another ground station (the router), unchanged."""
+        conn = self._conn
+        if conn is None:
+            raise LinkLost("link is closed")
+        with self._send_lock:
+            conn.write(frame)
+
+    def own_ids(self) -> tuple[int, int]:
+        """The (system, component) the agent sends as."""
+        conn = self._conn
+        system = conn.mav.srcSystem if conn is not None else (self._source_system or 0)
+        return system, self.source_component
 
     def send_command_long(self, command: int, params: Iterable[float], confirmation: int = 0) -> None:
         p = [float(x) for x in params]
@@ -395,6 +431,8 @@ class MavlinkLink:
         mtype = msg.get_type()
         if mtype == "BAD_DATA":
             return
+        if self.router is not None:
+            self.router.from_autopilot(msg)
         if mtype == "HEARTBEAT":
             self._on_heartbeat(msg)
         vehicle = self.vehicle
@@ -488,12 +526,19 @@ class MavlinkLink:
         int_frame: int | None = None,
         timeout_s: float | None = None,
         retries: int | None = None,
+        already: Callable[[], bool] | None = None,
     ) -> None:
         """Send COMMAND_LONG (or COMMAND_INT when ``int_frame`` is given) and wait for its ACK.
 
         For COMMAND_INT, params 5 and 6 are lat/lon in degrees (sent x1e7; NaN as INT32_MAX, "no
         position") and 7 is the altitude.
-        Returns on MAV_RESULT_ACCEPTED; IN_PROGRESS keeps waiting.
+        Returns on MAV_RESULT_ACCEPTED; IN_PROGRESS keeps waiting. Each re-send of a COMMAND_LONG
+        counts up its ``confirmation`` field (0 first), as the MAVLink command protocol asks.
+
+        ``already``: for a command the vehicle refuses to carry out twice (ArduCopter answers a
+        second NAV_TAKEOFF while climbing with FAILED). On a lossy link the first send may have
+        been carried out and its ACK lost; a refusal of a *re-send* is then taken as success when
+        ``already()`` says the vehicle is doing what was asked.
         """
         timeout = self.command_timeout_s if timeout_s is None else timeout_s
         attempts = self.command_retries if retries is None else max(1, retries)
@@ -547,6 +592,9 @@ class MavlinkLink:
                         if ack.result == mavlink.MAV_RESULT_IN_PROGRESS:
                             deadline = time.monotonic() + max(timeout, 5.0)
                             continue
+                        if attempt > 0 and already is not None and already():
+                            log.info("%s: re-send refused, the first send was carried out (ACK lost)", name)
+                            return
                         reason = await self.refusal_reason(mav_result_name(ack.result), first_sent - 0.5)
                         raise CommandRefused(name, reason)
                     log.debug("%s: no COMMAND_ACK (attempt %d/%d)", name, attempt + 1, attempts)

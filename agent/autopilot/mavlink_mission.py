@@ -1,4 +1,5 @@
-"""Private: the MAVLink mission upload protocol (missions, fences, rally points).
+"""Private: the MAVLink mission upload protocol (missions, fences, rally points), and the items
+the pymavlink backend uploads.
 
 Upload sequence (https://mavlink.io/en/services/mission.html)::
 
@@ -15,7 +16,11 @@ Rules that real autopilots need:
   until the final MISSION_ACK;
 * other error ACKs end the upload with that result;
 * silence for ``item_timeout_s``: resend MISSION_COUNT (nothing requested yet) or the last item,
-  at most ``retries`` times in a row, then :class:`CommandTimeout`.
+  at most ``retries`` times in a row, then :class:`CommandTimeout`;
+* the final MISSION_ACK lost (a lossy radio): the vehicle stored the items and ended the transfer,
+  so our re-sent last item gets silence (ArduPilot) or an error ACK. Once the last item was sent
+  again, silence or an error other than INVALID_SEQUENCE is checked against the vehicle: when it
+  reports our count and our last item (a short download), the upload went through.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from agent.autopilot.base import CommandTimeout
+from agent.autopilot.base import CommandTimeout, FenceSpec, MissionPoint, Telemetry
 from agent.autopilot.mavlink_link import MavlinkLink, Subscription, mavlink
 
 log = logging.getLogger(__name__)
@@ -105,16 +110,21 @@ async def upload(
         send_count()
         last_sent: int | None = None
         silent = 0
+        last_resent = False  # the last item went out again: its ACK may have been lost before
         while True:
             msg = await _next(link, sub, item_timeout_s, what)
             if msg is None:
                 silent += 1
+                if last_resent and await _holds(link, items, mission_type, item_timeout_s, retries):
+                    log.info("%s: final ACK lost, the vehicle holds the upload", what)
+                    return mavlink.MAV_MISSION_ACCEPTED
                 if silent > retries:
                     raise CommandTimeout(what, item_timeout_s * (retries + 1))
                 if last_sent is None:
                     send_count()
                 else:
                     link.send(items[last_sent].to_message(link, last_sent, mission_type))
+                    last_resent = last_sent == count - 1
                 continue
             silent = 0
             mtype = msg.get_type()
@@ -135,9 +145,69 @@ async def upload(
             if result == mavlink.MAV_MISSION_INVALID_SEQUENCE:
                 log.info("%s: NACK (invalid sequence), upload continues", what)
                 continue
+            if last_resent and await _holds(link, items, mission_type, item_timeout_s, retries):
+                log.info(
+                    "%s: final ACK lost (%s to the re-sent item), the vehicle holds the upload", what, result
+                )
+                return mavlink.MAV_MISSION_ACCEPTED
             return result
     finally:
         link.unsubscribe(sub)
+
+
+async def _holds(
+    link: MavlinkLink, items: list[Item], mission_type: int, timeout_s: float, retries: int
+) -> bool:
+    """Whether the vehicle stores ``items``: its count and its last item are ours (a short download)."""
+    count = len(items)
+    if count == 0:
+        return False
+    want = items[-1].to_message(link, count - 1, mission_type)
+    sub = link.subscribe(
+        ["MISSION_COUNT", "MISSION_ITEM_INT"],
+        lambda m: (
+            m.get_srcComponent() == link.target_component
+            and (getattr(m, "mission_type", 0) or 0) == mission_type
+        ),
+    )
+    ask_count = mavlink.MAVLink_mission_request_list_message(
+        link.target_system, link.target_component, mission_type
+    )
+    ask_item = mavlink.MAVLink_mission_request_int_message(
+        link.target_system, link.target_component, count - 1, mission_type
+    )
+    try:
+        got = await _exchange(link, sub, ask_count, "MISSION_COUNT", timeout_s, retries)
+        if got is None or int(got.count) != count:
+            return False
+        item = await _exchange(link, sub, ask_item, "MISSION_ITEM_INT", timeout_s, retries)
+        link.send(
+            mavlink.MAVLink_mission_ack_message(
+                link.target_system, link.target_component, mavlink.MAV_MISSION_ACCEPTED, mission_type
+            )
+        )
+        return (
+            item is not None
+            and int(item.seq) == count - 1
+            and (item.command, item.x, item.y) == (want.command, want.x, want.y)
+            and math.isclose(item.z, want.z, abs_tol=0.01)
+        )
+    finally:
+        link.unsubscribe(sub)
+
+
+async def _exchange(
+    link: MavlinkLink, sub: Subscription, ask: Any, answer: str, timeout_s: float, retries: int
+) -> Any | None:
+    """Send ``ask`` until a message of type ``answer`` comes (at most ``retries + 1`` sends)."""
+    for _ in range(retries + 1):
+        link.send(ask)
+        deadline = time.monotonic() + timeout_s
+        while (remaining := deadline - time.monotonic()) > 0:
+            msg = await _next(link, sub, remaining, "mission check")
+            if msg is not None and msg.get_type() == answer:
+                return msg
+    return None
 
 
 async def _next(link: MavlinkLink, sub: Subscription, timeout_s: float, what: str) -> Any | None:
@@ -149,3 +219,59 @@ async def _next(link: MavlinkLink, sub: Subscription, timeout_s: float, what: st
             return msg
         link.ensure_link(what)
     return None
+
+
+def fence_items(fence: FenceSpec) -> list[Item]:
+    """The fence's inclusion polygon and circle as MISSION_TYPE_FENCE items (ValueError: < 3 vertices)."""
+    items: list[Item] = []
+    if fence.polygon:
+        if len(fence.polygon) < 3:
+            raise ValueError("fence polygon needs at least 3 vertices")
+        n = len(fence.polygon)
+        for vlat, vlon in fence.polygon:
+            items.append(
+                Item(
+                    mavlink.MAV_CMD_NAV_FENCE_POLYGON_VERTEX_INCLUSION,
+                    mavlink.MAV_FRAME_GLOBAL,
+                    vlat,
+                    vlon,
+                    0.0,
+                    param1=n,
+                )
+            )
+    if fence.circle is not None:
+        c = fence.circle
+        items.append(
+            Item(
+                mavlink.MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION,
+                mavlink.MAV_FRAME_GLOBAL,
+                c.lat,
+                c.lon,
+                0.0,
+                param1=c.radius_m,
+            )
+        )
+    return items
+
+
+def mission_items(points: list[MissionPoint], home: Telemetry | None) -> list[Item]:
+    """Waypoints above home; with ``home`` (ArduPilot: seq 0 is home, it overwrites it, but it must
+    be there) a home item first."""
+    items: list[Item] = []
+    if home is not None:
+        items.append(
+            Item(
+                mavlink.MAV_CMD_NAV_WAYPOINT,
+                mavlink.MAV_FRAME_GLOBAL,
+                home.home_lat or 0.0,
+                home.home_lon or 0.0,
+                home.home_alt_amsl or 0.0,
+            )
+        )
+    for p in points:
+        items.append(
+            Item(
+                mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT, p.lat, p.lon, p.alt_rel_m
+            )
+        )
+    return items

@@ -157,10 +157,13 @@ class MemoryAutopilot(Autopilot):
                 t.lat, t.lon = offset_latlon(t.lat, t.lon, north * move / dist, east * move / dist)
                 t.vn, t.ve = north / dist * self.cruise_mps, east / dist * self.cruise_mps
                 t.heading_deg = math.degrees(math.atan2(east, north)) % 360.0
-            dz = self._target[2] - t.alt_rel
-            climb = max(-self.climb_mps * dt, min(self.climb_mps * dt, dz))
-            t.alt_rel += climb
-            t.vd = -climb / dt if dt > 0 else 0.0
+            if not self._landing:
+                # A land at a position flies there at its altitude, then descends: the target's
+                # altitude must not pull it back up (that held it at the land point for good).
+                dz = self._target[2] - t.alt_rel
+                climb = max(-self.climb_mps * dt, min(self.climb_mps * dt, dz))
+                t.alt_rel += climb
+                t.vd = -climb / dt if dt > 0 else 0.0
         if self._landing and (self._target is None or (t.vn == 0.0 and t.ve == 0.0)):
             t.alt_rel = max(0.0, t.alt_rel - self.climb_mps * dt)
             t.vd = self.climb_mps

@@ -9,6 +9,7 @@ drones it reached and, per drone, why the others were not (that daemon's refusal
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -19,7 +20,15 @@ from gcs.cluster.node import AIRSPACE_LEASE
 from gcs.http.models import FleetCommand, FleetCommandResult
 
 if TYPE_CHECKING:
-    from gcs.daemon import Daemon
+    from gcs.core.context import DaemonParts
+
+
+LEASE_LOOKUP_S = 1.0
+
+
+def _url(parsed: Any) -> str | None:
+    """nats://host:port of nats-py's parsed server address."""
+    return None if parsed is None else f"nats://{parsed.hostname}:{parsed.port}"
 
 
 class ClusterMission(BaseModel):
@@ -39,38 +48,60 @@ class ClusterInfo(BaseModel):
     daemon_id: str
     servers: list[str]
     connected: bool
-    leading: list[str]
+    connected_url: str | None  # the NATS server this daemon's connection is on now
+    leading: list[str]  # missions led here and deciding now (lease good by our clock)
+    suspended: list[str]  # led here, lease out by our clock (NATS slow): deciding nothing now
     missions: list[ClusterMission]
     takeovers: int
     airspace: str | None  # the daemon deciding collisions for the whole fleet (docs/cluster.md)
     pruned_keys: int
+    step_downs: int  # missions this daemon stopped leading because its lease ran out by its clock
+    fenced_writes: int  # its writes refused: a newer leader's token was on the mission record
+    fenced_orders: int  # orders forwarded to it refused: sent under an older lease token
 
 
-def cluster_router(daemon: Daemon, token: Sequence[Any]) -> APIRouter:
+def cluster_router(daemon: DaemonParts, token: Sequence[Any]) -> APIRouter:
     node = daemon.cluster
     assert node is not None
     router = APIRouter()
 
+    async def holder(name: str) -> str | None:
+        """The lease holder, or None when NATS does not answer within LEASE_LOOKUP_S (a node
+        failing over, quorum lost): the answer stays quick and never a 500."""
+        try:
+            found, _ = await asyncio.wait_for(node.state.lease_holder(name), LEASE_LOOKUP_S)
+        except Exception:  # NATS away or re-electing: unknown, not an error
+            return None
+        return found
+
     @router.get("/api/v1/cluster")
     async def cluster_info() -> ClusterInfo:
         """This daemon's place in the cluster and who leads each running mission."""
+        leases = node.state.leases  # who decides now, read before any look-up awaits
+        leading = sorted(m for m in daemon.missions.active if leases.valid(m) or m in leases.pending)
+        suspended = sorted(set(daemon.missions.active) - set(leading))
         missions = []
         for stored in node.store.missions():
             leader = None
             if stored.state == "running":
-                leader, _ = await node.state.lease_holder(stored.id)
+                leader = await holder(stored.id)
             missions.append(ClusterMission(id=stored.id, name=stored.name, state=stored.state, leader=leader))
         nc = node.state.nc
-        airspace, _ = await node.state.lease_holder(AIRSPACE_LEASE)
+        airspace = await holder(AIRSPACE_LEASE)
         return ClusterInfo(
             daemon_id=node.daemon_id,
             servers=node.state.servers,
             connected=bool(nc is not None and nc.is_connected),
-            leading=sorted(daemon.missions.active),
+            connected_url=_url(nc.connected_url) if nc is not None and nc.is_connected else None,
+            leading=leading,
+            suspended=suspended,
             missions=missions,
-            takeovers=len(node.takeovers),
+            takeovers=len(node.leadership.takeovers),
             airspace=airspace,
             pruned_keys=node.pruned_keys,
+            step_downs=node.leadership.step_downs,
+            fenced_writes=node.state.leases.refused,
+            fenced_orders=node.forwarder.fenced_orders,
         )
 
     @router.get("/api/v1/cluster/fleet")

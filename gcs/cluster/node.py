@@ -8,10 +8,11 @@ mission runner and API see the whole fleet; what a runner sends to a remote agen
 ``fleet.down.<identity>`` and the daemon holding the link posts it.
 
 One daemon leads each mission: it holds the mission's key in the ``fleet_leases`` bucket (TTL
-``cluster_lease_ttl_s``, renewed every third of it) and runs its barriers; the others ignore it.
-When the leader dies the lease expires, a standby takes it (compare-and-set: one winner), rebuilds
-the mission from the shared records and carries on. Agents waiting at a barrier say so in every
-status report, so the new leader also heals what died in flight (a 'finished' or a 'release').
+``cluster_lease_ttl_s``, renewed every third of it, at least every second) and runs its
+barriers; the others ignore it (gcs/cluster/leadership.py). When the leader dies the lease
+expires, a standby takes it (compare-and-set: one winner), rebuilds the mission from the shared
+records and carries on. Agents waiting at a barrier say so in every status report, so the new
+leader also heals what died in flight (a 'finished' or a 'release').
 
 Commands for a drone linked to another daemon (a mission's plan, a collision hold or escape, a
 return) travel as the type-4 packet on ``fleet.down`` and pass the holding daemon's vehicle
@@ -25,6 +26,11 @@ agent carries it, and a message of an older epoch (from a daemon the agent has l
 
 The airspace (the collision check over the whole fleet) is decided by one daemon at a
 time, the holder of the ``airspace`` lease (docs/cluster.md); it also prunes finished missions.
+
+A daemon that was paused or stalled does not act on stale state when it wakes: every lease is
+judged by its own monotonic clock before any decision (it steps down first when the lease ran
+out), and every leader write and forwarded order carries the lease's fencing token, refused
+once a newer leader stamped the mission record (gcs/cluster/fencing.py).
 """
 
 from __future__ import annotations
@@ -36,42 +42,41 @@ import logging
 import os
 import socket
 import time
-from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, cast
 
-from gcs.agents import AgentSession
-from gcs.authority import PRIORITY, VehicleControl
+from gcs.cluster.commands import OperatorRoute
+from gcs.cluster.fencing import LeaseUncertain
+from gcs.cluster.forwarding import AIRSPACE_LEASE, Forwarder, frame, unframe
 from gcs.cluster.housekeeping import prune_round
+from gcs.cluster.leadership import Leadership
+from gcs.cluster.releases import ReleaseClaims
 from gcs.cluster.state import ClusterState
 from gcs.cluster.store import ClusterStore
-from gcs.config import DaemonConfig
+from gcs.control.authority import PRIORITY, VehicleControl
+from gcs.cooperation.airspace import Airspace
 from gcs.cooperation.return_coordinator import VehicleView
-from gcs.cooperation.returns import RETURN_PREFIX
-from gcs.cooperation.service import Airspace, CooperationService
+from gcs.cooperation.service import CooperationService
+from gcs.core.config import DaemonConfig
+from gcs.link.session import AgentSession
 from protocol.packets import (
     Body,
     Capabilities,
     GeoPoint,
-    PerformActions,
     Resume,
     StatusReport,
     SyncSignal,
 )
-from protocol.wire import FrameDecoder, encode
 
 if TYPE_CHECKING:
     from nats.aio.msg import Msg
 
-    from gcs.daemon import Daemon
+    from gcs.core.context import DaemonParts
 
 log = logging.getLogger("gcs.cluster")
 
 NUDGE_EVERY_S = 1.0  # re-send a release / re-count an arrival seen in status at most this often
-COMMAND_TIMEOUT_S = 5.0
-PENDING_LIMIT = 2000  # forwarded commands awaiting the holder's answer (oldest dropped beyond)
-PENDING_TTL_S = 30.0  # an answer later than this is logged without its command
-AIRSPACE_LEASE = "airspace"  # its holder decides collisions for the whole fleet and prunes
 
 
 def default_daemon_id(config: DaemonConfig) -> str:
@@ -119,14 +124,6 @@ class RemoteSession(AgentSession):
         self.open = False
 
 
-def _order_kind(owner: str, mission_id: str) -> str | None:
-    """The order a forwarded replace gives, as the sending authority recorded it: a return program
-    (its mission id says rtl or land) above the mission's level; nothing else is an order."""
-    if PRIORITY[owner] > PRIORITY["mission"] and mission_id.startswith(RETURN_PREFIX):
-        return mission_id[len(RETURN_PREFIX) :].split("-", 1)[0]
-    return None
-
-
 def _control(control: VehicleControl) -> str:
     """What controls a drone above its plan, in a few words: "operator rtl", "operator hold (why)"."""
     if control.order is not None:
@@ -134,15 +131,6 @@ def _control(control: VehicleControl) -> str:
     if control.holds:
         return ", ".join(f"{owner} hold ({why})" for owner, why in control.holds.items())[:200]
     return f"vehicle failsafe {control.failsafe}" if control.failsafe else control.level
-
-
-def _frame(body: Body) -> bytes:
-    return encode(body, 0)
-
-
-def _body(data: bytes) -> Body | None:
-    frames = list(FrameDecoder().feed(data))
-    return frames[0].body if frames else None
 
 
 class ClusterNode:
@@ -155,57 +143,38 @@ class ClusterNode:
             config.cluster, self.daemon_id, config.cluster_replicas, config.cluster_lease_ttl_s
         )
         self.store = ClusterStore(config.database_path, self.state)
-        self.takeovers: list[tuple[str, float]] = []  # (mission id, wall time) missions taken over
-        self._daemon: Daemon | None = None
+        self._daemon: DaemonParts | None = None
         self._subs: list[Any] = []
         self._tasks: list[asyncio.Task[None]] = []
         self._nudged: dict[tuple[str, str, int], float] = {}
-        self._held_leases: set[str] = set()
-        self._airspace = False  # we hold the airspace lease
+        self._nudging: set[asyncio.Task[None]] = set()
         self.pruned_keys = 0
         self._epochs: dict[str, tuple[int, str]] = {}  # agent -> newest (epoch, holder) known
         self._local_epoch: dict[str, int] = {}  # agent -> epoch of our link to it (0: unknown)
-        self._pending: dict[int, tuple[str, str, float]] = {}  # seq -> (agent, command, sent at)
-        self._seq = 0
-        self.refusals: deque[dict[str, Any]] = deque(maxlen=200)  # holders' refusals of our commands
         self.stale_dropped = 0  # messages ignored: sent under an agent's older link epoch
+        self.forwarder = Forwarder(self)
+        self.operator_route = OperatorRoute(self)
+        self.refusals = self.forwarder.refusals  # holders' refusals of our commands
+        self.leadership = Leadership(self)  # lease rounds, takeovers, the airspace scope
+        self.releases = ReleaseClaims(self)
 
     @property
-    def daemon(self) -> Daemon:
+    def daemon(self) -> DaemonParts:
         assert self._daemon is not None, "cluster node not started"
         return self._daemon
 
     # --- lifecycle -------------------------------------------------------------------------------
 
-    async def start(self, daemon: Daemon) -> None:
+    async def start(self, daemon: DaemonParts) -> None:
         """Connect, load the shared state, hook into the daemon, take over orphaned missions."""
         self._daemon = daemon
         await self.state.connect()
-        agents, missions = daemon.agents, daemon.missions
-        agents.assign_cid = self.state.assign_cid
-        missions.claim_release = self._claim_release
-        missions.led_elsewhere = self._led_elsewhere
-        missions.withdraw_elsewhere = self._withdraw_elsewhere
-        missions.remote_blocker = self.remote_blocker
+        agents = daemon.agents
         self.state.on_change.append(self._registry_change)
         for identity, revision in list(self.state.revisions.items()):
             record = self.state.agent_record(identity)
             if record is not None:
                 self._note_holder(identity, revision, str(record["daemon"]))
-        for service in self._cooperation():
-            service.cluster = self
-        local_view = daemon.returns.fleet
-
-        def fleet_view() -> dict[str, VehicleView]:
-            """Returns deconflict against every airborne drone of the cluster, not only ours."""
-            view = local_view()
-            for identity, remote in list(daemon.agents.remote.items()):
-                status = remote.status
-                if remote.open and status is not None and status.position is not None:
-                    view.setdefault(identity, VehicleView(status, status.position, remote.home))
-            return view
-
-        daemon.returns.fleet = fleet_view
         agents.on_join.append(self._local_join)
         agents.on_status.append(self._local_status)
         agents.on_sync.append(self._local_sync)
@@ -215,13 +184,29 @@ class ClusterNode:
         self._subs = [
             await nc.subscribe("fleet.status.>", cb=self._remote_status),
             await nc.subscribe("fleet.up.>", cb=self._remote_up),
-            await nc.subscribe("fleet.down.>", cb=self._down),
-            await nc.subscribe(f"fleet.cmd.{self.daemon_id}", cb=self._command),
-            await nc.subscribe(f"fleet.result.{self.daemon_id}", cb=self._result),
+            await nc.subscribe("fleet.down.>", cb=self.forwarder.down),
+            await nc.subscribe(f"fleet.cmd.{self.daemon_id}", cb=self.operator_route.answer),
+            await nc.subscribe(f"fleet.result.{self.daemon_id}", cb=self.forwarder.result),
         ]
-        await self._lease_tick()
-        self._tasks.append(asyncio.create_task(self._lease_loop(), name="cluster-leases"))
+        await self.leadership.tick()
+        self._tasks.append(asyncio.create_task(self.leadership.loop(), name="cluster-leases"))
         self._tasks.append(asyncio.create_task(self._prune_loop(), name="cluster-prune"))
+
+    def fleet_view(self, local: Callable[[], dict[str, VehicleView]]) -> Callable[[], dict[str, VehicleView]]:
+        """The return coordinator's fleet view (plugged in by the composition root): returns
+        deconflict against every airborne drone of the cluster, not only ``local``'s."""
+
+        def fleet_view() -> dict[str, VehicleView]:
+            view = local()
+            if self._daemon is None:
+                return view
+            for identity, remote in list(self._daemon.agents.remote.items()):
+                status = remote.status
+                if remote.open and status is not None and status.position is not None:
+                    view.setdefault(identity, VehicleView(status, status.position, remote.home))
+            return view
+
+        return fleet_view
 
     async def stop(self) -> None:
         for task in self._tasks:
@@ -229,61 +214,32 @@ class ClusterNode:
         for task in self._tasks:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
+        await self.leadership.stop()
         for sub in self._subs:
             with contextlib.suppress(Exception):
                 await sub.unsubscribe()
         if self._daemon is not None:
             for mission_id in list(self._daemon.missions.active):
                 await self.state.drop_lease(mission_id)  # a clean stop hands over at once
-            if self._airspace:
-                await self.state.drop_lease(AIRSPACE_LEASE)
+            await self.state.drop_lease(AIRSPACE_LEASE)  # only if still ours
         await self.state.close()
 
     def _cooperation(self) -> list[CooperationService]:
         return [s for s in self.daemon.services if isinstance(s, CooperationService)]
 
-    # --- leases ----------------------------------------------------------------------------------
+    # --- leases (gcs/cluster/leadership.py) ---------------------------------------------------------
 
-    async def _lease_loop(self) -> None:
-        period = self.config.cluster_lease_ttl_s / 3
-        while True:
-            await asyncio.sleep(period)
-            try:
-                await self._lease_tick()
-            except Exception:  # NATS briefly away (a node failing over): try again next period
-                log.warning("lease round failed", exc_info=True)
+    async def may_decide(self, mission_id: str) -> bool:
+        """The runner asks before every decision about a mission it runs (:meth:`Leadership.may_decide`)."""
+        return await self.leadership.may_decide(mission_id)
 
-    async def _lease_tick(self) -> None:
-        await self._sweep_remote()
-        holder, _ = await self.state.lease_holder(AIRSPACE_LEASE)
-        was = self._airspace
-        self._airspace = holder in (None, self.daemon_id) and await self.state.renew_lease(AIRSPACE_LEASE)
-        if self._airspace != was:
-            log.info("%s the airspace lease", "took" if self._airspace else "lost")
-        missions = self.daemon.missions
-        for mission_id in list(missions.active):
-            if not await self.state.renew_lease(mission_id):
-                holder, _ = await self.state.lease_holder(mission_id)
-                log.warning("lost the lead of %s to %s; following", mission_id, holder)
-                missions.forget(mission_id)
-        finished = {m.id for m in self.store.missions() if m.state != "running"}
-        for mission_id in finished & set(self._held_leases):
-            await self.state.drop_lease(mission_id)
-            self._held_leases.discard(mission_id)
-        for stored in self.store.missions("running"):
-            if stored.id in missions.active:
-                self._held_leases.add(stored.id)
-                continue
-            holder, _ = await self.state.lease_holder(stored.id)
-            if holder is None and await self.state.take_lease(stored.id):
-                await self._take_over(stored.id)
-
-    async def _sweep_remote(self) -> None:
-        """Mirrors of agents nobody has reported for ``lost_after_s`` (their daemon died) go."""
+    async def sweep_remote(self) -> None:
+        """Mirrors of agents nobody has reported for ``remote_lost_after_s`` (their daemon died, or
+        stalled longer than its agents wait before moving) go."""
         now = time.monotonic()
         agents = self.daemon.agents
         for identity, remote in list(agents.remote.items()):
-            if now - remote.last_rx > self.config.lost_after_s:
+            if now - remote.last_rx > self.config.remote_lost_after_s:
                 await self._remote_gone(identity, remote)
 
     async def _remote_gone(self, identity: str, remote: AgentSession) -> None:
@@ -299,56 +255,44 @@ class ClusterNode:
         period = min(30.0, max(1.0, after / 4))
         while True:
             await asyncio.sleep(period)
-            if not self._airspace:
+            if not self.leadership.airspace_held or not self.state.leases.valid(AIRSPACE_LEASE):
                 continue
             try:
                 self.pruned_keys += await prune_round(self.state, after)
             except Exception:  # NATS away: the next round goes on where this one stopped
                 log.warning("prune round failed", exc_info=True)
 
-    async def _take_over(self, mission_id: str) -> None:
-        missions = self.daemon.missions
-        await self.state.resync()  # the freshest shared records, whatever our watchers missed
-        mission = missions.restore_one(mission_id)
-        if mission is None:
-            return
-        self._held_leases.add(mission_id)
-        self.takeovers.append((mission_id, time.time()))
-        missions.count_arrivals(mission_id, self.store.arrivals(mission_id))
-        self.daemon.events.publish(
-            "mission_takeover",
-            f"{self.daemon_id} leads {mission.task.name} now (previous leader's lease expired)",
-            mission_id=mission_id,
-        )
-        await missions.release_ready(mission_id)
-        for identity in missions.members(mission):  # heal what died in flight
+    async def heal(self, mission_id: str) -> None:
+        """After a takeover: what died in flight (a 'finished', a 'release') is healed from the
+        members' last status reports."""
+        mission = self.daemon.missions.active.get(mission_id)
+        for identity in self.daemon.missions.members(mission) if mission is not None else []:
             session = self.daemon.agents.session(identity)
             if session is not None and session.status is not None:
                 await self._nudge(session, session.status)
 
-    async def _claim_release(self, mission_id: str, step: int) -> bool:
-        return await self.state.create("barriers", f"{mission_id}.{step}.released", self.state.unique())
+    # --- the mission runner's view of the cluster (gcs.missions.runner.MissionCluster) ---------------------
 
-    def _led_elsewhere(self, mission_id: str) -> bool:
+    async def claim_release(self, mission_id: str, step: int) -> bool:
+        """Claim a barrier's release (:meth:`ReleaseClaims.claim`)."""
+        return await self.releases.claim(mission_id, step)
+
+    def led_elsewhere(self, mission_id: str) -> bool:
         stored = self.store.mission(mission_id)
         return stored is not None and mission_id not in self.daemon.missions.active
 
-    async def _withdraw_elsewhere(self, identity: str, reason: str) -> None:
+    async def withdraw_elsewhere(self, identity: str, reason: str) -> None:
         """One of our agents leaves its mission (an operator RTL, an emergency) but another daemon
         leads that mission: tell it, so its barriers stop waiting for the agent."""
         session = self.daemon.agents.sessions.get(identity)
         if session is not None and session.open:
             self._up(session, "withdraw", reason.encode()[:500])
 
-    # --- the cooperation service's view of the cluster (gcs.cooperation.service.ClusterView) -----
+    # --- the cooperation service's view of the cluster (gcs.cooperation.airspace.ClusterView) -----
 
     def airspace(self) -> Airspace:
-        """Whose collisions we decide: the whole fleet (we hold the airspace lease), only our own
-        agents (cut off from NATS: nobody else can reach them), or none (another daemon does)."""
-        nc = self.state.nc
-        if nc is None or not nc.is_connected:
-            return "local"
-        return "fleet" if self._airspace else "none"
+        """Whose collisions we decide (:meth:`Leadership.airspace`)."""
+        return self.leadership.airspace()
 
     def remote_level(self, ident: str) -> int:
         remote = self.daemon.agents.remote.get(ident)
@@ -412,7 +356,7 @@ class ClusterNode:
         if nc is None or nc.is_closed:
             return
         headers = {**self._headers(session), "kind": kind}
-        self.state.enqueue(lambda: nc.publish(f"fleet.up.{session.identity}", payload, headers=headers))
+        self.state.send(f"fleet.up.{session.identity}", payload, headers=headers)
 
     async def _local_join(self, session: AgentSession, resume: Resume | None) -> None:
         self.daemon.agents.remote.pop(session.identity, None)
@@ -446,8 +390,8 @@ class ClusterNode:
             if level:
                 headers["control"] = _control(authority.control(session.identity))
             with contextlib.suppress(Exception):
-                await nc.publish(f"fleet.status.{session.identity}", _frame(status), headers=headers)
-        await self._nudge(session, status)
+                await nc.publish(f"fleet.status.{session.identity}", frame(status), headers=headers)
+        self._nudge_soon(session, status)
 
     async def _local_sync(self, session: AgentSession, signal: SyncSignal) -> None:
         key = f"{signal.mission_id}.{signal.step}.arrived.{session.identity}"
@@ -455,7 +399,7 @@ class ClusterNode:
             self.state.mirror["barriers"][key] = b"1"
             value = self.state.unique()
             self.state.enqueue(lambda: self.state.create("barriers", key, value))
-        self._up(session, "sync", _frame(signal))
+        self._up(session, "sync", frame(signal))
 
     async def _local_lost(self, identity: str) -> None:
         remote = self.daemon.agents.remote.get(identity)
@@ -513,7 +457,7 @@ class ClusterNode:
         remote = self._remote(msg)
         if remote is None:
             return
-        status = _body(msg.data)
+        status = unframe(msg.data)
         if not isinstance(status, StatusReport):
             return
         headers = msg.headers or {}
@@ -525,7 +469,7 @@ class ClusterNode:
             remote.status = status
             self.daemon.authority.observe(remote.identity, status)  # orders we gave it end when it lands
         remote.status_count += 1
-        from gcs.live import LiveHub
+        from gcs.observe.live import LiveHub
 
         for hub in self.daemon.services:  # the dashboard's stream and history show the whole fleet
             if isinstance(hub, LiveHub):
@@ -533,7 +477,7 @@ class ClusterNode:
         for service in self._cooperation():  # the airspace picture spans the cluster
             await service.remote_status(remote, status)
         await self.daemon.missions.agent_status(remote, status)
-        await self._nudge(remote, status)
+        self._nudge_soon(remote, status)
 
     async def _remote_up(self, msg: Msg) -> None:
         remote = self._remote(msg)
@@ -548,7 +492,7 @@ class ClusterNode:
             resume = Resume.model_validate(join["resume"]) if join["resume"] else None
             await missions.agent_joined(remote, resume)
         elif kind == "sync":
-            signal = _body(msg.data)
+            signal = unframe(msg.data)
             if isinstance(signal, SyncSignal):
                 await missions.agent_finished(remote, signal)
         elif kind == "lost":
@@ -556,130 +500,62 @@ class ClusterNode:
         elif kind == "withdraw":  # its daemon took it out of a mission (we may lead it)
             await missions.withdraw(remote.identity, msg.data.decode(errors="replace"))
 
+    def _nudge_soon(self, session: AgentSession, status: StatusReport) -> None:
+        """:meth:`_nudge` beside the status path (decided here, acted on in its own task): a
+        release claim waiting on NATS (a stream re-electing its leader) must not hold up every
+        other report behind it."""
+        what = self._nudge_wanted(session, status)
+        if what is not None:
+            task = asyncio.create_task(self._nudge_act(session, status, what))
+            self._nudging.add(task)
+            task.add_done_callback(self._nudging.discard)
+
     async def _nudge(self, session: AgentSession, status: StatusReport) -> None:
-        """As leader: an agent reporting a wait at a released barrier gets the release again, one
-        waiting at a barrier we have no arrival for counts as arrived (the signal died in flight)."""
+        what = self._nudge_wanted(session, status)
+        if what is not None:
+            await self._nudge_act(session, status, what)
+
+    def _nudge_wanted(self, session: AgentSession, status: StatusReport) -> str | None:
+        """As leader, what an agent reporting a wait at a barrier needs (at most every
+        NUDGE_EVERY_S): the release again ("release", the barrier was released), its arrival
+        counted ("arrive", the signal died in flight), or the complete barrier released
+        ("retry", an earlier claim got no answer)."""
         step, mission_id = status.waiting_sync, status.mission_id
         if step is None or mission_id is None:
-            return
+            return None
         mission = self.daemon.missions.active.get(mission_id)
         if mission is None or session.identity not in mission.barriers.members:
-            return
+            return None
         released = step in mission.barriers.released
-        if not released and session.identity in mission.barriers.arrivals.get(step, set()):
-            return
+        arrived = session.identity in mission.barriers.arrivals.get(step, set())
+        if not released and arrived and mission.barriers.missing(step):
+            return None
         key = (session.identity, mission_id, step)
         now = time.monotonic()
         if now - self._nudged.get(key, 0.0) < NUDGE_EVERY_S:
-            return
+            return None
         self._nudged[key] = now
-        if released:
-            session.post(SyncSignal(mission_id=mission_id, step=step, kind="release"))
-        else:
-            signal = SyncSignal(mission_id=mission_id, step=step, kind="finished")
-            await self.daemon.missions.agent_finished(session, signal)
+        return "release" if released else "retry" if arrived else "arrive"
 
-    # --- what other daemons send our agents ---------------------------------------------------------
+    async def _nudge_act(self, session: AgentSession, status: StatusReport, what: str) -> None:
+        mission_id, step = status.mission_id or "", status.waiting_sync or 0
+        if what == "release":
+            self.daemon.commands.release_barrier([session.identity], mission_id, step)
+            return
+        with contextlib.suppress(LeaseUncertain):  # still no answer: its next report retries
+            if what == "retry":
+                await self.daemon.missions.release_ready(mission_id)
+            else:
+                signal = SyncSignal(mission_id=mission_id, step=step, kind="finished")
+                await self.daemon.missions.agent_finished(session, signal)
+
+    # --- what other daemons send our agents (gcs/cluster/forwarding.py) -----------------------------
 
     def forward(self, identity: str, body: Body, urgent: bool) -> None:
-        """Post ``body`` through the daemon holding the link; a command's answer (delivered or
-        refused by that daemon's vehicle authority) comes back on ``fleet.result.<us>``."""
-        nc = self.state.nc
-        if nc is None or nc.is_closed:
-            return
-        data, headers = _frame(body), {"daemon": self.daemon_id, "urgent": "1" if urgent else ""}
-        reply = ""
-        if isinstance(body, PerformActions):
-            self._seq += 1
-            headers["seq"] = str(self._seq)
-            reply = f"fleet.result.{self.daemon_id}"
-            self._remember(self._seq, identity, f"{body.source or 'mission'} {body.mode}")
-        self.state.enqueue(lambda: nc.publish(f"fleet.down.{identity}", data, reply=reply, headers=headers))
+        """Post ``body`` through the daemon holding the link (:meth:`Forwarder.forward`)."""
+        self.forwarder.forward(identity, body, urgent)
 
-    def _remember(self, seq: int, identity: str, command: str) -> None:
-        now = time.monotonic()
-        self._pending[seq] = (identity, command, now)
-        if len(self._pending) > PENDING_LIMIT or next(iter(self._pending.values()))[2] < now - PENDING_TTL_S:
-            for old in [k for k, (_, _, at) in self._pending.items() if at < now - PENDING_TTL_S]:
-                del self._pending[old]
-            while len(self._pending) > PENDING_LIMIT:
-                del self._pending[next(iter(self._pending))]
-
-    async def _down(self, msg: Msg) -> None:
-        identity = msg.subject.split(".", 2)[2]
-        session = self.daemon.agents.sessions.get(identity)
-        if session is None or not session.open or (msg.headers or {}).get("daemon") == self.daemon_id:
-            return
-        body = _body(msg.data)
-        if isinstance(body, PerformActions):
-            delivered, why = self._order(identity, body, (msg.headers or {}).get("daemon", "?"))
-            if msg.reply:
-                answer = {
-                    "agent": identity,
-                    "seq": (msg.headers or {}).get("seq", ""),
-                    "daemon": self.daemon_id,
-                    "delivered": delivered,
-                    "reason": why,
-                    "level": self.daemon.authority.level(identity),
-                }
-                with contextlib.suppress(Exception):
-                    await msg.respond(json.dumps(answer).encode())
-        elif body is not None:
-            session.post(body, urgent=bool((msg.headers or {}).get("urgent")) or None)
-
-    def _order(self, identity: str, body: PerformActions, sender: str) -> tuple[bool, str]:
-        """A command another daemon gave our agent: through our vehicle authority, at its source's
-        priority, so nothing undoes what our operator or the vehicle ordered (refusals recorded
-        here and answered to the sender)."""
-        authority = self.daemon.authority
-        owner = body.source or "mission"
-        reason = f"{body.reason or body.mode} (via {sender})"
-        planned = PRIORITY[owner] <= PRIORITY["mission"]
-        if body.mode == "pause":
-            if planned:  # a plan-level pause re-sends the sender's holds: ours re-sends our own
-                return True, "plan pause: our own holds stand"
-            return authority.hold(identity, owner, reason, body.mission_id)
-        if body.mode == "resume":
-            return authority.release(identity, owner, reason, body.mission_id)
-        if body.mode == "replace":
-            return authority.replace(
-                identity,
-                owner,
-                body.mission_id,
-                list(body.actions),
-                reason,
-                order=_order_kind(owner, body.mission_id),
-                await_release=body.await_release,
-                keep_holds=planned,  # a plan queues behind any hold, as the leader's did
-            )
-        return self.daemon.agents.post(identity, body), body.mode
-
-    async def _result(self, msg: Msg) -> None:
-        """The holder's answer to a command we forwarded: a refusal is recorded (event, the
-        drone's level raised so the airspace decider treats it as outranked right away)."""
-        try:
-            answer = json.loads(msg.data)
-            identity, delivered = str(answer["agent"]), bool(answer["delivered"])
-            seq, holder, why = int(answer.get("seq") or 0), str(answer["daemon"]), str(answer["reason"])
-            level = int(answer.get("level", 0))
-        except (ValueError, KeyError, TypeError):
-            log.warning("bad command answer on %s: %r", msg.subject, msg.data[:200])
-            return
-        _, command, _ = self._pending.pop(seq, (identity, "command", 0.0))
-        if delivered:
-            return
-        remote = self.daemon.agents.remote.get(identity)
-        if isinstance(remote, RemoteSession) and remote.daemon == holder:
-            remote.level = max(remote.level, level)
-        source, _, mode = command.partition(" ")
-        if mode == "resume" or source not in PRIORITY:
-            return  # nothing of ours to release there: not a refusal worth recording
-        self.refusals.append({"agent": identity, "daemon": holder, "command": command, "reason": why})
-        # Our authority takes back what it recorded as given; its decision event says who refused
-        # and why (throttled per drone, source and command like every decision event).
-        self.daemon.authority.refused_where_linked(identity, source, mode, holder, why)
-
-    # --- operator commands for any drone --------------------------------------------------------------
+    # --- operator commands for any drone (gcs/cluster/commands.py) ------------------------------
 
     def holder(self, identity: str) -> str | None:
         """The daemon holding ``identity``'s link: ours if linked here, else the registry's (the
@@ -696,82 +572,8 @@ class ClusterNode:
     async def command(
         self, command: str, agents: list[str] | None, reason: str
     ) -> tuple[list[str], dict[str, str]]:
-        """Run an operator command on each drone's own daemon (through its vehicle authority);
-        returns (delivered, refused: drone -> why, as that daemon answered)."""
-        targets = agents if agents is not None else sorted(self.fleet_identities())
-        by_daemon: dict[str, list[str]] = {}
-        refused: dict[str, str] = {}
-        for identity in targets:
-            holder = self.holder(identity)
-            if holder is None:
-                refused[identity] = "no daemon of the cluster holds its link"
-            else:
-                by_daemon.setdefault(holder, []).append(identity)
-        delivered: list[str] = []
-        for daemon, group in sorted(by_daemon.items()):
-            if daemon == self.daemon_id:
-                done, why = await self._apply(command, group, reason)
-                delivered += done
-                refused.update(why)
-                continue
-            nc = self.state.nc
-            assert nc is not None
-            request = json.dumps({"command": command, "agents": group, "reason": reason}).encode()
-            try:
-                reply = await nc.request(f"fleet.cmd.{daemon}", request, timeout=COMMAND_TIMEOUT_S)
-                answer = json.loads(reply.data)
-            except Exception as exc:
-                log.warning("daemon %s did not answer %s for %s: %r", daemon, command, group, exc)
-                late = f"{daemon} did not answer within {COMMAND_TIMEOUT_S:.0f} s"
-                refused.update(dict.fromkeys(group, late))
-                continue
-            delivered += answer.get("delivered", [])
-            refused.update(answer.get("refused", {}))
-            if answer.get("error"):
-                refused.update({i: f"{daemon}: {answer['error']}" for i in group if i not in delivered})
-        return delivered, refused
-
-    async def _apply(self, command: str, agents: list[str], reason: str) -> tuple[list[str], dict[str, str]]:
-        operator = self.daemon.operator
-        if command == "hold":
-            delivered = await operator.hold(agents, reason)
-        elif command == "resume":
-            delivered = await operator.resume(agents, reason)
-        elif command in ("rtl", "land"):
-            missions = self.daemon.missions
-            for identity in agents:  # out of a mission another daemon leads (that one is told)
-                if missions.mission_of(identity) is None:
-                    await missions.withdraw(identity, f"fleet {command} ({reason})")
-            delivered, _ = await operator.bring_down(command, agents, reason)  # type: ignore[arg-type]
-        else:
-            raise ValueError(f"unknown command {command!r}")
-        return delivered, {i: self._why_not(i, command) for i in agents if i not in delivered}
-
-    def _why_not(self, identity: str, command: str) -> str:
-        """Why ``command`` did not reach a drone linked here (for the cluster API's answer)."""
-        session = self.daemon.agents.sessions.get(identity)
-        if session is None or not session.open:
-            return f"not linked to {self.daemon_id} any more"
-        decisions = self.daemon.authority.control(identity).decisions
-        last = decisions[-1] if decisions else None
-        if last is not None and not last.accepted and last.source == "operator":
-            return f"refused by {self.daemon_id}'s vehicle authority: {last.detail}"
-        if command in ("rtl", "land"):
-            return "not airborne: nothing to bring down"
-        if command == "resume":
-            return "still held by the operator"
-        return f"not applied by {self.daemon_id}"
-
-    async def _command(self, msg: Msg) -> None:
-        try:
-            request = json.loads(msg.data)
-            delivered, refused = await self._apply(
-                request["command"], list(request["agents"]), request["reason"]
-            )
-            answer: dict[str, Any] = {"delivered": delivered, "refused": refused}
-        except Exception as exc:  # a bad request costs its reply, never the subscription
-            answer = {"delivered": [], "error": str(exc)}
-        await msg.respond(json.dumps(answer).encode())
+        """Run an operator command on each drone's own daemon (:meth:`OperatorRoute.command`)."""
+        return await self.operator_route.command(command, agents, reason)
 
     # --- the whole fleet ---------------------------------------------------------------------------------
 

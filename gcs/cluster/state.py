@@ -14,6 +14,7 @@ fleet_barriers      <mission>.<step>.arrived.<agent>     an arrival (written by 
                     <mission>.<step>.released            ``create``: a barrier is released once
 fleet_holds         <agent>.<owner>                      {agent, owner, reason}: operator holds
 fleet_leases        <mission>                            daemon id; bucket TTL: the leader's lease
+                                                         (fencing token: the create's revision)
 FLEET_EVENTS        fleet.events.<daemon>                the event log (limits: count, age)
 FLEET_TELEMETRY     fleet.status.<identity>              live status (plain subject) kept with limits
 ==================  ===================================  =====================================
@@ -43,6 +44,8 @@ from nats.aio.client import Client
 from nats.js.client import JetStreamContext
 from nats.js.kv import KV_DEL, KV_PURGE, KeyValue
 
+from gcs.cluster.fencing import Leases
+
 log = logging.getLogger("gcs.cluster")
 
 BUCKETS = ("agents", "cids", "missions", "progress", "barriers", "holds", "leases")
@@ -53,6 +56,7 @@ EVENT_MAX_AGE_S = 7 * 86_400.0
 TELEMETRY_MAX_AGE_S = 3_600.0
 TELEMETRY_MAX_BYTES = 256 << 20
 WRITE_ATTEMPTS = 20
+SEND_ATTEMPTS = 10
 CID_ATTEMPTS = 64
 MIRROR_LOAD_TIMEOUT_S = 10.0
 SETUP_TIMEOUT_S = 20.0
@@ -84,11 +88,14 @@ class ClusterState:
         self._followers: dict[str, tuple[Any, asyncio.Task[None]]] = {}
         self._tasks: list[asyncio.Task[None]] = []
         self._writes: asyncio.Queue[Write] = asyncio.Queue()
+        self._sends: asyncio.Queue[tuple[str, bytes, str, dict[str, str] | None]] = asyncio.Queue()
         self.write_failures = 0
         self._serial = itertools.count()
         self._seen: dict[str, int] = {}  # bucket -> newest revision applied to its mirror
         self.revisions: dict[str, int] = {}  # agent -> revision of its fleet_agents record in the mirror
         self._behind: dict[str, int] = {}  # bucket -> stream sequence it lagged at the last check
+        self.leases = Leases(self)  # held leases by our own clock; fenced writes
+        self.disconnected_at: float | None = None  # time.monotonic() the connection dropped
 
     # --- connection ------------------------------------------------------------------------------
 
@@ -117,6 +124,7 @@ class ClusterState:
             if name != "leases":  # leases expire without a marker on 2.9: always read them fresh
                 await self._follow(name)
         self._tasks.append(asyncio.create_task(self._writer(), name="cluster-writer"))
+        self._tasks.append(asyncio.create_task(self._sender(), name="cluster-sender"))
         self._tasks.append(asyncio.create_task(self._watch_followers(), name="cluster-mirror-check"))
 
     async def _probe(self) -> None:
@@ -146,6 +154,7 @@ class ClusterState:
             max_reconnect_attempts=-1,
             allow_reconnect=True,
             reconnected_cb=self._reconnected,
+            disconnected_cb=self._disconnected,
             error_cb=self._nats_error,
         )
 
@@ -226,6 +235,25 @@ class ClusterState:
         for name in names:
             await self._follow(name)
 
+    async def refresh(self, bucket: str, keys: list[str]) -> None:
+        """Read ``keys`` straight from the bucket into its mirror, all at once (bounded). A direct
+        get needs only the stream's leader, not a new consumer: it works while NATS re-elects
+        its metadata leader (a node died), when reloading a whole bucket would not."""
+
+        async def one(key: str) -> None:
+            with contextlib.suppress(nats.js.errors.KeyNotFoundError, nats.js.errors.KeyDeletedError):
+                entry = await self.kv[bucket].get(key)
+                if entry.value is not None:
+                    self.mirror[bucket][key] = entry.value
+
+        await asyncio.wait_for(asyncio.gather(*(one(k) for k in keys)), CAS_TIMEOUT_S)
+
+    def resync_soon(self) -> None:
+        """Reload every mirror in the background (:meth:`resync`, errors left to the mirror check)."""
+        task = asyncio.create_task(self._resync_quietly(), name="cluster-resync")
+        self._tasks.append(task)
+        task.add_done_callback(self._forget_task)
+
     async def check_followers(self) -> None:
         """Reload a mirror still behind what its bucket held at the previous check.
 
@@ -268,10 +296,30 @@ class ClusterState:
             except Exception:
                 log.warning("mirror check failed", exc_info=True)
 
+    async def _disconnected(self) -> None:
+        if self.disconnected_at is None:
+            self.disconnected_at = time.monotonic()
+
+    def cut_off_s(self) -> float:
+        """How long this daemon has been without NATS (0 while connected)."""
+        nc = self.nc
+        if nc is None or nc.is_connected or self.disconnected_at is None:
+            return 0.0
+        return time.monotonic() - self.disconnected_at
+
     async def _reconnected(self) -> None:
-        log.info(
-            "NATS reconnected to %s; reloading the shared state", self.nc.connected_url if self.nc else "?"
-        )
+        """Reload the mirrors beside the client (nats-py awaits this inside its reconnect: a
+        reload waiting on a stream that re-elects its leader must not hold that up)."""
+        self.disconnected_at = None
+        url = self.nc.connected_url if self.nc else None
+        log.info("NATS reconnected to %s; reloading the shared state", url.netloc if url else "?")
+        self.resync_soon()
+
+    def _forget_task(self, task: asyncio.Task[None]) -> None:
+        if task in self._tasks:
+            self._tasks.remove(task)
+
+    async def _resync_quietly(self) -> None:
         with contextlib.suppress(Exception):
             await self.resync(tuple(n for n in BUCKETS if n != "leases"))
 
@@ -323,11 +371,35 @@ class ClusterState:
 
     def publish(self, subject: str, payload: bytes) -> None:
         """Core publish (no ack): the stream on that subject keeps it within its limits."""
+        self.send(subject, payload)
+
+    def send(
+        self, subject: str, payload: bytes, reply: str = "", headers: dict[str, str] | None = None
+    ) -> None:
+        """Core publish, in order with the others but never behind a JetStream write: a write
+        waiting out a stream's leader election (seconds) must not hold up a barrier arrival, a
+        release or a collision order on its way to another daemon."""
         if self.nc is not None and not self.nc.is_closed:
-            self.enqueue(lambda: self.nc.publish(subject, payload))  # type: ignore[union-attr]
+            self._sends.put_nowait((subject, payload, reply, headers))
+
+    async def _sender(self) -> None:
+        while True:
+            subject, payload, reply, headers = await self._sends.get()
+            try:
+                for _ in range(SEND_ATTEMPTS):
+                    try:
+                        assert self.nc is not None
+                        await self.nc.publish(subject, payload, reply=reply, headers=headers)
+                        break
+                    except (nats.errors.Error, OSError) as exc:  # buffer full while reconnecting
+                        log.debug("publish on %s: %r", subject, exc)
+                        await asyncio.sleep(0.2)
+            finally:
+                self._sends.task_done()
 
     async def flush_writes(self) -> None:
         await self._writes.join()
+        await self._sends.join()
 
     async def _writer(self) -> None:
         while True:
@@ -364,7 +436,12 @@ class ClusterState:
     # --- compare-and-set -------------------------------------------------------------------------
 
     async def create(self, bucket: str, key: str, value: bytes) -> bool:
-        """Write ``key`` only if it does not exist; False if someone else holds it.
+        """Write ``key`` only if it does not exist; False if someone else holds it (see
+        :meth:`create_revision`)."""
+        return bool(await self.create_revision(bucket, key, value))
+
+    async def create_revision(self, bucket: str, key: str, value: bytes) -> int:
+        """Write ``key`` only if it does not exist; its revision, or 0 if someone else holds it.
 
         Retried (bounded) while NATS fails over; a retry that finds our own value there means the
         earlier try went through and only its answer was lost, so it counts as won. Callers make
@@ -373,7 +450,7 @@ class ClusterState:
         deadline = time.monotonic() + CAS_TIMEOUT_S
         while True:
             try:
-                await self.kv[bucket].create(key, value)
+                revision = int(await self.kv[bucket].create(key, value))
                 break
             except nats.js.errors.KeyWrongLastSequenceError:
                 try:
@@ -383,17 +460,18 @@ class ClusterState:
                         raise
                     continue  # deleted again between the two calls (a lost CID race): try again
                 if entry.value == value:
+                    revision = int(entry.revision or 0)
                     break
                 if entry.value is not None and bucket != "leases":
                     self.mirror[bucket][key] = entry.value
-                return False
+                return 0
             except (nats.errors.Error, nats.js.errors.Error, TimeoutError):
                 if time.monotonic() > deadline:
                     raise
                 await asyncio.sleep(0.2)
         if bucket != "leases":
             self.mirror[bucket][key] = value
-        return True
+        return max(1, revision)
 
     def unique(self) -> bytes:
         """A value only this daemon writes, now (see :meth:`create`)."""
@@ -458,29 +536,39 @@ class ClusterState:
 
     async def lease_holder(self, mission_id: str) -> tuple[str | None, int]:
         """(daemon holding the mission's lease, revision); (None, 0) when it expired or never was."""
-        try:
-            entry = await self.kv["leases"].get(mission_id)
-        except (nats.js.errors.KeyNotFoundError, nats.js.errors.KeyDeletedError):
-            return None, 0
-        holder = (entry.value or b"").decode().split(" ", 1)[0]
-        return holder or None, int(entry.revision or 0)
+        return await self.leases.holder(mission_id)
 
     async def take_lease(self, mission_id: str) -> bool:
-        return await self.create("leases", mission_id, self.unique())
+        return await self.leases.take(mission_id)
 
     async def renew_lease(self, mission_id: str) -> bool:
         """Extend our lease; False if it is no longer ours (expired and taken by another daemon)."""
-        holder, revision = await self.lease_holder(mission_id)
-        if holder is None:
-            return await self.take_lease(mission_id)
-        if holder != self.daemon_id:
-            return False
-        try:
-            await self.kv["leases"].update(mission_id, self.unique(), last=revision)
-        except nats.js.errors.KeyWrongLastSequenceError:
-            return False
-        return True
+        return await self.leases.renew(mission_id)
 
     async def drop_lease(self, mission_id: str) -> None:
-        with contextlib.suppress(Exception):
-            await self.kv["leases"].delete(mission_id)
+        await self.leases.drop(mission_id)
+
+    # --- fenced writes (gcs/cluster/fencing.py) ------------------------------------------------------
+
+    def put_fenced(self, bucket: str, key: str, value: dict[str, Any], mission_id: str) -> None:
+        """Queue a leader's write of a record of ``mission_id`` under its lease token (taken now,
+        at the decision): the mission record itself by compare-and-set, other records after a
+        check that no newer leader stamped the mission record. A refused write is dropped."""
+        token = self.leases.decision_token(mission_id)
+        data = json.dumps(value, separators=(",", ":")).encode()
+        if bucket == "missions":
+            self.mirror[bucket][key] = data
+            self.enqueue(lambda: self.leases.write_record(mission_id, value, token))
+            return
+        self.mirror[bucket][key] = data
+
+        async def write() -> None:
+            if await self.leases.allowed(mission_id, token, f"write of {bucket} {key}"):
+                await self.kv[bucket].put(key, data)
+            else:
+                with contextlib.suppress(nats.js.errors.KeyNotFoundError, nats.js.errors.KeyDeletedError):
+                    entry = await self.kv[bucket].get(key)
+                    if entry.value is not None:
+                        self.mirror[bucket][key] = entry.value  # the stored value, not our refused one
+
+        self.enqueue(write)

@@ -8,13 +8,14 @@ telemetry stays local (the shared copy is the FLEET_TELEMETRY stream).
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
 from pathlib import Path
 from typing import Any
 
 from gcs.cluster.state import ClusterState
-from gcs.store import Store, StoredEvent, StoredMission
+from gcs.storage.store import Store, StoredEvent, StoredMission
 
 
 class ClusterStore(Store):
@@ -56,16 +57,25 @@ class ClusterStore(Store):
             "paused": False,
             "leader": self.state.daemon_id,
         }
-        self.state.enqueue(lambda: self.state.take_lease(mission_id))  # the submitting daemon leads
-        self.state.put_json("missions", mission_id, record)
+        leases = self.state.leases
+        taking = leases.pending[mission_id] = asyncio.Event()  # its records get this take's token
+
+        async def lead() -> None:  # the submitting daemon leads
+            await self.state.take_lease(mission_id)
+            leases.pending.pop(mission_id, None)
+            taking.set()
+
+        self.state.enqueue(lead)
+        self.state.put_fenced("missions", mission_id, record, mission_id)
         for agent in agents:
-            self.state.put_json("progress", f"{mission_id}.{agent}", {"completed": -1, "excluded": False})
+            progress = {"completed": -1, "excluded": False}
+            self.state.put_fenced("progress", f"{mission_id}.{agent}", progress, mission_id)
 
     def _update_mission(self, mission_id: str, **changes: Any) -> None:
         record = self._mission_record(mission_id)
         if record is not None:
             record.update(changes)
-            self.state.put_json("missions", mission_id, record)
+            self.state.put_fenced("missions", mission_id, record, mission_id)  # the leader's, fenced
 
     def finish_mission(self, mission_id: str, state: str, result: str) -> None:
         self._update_mission(mission_id, state=state, finished=time.time(), result=result, paused=False)
@@ -102,12 +112,12 @@ class ClusterStore(Store):
         key = f"{mission_id}.{agent}"
         record = self.state.json_values("progress", key).get(key) or {"completed": -1, "excluded": False}
         if step > record["completed"]:
-            self.state.put_json("progress", key, {**record, "completed": step})
+            self.state.put_fenced("progress", key, {**record, "completed": step}, mission_id)
 
     def exclude_agent(self, mission_id: str, agent: str) -> None:
         key = f"{mission_id}.{agent}"
         record = self.state.json_values("progress", key).get(key) or {"completed": -1, "excluded": False}
-        self.state.put_json("progress", key, {**record, "excluded": True})
+        self.state.put_fenced("progress", key, {**record, "excluded": True}, mission_id)
 
     def mission_agents(self, mission_id: str) -> dict[str, tuple[int, bool]]:
         prefix = f"{mission_id}."

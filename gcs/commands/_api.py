@@ -10,8 +10,8 @@ from typing import TypeVar
 
 import httpx
 
-from gcs.client import ApiError, FleetClient
-from gcs.config import default_data_dir
+from gcs.core.config import default_data_dir
+from gcs.http.client import ApiError, FleetClient
 
 T = TypeVar("T")
 
@@ -29,7 +29,12 @@ def api_arguments(parser: argparse.ArgumentParser) -> None:
         "--api", default="http://127.0.0.1:8080", help="daemon HTTP API (default %(default)s)"
     )
     parser.add_argument("--token", help="API token (default: read DATA_DIR/api.token)")
-    parser.add_argument("--data-dir", type=Path, default=default_data_dir())
+    parser.add_argument(
+        "--data-dir",
+        type=Path,
+        default=default_data_dir(),
+        help="where the daemon keeps api.token, read for --token (default %(default)s)",
+    )
 
 
 def api_token(args: argparse.Namespace) -> str:

@@ -13,17 +13,29 @@ def _row(agent: AgentView) -> str:
     link = "up" if agent.connected else ("lost" if agent.lost else "down")
     battery = status.battery.pct if status is not None else None
     position = getattr(status, "position", None)  # absent before the first GPS fix
-    alt = f"{position.alt_rel:6.1f}" if position is not None else f"{'-':>6}"
+    alt_m = round(position.alt_rel, 1) + 0.0 if position is not None else None  # + 0.0: no "-0.0"
+    alt = f"{alt_m:6.1f}" if alt_m is not None else f"{'-':>6}"
+    step = status.step if status is not None and status.step >= 0 else "-"
+    control = "-"
+    if status is not None and status.pilot:
+        control = f"PILOT {status.pilot}"  # the daemon sends it nothing until the pilot hands back
+    elif status is not None and status.failsafe:
+        control = "failsafe"
+    elif agent.held:
+        control = f"held: {agent.held}"
+    elif status is not None and status.paused:
+        control = "held"
     return (
         f"{agent.cid:>4} {agent.identity:16} {link:5} {status.mode if status else '-':9} "
         f"{status.armed if status else False!s:5} {battery if battery is not None else '-':>5} "
-        f"{alt} {status.step if status else -1:>4}"
+        f"{alt} {step:>4} {control}"
     )
 
 
 def run_list(args: argparse.Namespace) -> int:
     agents = call(args, lambda client: client.agents(), token=False)
-    print(f"{'cid':>4} {'identity':16} {'link':5} {'mode':9} {'armed':5} {'batt%':>5} {'alt':>6} {'step':>4}")
+    head = f"{'cid':>4} {'identity':16} {'link':5} {'mode':9} {'armed':5} {'batt%':>5} {'alt':>6} {'step':>4}"
+    print(f"{head} control")
     for agent in agents:
         print(_row(agent))
     return 0
@@ -49,7 +61,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "agents", help="list agents and their latest status (retire ID: take a ghost off the list)"
     )
-    parser.add_argument("action", nargs="?", choices=["list", "retire"], default="list")
+    parser.add_argument(
+        "action", nargs="?", choices=["list", "retire"], default="list", help="list (default) or retire ID"
+    )
     parser.add_argument("identity", nargs="?", help="retire: the agent to take off the fleet list")
     api_arguments(parser)
     parser.set_defaults(run=run)

@@ -61,7 +61,9 @@ def run(args: argparse.Namespace) -> int:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("keygen", help="print a new fleet key, or issue per-agent keys")
-    parser.add_argument("--bytes", type=int, default=32, choices=range(16, 65), metavar="16..64")
+    parser.add_argument(
+        "--bytes", type=int, default=32, choices=range(16, 65), metavar="16..64", help="key length (32)"
+    )
     parser.add_argument("--agent", action="append", default=[], help="issue a key for this identity (repeat)")
     parser.add_argument("--agent-keys", type=Path, help="add the keys to this JSON file (created 0600)")
     parser.add_argument("--rotate", action="store_true", help="replace the keys of identities already listed")

@@ -9,16 +9,19 @@ import argparse
 import sys
 from pathlib import Path
 
-from gcs.config import default_data_dir
-from gcs.store import Store
-from gcs.telemetry import split_flights, to_csv, to_geojson_text
+from gcs.core.config import default_data_dir
+from gcs.observe.telemetry import split_flights, to_csv, to_geojson_text
+from gcs.storage.store import Store, StoreError
 
 
 def _store(args: argparse.Namespace) -> Store:
     path = args.database or Path(args.data_dir) / "fleetgcs.sqlite"
     if not Path(path).exists():
         raise SystemExit(f"gcs log: no database at {path} (use --data-dir or --database)")
-    return Store(path)
+    try:
+        return Store(path, read_only=True)  # beside a running daemon: no migration, no journal recovery
+    except StoreError as exc:
+        raise SystemExit(f"gcs log: {exc}") from None
 
 
 def run_agents(args: argparse.Namespace) -> int:
@@ -60,14 +63,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         ("export", run_export, "one agent's telemetry as CSV or GeoJSON"),
     ):
         p = sub.add_parser(name, help=text)
-        p.add_argument("--data-dir", type=Path, default=default_data_dir())
+        p.add_argument(
+            "--data-dir",
+            type=Path,
+            default=default_data_dir(),
+            help="the daemon's data directory (its database)",
+        )
         p.add_argument("--database", type=Path, help="SQLite file (default DATA_DIR/fleetgcs.sqlite)")
         p.set_defaults(run=runner)
         if name == "export":
-            p.add_argument("--agent", required=True)
+            p.add_argument("--agent", required=True, help="the drone whose flight log to export")
             p.add_argument("--mission", help="only samples of this mission")
             p.add_argument("--since", type=float, default=0.0, help="UNIX time")
             p.add_argument("--until", type=float, default=float("inf"), help="UNIX time")
-            p.add_argument("--format", choices=["csv", "geojson"], default="csv")
+            p.add_argument(
+                "--format", choices=["csv", "geojson"], default="csv", help="csv (default) or geojson"
+            )
             p.add_argument("--by-flight", action="store_true", help="CSV: one file per flight into OUT/")
-            p.add_argument("--out", required=True)
+            p.add_argument("--out", required=True, help="the file to write")

@@ -1,17 +1,21 @@
-"""`gcs mission list | pause | resume | abort [ID]`: mission control from the shell.
+"""`gcs mission list | pause | resume | abort | retask | report [ID]`: mission control from the shell.
 
 Without ID the command acts on the one running mission (and says so when there are several).
+``retask [ID] [accept|reject]`` lists the re-task proposals of a survey whose drone left, or
+answers the newest pending one (``--proposal rN`` another); ``report ID`` prints the coverage
+report (``--json`` the API's document).
 """
 
 from __future__ import annotations
 
 import argparse
-from typing import Literal
+import json
+from typing import Any, Literal
 
-from gcs.client import FleetClient
 from gcs.commands._api import CommandError, api_arguments, call
 from gcs.commands.run import render_progress
-from gcs.missions import MissionProgress
+from gcs.http.client import FleetClient
+from gcs.missions.runner import MissionProgress
 
 
 async def _running(client: FleetClient) -> list[str]:
@@ -29,7 +33,49 @@ def pick_mission(args: argparse.Namespace) -> str:
     return running[0]
 
 
+def _retask(args: argparse.Namespace, mission_id: str) -> int:
+    answer = args.answer
+    if answer is None:
+        proposals = call(args, lambda client: client.retask_proposals(mission_id), token=False)
+        if not proposals:
+            print(f"mission {mission_id}: no re-task proposal")
+        for p in proposals:
+            print(_proposal_line(p))
+        return 0
+
+    async def decide(client: FleetClient) -> dict[str, Any]:
+        return await client.retask(mission_id, answer, args.proposal)
+
+    print(_proposal_line(call(args, decide)))
+    return 0
+
+
+def _proposal_line(p: dict[str, Any]) -> str:
+    legs = "; ".join(
+        f"{g['ident']} {g['survey_m']:.0f} m, {g['time_s']:.0f} s, "
+        f"{g['energy_wh']:.1f} of {g['margin_wh']:.1f} Wh"
+        for g in p["legs"]
+    )
+    return f"{p['id']} {p['state']:8} {p['dropped']}: {p['reason']}" + (f"\n    {legs}" if legs else "")
+
+
+def _report(args: argparse.Namespace, mission_id: str) -> int:
+    from gcs.missions.report import render_report
+
+    report = call(args, lambda client: client.report(mission_id), token=False)
+    if args.json:
+        print(json.dumps(report.model_dump(mode="json"), indent=1))
+    else:
+        print("\n".join(render_report(report)))
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.mission_command == "retask" and args.mission_id in ("accept", "reject") and args.answer is None:
+        args.mission_id, args.answer = None, args.mission_id  # gcs mission retask accept
+    if args.mission_command in ("retask", "report"):
+        mission_id = pick_mission(args)
+        return _retask(args, mission_id) if args.mission_command == "retask" else _report(args, mission_id)
     if args.mission_command == "list":
         missions = call(args, lambda client: client.missions(), token=False)
         for m in missions:
@@ -51,9 +97,23 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("mission", help="list missions; pause | resume | abort one")
-    parser.add_argument("mission_command", choices=("list", "pause", "resume", "abort"))
+    parser = subparsers.add_parser(
+        "mission",
+        help="list missions; pause | resume | abort one; its re-task proposals; its coverage report",
+    )
+    parser.add_argument(
+        "mission_command",
+        choices=("list", "pause", "resume", "abort", "retask", "report"),
+        help="what to do with the mission",
+    )
     parser.add_argument("mission_id", nargs="?", metavar="ID", help="default: the one running mission")
+    parser.add_argument(
+        "answer", nargs="?", choices=("accept", "reject"), help="retask: answer the pending proposal"
+    )
+    parser.add_argument(
+        "--proposal", default="latest", help="retask: which proposal (rN; default the newest)"
+    )
+    parser.add_argument("--json", action="store_true", help="report: the API's JSON document")
     parser.add_argument(
         "--then", choices=("rtl", "hold"), default="rtl", help="abort: fly home (default) or hold"
     )

@@ -22,10 +22,9 @@ from typing import Any
 from gcs.planning.areas import AreaFormatError
 from gcs.planning.camera import Camera, CameraError, Spacing, spacing_from_camera, spacing_from_swath
 from gcs.planning.division import DroneSpec, InsufficientCapabilityError
-from gcs.planning.geodesy import LocalFrame
 from gcs.planning.interchange import EXPORT_FORMATS, QgcSurvey, export_files, load_area_text
 from gcs.planning.planner import PlanConfig, SearchPlan, plan_search
-from gcs.planning.polygon import SelfIntersectionError, as_ring, find_crossings
+from gcs.planning.polygon import SelfIntersectionError
 from protocol.geo import allow_negative_coordinates
 
 _plan_targets: ModuleType | None
@@ -86,9 +85,21 @@ def add_area_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "area", nargs="?", help="area file: GeoJSON Polygon/Feature, KML, QGC .plan, or [[lat,lon],...]"
     )
-    parser.add_argument("--drones", type=int, help="number of drones (default 1; psa: the target file's)")
-    parser.add_argument("--pattern", choices=["zigzag", "spiral", "segmented", "curved"], default="zigzag")
-    parser.add_argument("--division", choices=["path", "region", "partition"], default="path")
+    parser.add_argument(
+        "--drones", type=_at_least_one, help="number of drones (default 1; psa: the target file's)"
+    )
+    parser.add_argument(
+        "--pattern",
+        choices=["zigzag", "spiral", "segmented", "curved"],
+        default="zigzag",
+        help="survey pattern (docs/planning.md)",
+    )
+    parser.add_argument(
+        "--division",
+        choices=["path", "region", "partition"],
+        default="path",
+        help="how the area is shared among the drones (docs/planning.md)",
+    )
     parser.add_argument("--swath", type=float, help="footprint width across track (m); needs --alt")
     parser.add_argument("--camera", type=_camera, help="res=PX,fov=DEG[,minpx=N] or res=,sensor=MM,focal=MM")
     parser.add_argument("--target-size", type=_floats, default=[0.5], help="pattern W[,H] in m (camera mode)")
@@ -104,8 +115,19 @@ def add_area_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shift", type=float, default=0.2, help="curved: midpoint shift x step (|s| <= 0.5)")
     parser.add_argument("--wind-from", type=float, dest="wind_from", help="curved: wind direction FROM (deg)")
     parser.add_argument("--angle", type=float, help="force the leg rotation (deg)")
-    parser.add_argument("--concave", choices=["decompose", "hull"], default="decompose")
-    parser.add_argument("--return", dest="return_mode", choices=["rtl", "land_home"], default="rtl")
+    parser.add_argument(
+        "--concave",
+        choices=["decompose", "hull"],
+        default="decompose",
+        help="a concave area: decompose it into convex parts (default) or survey its convex hull",
+    )
+    parser.add_argument(
+        "--return",
+        dest="return_mode",
+        choices=["rtl", "land_home"],
+        default="rtl",
+        help="after the survey: rtl (default) or land_home (each at its own launch point)",
+    )
     parser.add_argument("--stagger", type=float, default=0.0, help="transit altitude step between drones (m)")
     parser.add_argument(
         "--allow-partial", action="store_true", help="plan even if the fleet cannot cover all"
@@ -136,6 +158,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(run=run)
 
 
+def _at_least_one(text: str) -> int:
+    """``--drones``: a whole number of drones, at least 1 (0 used to plan for one, -2 to blame --battery)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{n}: a plan needs at least 1 drone")
+    return n
+
+
 def run(args: argparse.Namespace) -> int:
     method = getattr(args, "method", None)
     if method is None and (getattr(args, "targets", None) or getattr(args, "missed_map", None)):
@@ -151,49 +184,24 @@ def run(args: argparse.Namespace) -> int:
         return int(_plan_targets.run(args))
     try:
         return _run_area(args)
-    except SelfIntersectionError as exc:
-        print(f"error: {_crossings_in_latlon(args.area) or exc}", file=sys.stderr)
-        return 1
+    except SelfIntersectionError as exc:  # bad input: exit 2, as README says for every command
+        print(f"gcs plan: {_crossings_in_latlon(args.area) or exc}", file=sys.stderr)
+        return 2
     except (
         AreaFormatError,
         CameraError,
         InsufficientCapabilityError,
         ValueError,
     ) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        print(f"gcs plan: {exc}", file=sys.stderr)
+        return 2
 
 
 def _crossings_in_latlon(area_file: str) -> str | None:
-    """The crossing edges of the area file's ring, located in the file's own lat/lon.
-
-    Edges are numbered from 0 (edge i joins vertex i+1 to vertex i+2, counting vertices from 1).
-    """
+    """The crossing edges of the area file's ring, located in the file's own lat/lon."""
     path = Path(area_file)
-    vertices = load_area_text(path.read_text(), path.stem)[0].vertices
-    frame = LocalFrame.centred_on([v[0] for v in vertices], [v[1] for v in vertices])
-    ring = as_ring(frame.points_to_local(vertices))
-    crossings = find_crossings(ring)
-    if not crossings or len(ring) != len(vertices):
-        return None
-    n = len(vertices)
-
-    def vertex(i: int) -> str:
-        lat, lon = vertices[i % n]
-        return f"vertex {i % n + 1} ({lat:.6f}, {lon:.6f})"
-
-    def edge(i: int) -> str:
-        return f"{vertex(i)} -> {vertex(i + 1)}"
-
-    parts = []
-    for c in crossings[:3]:
-        lat, lon = frame.points_to_geodetic([c.point])[0]
-        parts.append(
-            f"edge {c.edge_a} crosses edge {c.edge_b} at ({lat:.6f}, {lon:.6f}) "
-            f"[edge {c.edge_a}: {edge(c.edge_a)}; edge {c.edge_b}: {edge(c.edge_b)}]"
-        )
-    more = f" and {len(crossings) - 3} more" if len(crossings) > 3 else ""
-    return "self-intersecting area (lat, lon): " + "; ".join(parts) + more
+    found = load_area_text(path.read_text(), path.stem)[0].crossings()
+    return found[0] if found is not None else None
 
 
 def _spacing(args: argparse.Namespace, survey: QgcSurvey | None = None) -> Spacing:
@@ -269,7 +277,13 @@ def _run_area(args: argparse.Namespace) -> int:
         area, drones, _spacing(args, survey), config, home, _speed(args), [d.name for d in drones]
     )
     write_outputs(plan, args.out)
-    write_exports(plan, args.out, args.export, _speed(args))
+    write_exports(plan, args.out, args.export, _speed(args), home_given=home is not None)
+    if args.export and home is None:
+        print(
+            "gcs plan: note: the exports' homes are the area's first corner (give --home LAT,LON, "
+            "or plan through the daemon for each drone's real home); the files say so",
+            file=sys.stderr,
+        )
     print(json.dumps(plan.summary, indent=2))
     return 0
 
@@ -302,8 +316,14 @@ def write_outputs(plan: SearchPlan, out: Path) -> dict[str, Path]:
     return files
 
 
-def write_exports(plan: SearchPlan, out: Path, formats: list[str], speed: float) -> dict[str, Path]:
-    """Each drone's mission as QGC ``.plan`` / Mission Planner ``.waypoints``, the plan as KML."""
+def write_exports(
+    plan: SearchPlan, out: Path, formats: list[str], speed: float, *, home_given: bool = False
+) -> dict[str, Path]:
+    """Each drone's mission as QGC ``.plan`` / Mission Planner ``.waypoints``, the plan as KML.
+
+    Without ``home_given`` (``--home`` or a QGC survey's planned home) the homes are the area's
+    first corner, a stand-in the files name as such; home altitudes are never known here.
+    """
     homes_local = [d.home if d.home is not None else tuple(plan.home_local) for d in plan.drones]
     homes = {
         p.label: (float(lat), float(lon))
@@ -311,7 +331,13 @@ def write_exports(plan: SearchPlan, out: Path, formats: list[str], speed: float)
     }
     area = [(float(a), float(b)) for a, b in plan.frame.points_to_geodetic(plan.area_local)]
     texts = export_files(
-        plan.taskfile, homes, formats, area=area, altitude_m=plan.spacing.altitude, cruise_speed=speed
+        plan.taskfile,
+        homes,
+        formats,
+        area=area,
+        altitude_m=plan.spacing.altitude,
+        cruise_speed=speed,
+        assumed_homes=() if home_given else list(homes),
     )
     files: dict[str, Path] = {}
     for name, text in texts.items():

@@ -14,11 +14,11 @@ from collections.abc import Coroutine
 from pathlib import Path
 from typing import Any
 
-from gcs.config import DaemonConfig, default_data_dir
-from gcs.config_file import ConfigFileError, load_daemon_config
-from gcs.daemon import serve_forever
-from gcs.keys import KeyFileError
-from gcs.store import StoreError
+from gcs.core.config import DaemonConfig, default_data_dir
+from gcs.core.config_file import ConfigFileError, load_daemon_config
+from gcs.core.daemon import serve_forever
+from gcs.link.keys import KeyFileError
+from gcs.storage.store import StoreError
 from protocol.settings_file import LoggingConfig, configure_logging
 
 

@@ -7,15 +7,19 @@ Pure algorithms (``collision``, ``divergence``, ``connectivity``, ``emergency``,
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gcs.cooperation.config import CooperationConfig
+
+if TYPE_CHECKING:
+    from gcs.cooperation.airspace import ClusterView
 
 __all__ = ["CooperationConfig", "cooperation_services"]
 
 
-def cooperation_services(config: CooperationConfig) -> list[Any]:
-    """The services for :class:`gcs.daemon.Daemon` (imported lazily: the daemon imports this module)."""
+def cooperation_services(config: CooperationConfig, cluster: ClusterView | None = None) -> list[Any]:
+    """The services the daemon runs (imported lazily: the daemon imports this module); ``cluster``
+    is the cluster node in cluster mode (the airspace lease, remote drones' levels)."""
     from gcs.cooperation.service import CooperationService
 
-    return [CooperationService(config)]
+    return [CooperationService(config, cluster)]

@@ -30,20 +30,20 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from gcs.cooperation.config import CollisionConfig
-from gcs.cooperation.geo import FloatArray
+from gcs.planning.geodesy import FloatArray
 
 IntArray = NDArray[np.int64]
 STATIONARY_MPS = 0.4
 _EPS = 1e-9
 
 
-def candidate_pairs(positions_ne: FloatArray, radius: float) -> IntArray:
+def candidate_pairs(positions_en: FloatArray, radius: float) -> IntArray:
     """(M, 2) index pairs i < j whose horizontal distance is at most ``radius`` (cKDTree), in
     (i, j) order: the avoider handles conflicts in this order, so it must not depend on the tree's
     shape (which a subset of the fleet changes)."""
-    if len(positions_ne) < 2:
+    if len(positions_en) < 2:
         return np.empty((0, 2), dtype=np.int64)
-    tree = cKDTree(positions_ne)
+    tree = cKDTree(positions_en)
     pairs = np.asarray(tree.query_pairs(radius, output_type="ndarray"), dtype=np.int64).reshape(-1, 2)
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
@@ -61,7 +61,7 @@ class Approach:
 def closest_approach(
     dp: FloatArray, dv: FloatArray, h_margin: FloatArray | float, v_margin: FloatArray | float, horizon: float
 ) -> Approach:
-    """Vectorised CPA for relative positions ``dp`` and velocities ``dv`` (M, 3: north, east, up)."""
+    """Vectorised CPA for relative positions ``dp`` and velocities ``dv`` (M, 3: east, north, up)."""
     dph, dvh = dp[:, :2], dv[:, :2]
     dz, dvz = dp[:, 2], dv[:, 2]
     h = np.broadcast_to(np.asarray(h_margin, dtype=float), dz.shape)
@@ -128,7 +128,7 @@ def find_conflicts(
     config: CollisionConfig,
     margin_scale: FloatArray | None = None,
 ) -> tuple[IntArray, Approach]:
-    """Conflicting pairs of a fleet: ``positions``/``velocities`` are (N, 3) north, east, up."""
+    """Conflicting pairs of a fleet: ``positions``/``velocities`` are (N, 3) east, north, up."""
     n = len(positions)
     if n < 2:
         return np.empty((0, 2), dtype=np.int64), closest_approach(
@@ -165,8 +165,8 @@ class DroneState:
 
     ident: str
     cid: int
-    position: tuple[float, float, float]  # north, east, up (AMSL) metres
-    velocity: tuple[float, float, float]  # north, east, up m/s (vehicle time)
+    position: tuple[float, float, float]  # east, north, up (AMSL) metres (protocol.geo.LocalFrame)
+    velocity: tuple[float, float, float]  # east, north, up m/s (vehicle time)
     desired: tuple[float, float, float] | None  # where it wants to go when not held
     yieldable: bool
     grounded: bool = False  # landed or disarmed: an obstacle, never a partner to wait for
@@ -382,8 +382,12 @@ class CollisionAvoider:
             _parked, flying = (a, b) if a.grounded else (b, a)
             offset = (pb - pa) if flying is b else (pa - pb)
             v_flying = vb if flying is b else va
-            if float(np.dot(offset[:2], v_flying[:2])) >= 0.0:
-                return  # climbing, descending or moving away beside a parked drone: no conflict
+            apart = max(float(np.linalg.norm(offset[:2])), _EPS)
+            if -float(np.dot(offset[:2], v_flying[:2])) / apart < STATIONARY_MPS:
+                # Climbing, descending or moving away beside a parked drone: no conflict. A take-off
+                # drifts a few dm/s; counted as closing in, it made an escape that cannot be planned
+                # during a take-off (an error event) next to a landed, disarmed drone.
+                return
         escaping = self.escaping.get(a.ident) or self.escaping.get(b.ident)
         if escaping is not None:  # the other waits until the escaping drone has climbed clear
             waiting = b if escaping.escape.ident == a.ident else a

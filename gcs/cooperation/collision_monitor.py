@@ -15,7 +15,6 @@ from scipy.spatial import cKDTree
 
 from gcs.cooperation.collision import CollisionAvoider, Decision, DroneState, Escape
 from gcs.cooperation.config import CollisionConfig
-from gcs.cooperation.geo import FloatArray, LocalFrame
 from gcs.cooperation.intents import (
     EndOrderIntent,
     EventIntent,
@@ -25,6 +24,7 @@ from gcs.cooperation.intents import (
     ReplaceIntent,
 )
 from gcs.cooperation.tracking import Kinematics, TrackedAgent, leg_motion
+from gcs.planning.geodesy import FloatArray, LocalFrame
 
 DENSE_SHARE = 0.9
 """A pass whose prefilter would keep this share of the fleet or more hands over everyone..."""
@@ -54,12 +54,12 @@ class CollisionMonitor:
         self.prefilter = prefilter
         self._dense_passes = 0  # passes left that skip the prefilter (see DENSE_SKIP_PASSES)
 
-    def _involved(self, agents: list[TrackedAgent], ne: FloatArray) -> list[int]:
+    def _involved(self, agents: list[TrackedAgent], en: FloatArray) -> list[int]:
         """Indices of the drones the avoider must see: every drone with another within
         :func:`reach_m` (only such pairs can conflict), and every drone it holds, waits for or
         has escaping (it keeps state about them and forgets a drone it does not see). Order is
         kept, and conflicting pairs are handled in index order, so the avoider decides exactly what
-        it decides seeing the whole fleet (tests/cooperation/test_fleet_gates.py)."""
+        it decides seeing the whole fleet (tests/cooperation/units/test_fleet_gates.py)."""
         everyone = list(range(len(agents)))
         if not self.prefilter or len(agents) < 3:
             return everyone
@@ -68,7 +68,7 @@ class CollisionMonitor:
             return everyone
         # The nearest other drone of each (no pair list: in a dense formation that is ~100 pairs
         # a drone, more work than the check it would spare).
-        nearest, _ = cKDTree(ne).query(ne, k=2, distance_upper_bound=reach_m(self.config))
+        nearest, _ = cKDTree(en).query(en, k=2, distance_upper_bound=reach_m(self.config))
         keep = np.isfinite(nearest[:, 1])
         if keep.mean() >= DENSE_SHARE:
             self._dense_passes = DENSE_SKIP_PASSES
@@ -98,13 +98,13 @@ class CollisionMonitor:
         velocities, one element each); returns holds, releases, escapes."""
         drones = []
         tracked = {}
-        ne_all = frame.to_ne(kin.lat, kin.lon)
-        rows = self._involved(agents, ne_all)
+        en_all = frame.stack_local(kin.lat, kin.lon)
+        rows = self._involved(agents, en_all)
         if len(rows) < len(agents):
             agents = [agents[k] for k in rows]
-            ne_all = ne_all[rows]
+            en_all = en_all[rows]
             kin = kin.take(rows)
-        ne = ne_all.tolist()
+        en = en_all.tolist()
         columns = zip(
             kin.lat.tolist(),
             kin.lon.tolist(),
@@ -116,7 +116,7 @@ class CollisionMonitor:
             strict=True,
         )
         escaping, default_speed = self.avoider.escaping, self.config.default_speed_mps
-        for a, (n, e), (lat, lon, alt_rel, alt_amsl, vn, ve, vd) in zip(agents, ne, columns, strict=True):
+        for a, (e, n), (lat, lon, alt_rel, alt_amsl, vn, ve, vd) in zip(agents, en, columns, strict=True):
             s = a.state  # state only: current without building the newest report
             grounded = not a.airborne
             yieldable = (
@@ -128,14 +128,14 @@ class CollisionMonitor:
             )
             tracked[a.ident] = a
             desired, remaining = (
-                (None, None) if grounded else leg_motion(a, frame, default_speed, (lat, lon, alt_rel))
+                (None, None) if grounded else leg_motion(a, frame, default_speed, (lat, lon, alt_rel), (e, n))
             )
             drones.append(
                 DroneState(
                     ident=a.ident,
                     cid=a.cid,
-                    position=(n, e, alt_amsl),
-                    velocity=(0.0, 0.0, 0.0) if grounded else (vn, ve, -vd),
+                    position=(e, n, alt_amsl),
+                    velocity=(0.0, 0.0, 0.0) if grounded else (ve, vn, -vd),
                     desired=desired,
                     yieldable=yieldable,
                     grounded=grounded,

@@ -14,21 +14,21 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from gcs.cooperation.geo import FloatArray, LocalFrame
 from gcs.cooperation.legs import planned_targets
+from gcs.planning.geodesy import FloatArray, LocalFrame
 from protocol.actions import Action
 
 
 def connected_to_base(
-    base_ne: tuple[float, float], drones_ne: FloatArray, range_m: float, multihop: bool
+    base_en: tuple[float, float], drones_en: FloatArray, range_m: float, multihop: bool
 ) -> np.ndarray:
     """Boolean per drone: reachable from the base over links no longer than ``range_m``."""
-    n = len(drones_ne)
+    n = len(drones_en)
     if n == 0:
         return np.zeros(0, dtype=bool)
-    nodes = np.vstack([np.asarray(base_ne, dtype=float)[None, :], drones_ne])
+    nodes = np.vstack([np.asarray(base_en, dtype=float)[None, :], drones_en])
     if not multihop:
-        return np.linalg.norm(drones_ne - nodes[0], axis=1) <= range_m
+        return np.linalg.norm(drones_en - nodes[0], axis=1) <= range_m
     pairs = cKDTree(nodes).query_pairs(range_m, output_type="ndarray")
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n + 1, n + 1))
     _, labels = connected_components(graph, directed=False)
@@ -36,14 +36,14 @@ def connected_to_base(
 
 
 def nearest_connected(
-    base_ne: tuple[float, float], drones_ne: FloatArray, connected: np.ndarray, k: int
+    base_en: tuple[float, float], drones_en: FloatArray, connected: np.ndarray, k: int
 ) -> tuple[float, float]:
     """The base or a connected drone nearest to drone ``k`` (where a disconnected drone should head)."""
-    candidates = [np.asarray(base_ne, dtype=float)] + [
-        drones_ne[m] for m in range(len(drones_ne)) if connected[m] and m != k
+    candidates = [np.asarray(base_en, dtype=float)] + [
+        drones_en[m] for m in range(len(drones_en)) if connected[m] and m != k
     ]
     points = np.vstack(candidates)
-    best = int(np.argmin(np.linalg.norm(points - drones_ne[k], axis=1)))
+    best = int(np.argmin(np.linalg.norm(points - drones_en[k], axis=1)))
     return float(points[best, 0]), float(points[best, 1])
 
 
@@ -51,7 +51,7 @@ def preflight_disconnections(
     plans: dict[str, list[Action]],
     homes: dict[str, tuple[float, float, float]],
     frame: LocalFrame,
-    base_ne: tuple[float, float],
+    base_en: tuple[float, float],
     range_m: float,
     multihop: bool,
 ) -> list[tuple[int, str]]:
@@ -67,7 +67,7 @@ def preflight_disconnections(
         actions = plans[agent]
         targets = planned_targets(actions, homes[agent])
         per_agent[agent] = [
-            (a.step, frame.point(t[0], t[1]) if t is not None else None)
+            (a.step, frame.local_point(t[0], t[1]) if t is not None else None)
             for a, t in zip(actions, targets, strict=True)
         ]
         steps |= {a.step for a in actions}
@@ -76,7 +76,7 @@ def preflight_disconnections(
         names: list[str] = []
         points: list[tuple[float, float]] = []
         for agent in agents:
-            where: tuple[float, float] | None = frame.point(homes[agent][0], homes[agent][1])
+            where: tuple[float, float] | None = frame.local_point(homes[agent][0], homes[agent][1])
             for s, p in per_agent[agent]:
                 if s > step:
                     break
@@ -86,6 +86,6 @@ def preflight_disconnections(
                 points.append(where)
         if not points:
             continue
-        ok = connected_to_base(base_ne, np.array(points), range_m, multihop)
+        ok = connected_to_base(base_en, np.array(points), range_m, multihop)
         found += [(step, names[m]) for m in range(len(names)) if not ok[m]]
     return found

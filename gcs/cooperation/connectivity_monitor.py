@@ -6,7 +6,6 @@ import numpy as np
 
 from gcs.cooperation.config import ConnectivityConfig
 from gcs.cooperation.connectivity import connected_to_base, nearest_connected
-from gcs.cooperation.geo import LocalFrame
 from gcs.cooperation.intents import (
     EventIntent,
     HoldIntent,
@@ -16,6 +15,7 @@ from gcs.cooperation.intents import (
     ReturnIntent,
 )
 from gcs.cooperation.tracking import Kinematics, TrackedAgent
+from gcs.planning.geodesy import LocalFrame
 from protocol.actions import Goto
 
 
@@ -37,8 +37,8 @@ class ConnectivityMonitor:
         if not agents:
             return []
         intents: list[Intent] = []
-        base = frame.point(*base_latlon)
-        points = frame.to_ne(kin.lat, kin.lon)
+        base = frame.local_point(*base_latlon)
+        points = frame.stack_local(kin.lat, kin.lon)
         ok = connected_to_base(base, points, w, cfg.multihop)
         for k, agent in enumerate(agents):
             if ok[k] or not agent.airborne:
@@ -79,7 +79,7 @@ class ConnectivityMonitor:
             return []
         agent.warned.add((leg.step, plan.waypoint))
         moved = points.copy()
-        moved[k] = frame.point(leg.target[0], leg.target[1])
+        moved[k] = frame.local_point(leg.target[0], leg.target[1])
         if connected_to_base(base, moved, w, self.config.multihop)[k]:
             return []
         return [
@@ -123,8 +123,8 @@ class ConnectivityMonitor:
             here = points[k]
             gap = float(np.linalg.norm(here - np.array(near)))
             frac = self.config.return_fraction * w / gap if gap > 0 else 1.0
-            north, east = near[0] + (here[0] - near[0]) * frac, near[1] + (here[1] - near[1]) * frac
-            lat, lon = frame.to_latlon(north, east)
+            east, north = near[0] + (here[0] - near[0]) * frac, near[1] + (here[1] - near[1]) * frac
+            lat, lon = frame.geodetic_point(east, north)
             step = max(agent.completed, 0)
             agent.detour_step = step
             goto = Goto(step=step, lat=lat, lon=lon, alt=agent.position.alt_rel)

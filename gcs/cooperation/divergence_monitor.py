@@ -35,7 +35,10 @@ class DivergenceMonitor:
     def on_status(
         self, agent: TrackedAgent, status: StatusReport, held_or_outranked: bool, now: float
     ) -> list[Intent]:
-        if not _may_act(agent, status, held_or_outranked):
+        blocked = not _may_act(agent, status, held_or_outranked)
+        if agent.plan is not None:
+            agent.plan.stop_clock(blocked, status.time)
+        if blocked:
             return []
         plan, judge = agent.plan, agent.judge
         assert plan is not None and judge is not None

@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from gcs.cooperation.geo import FloatArray, distance_m_array
+from gcs.planning.geodesy import FloatArray, distance_m_array
 from protocol.geo import distance_m
 from protocol.packets import Geofence, StatusReport
 

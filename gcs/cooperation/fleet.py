@@ -9,7 +9,7 @@ flag the rows that need the per-agent Python checks: a new agent, a changed stat
 mode, mission), a mission or a condition in force, GPS below 3D, a battery near the return-home
 need. Only those get a report built and checked; the others cost a few array writes.
 
-A gate must flag *every* row the per-report checks would act on (tests/cooperation/
+A gate must flag *every* row the per-report checks would act on (tests/cooperation/units/
 test_fleet_gates.py checks that against the checks themselves for random reports).
 """
 
@@ -20,12 +20,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gcs.agents_table import ROW_BYTES, ROW_DTYPE, STATE_BYTES, row_report
 from gcs.cooperation.config import DivergenceConfig, EmergencyConfig
 from gcs.cooperation.emergency import NO_RETURN_MODES, BatteryColumns
-from gcs.cooperation.geo import distance_m_array, ned_offset_m_array
 from gcs.cooperation.legs import Point
 from gcs.cooperation.tracking import TrackedAgent
+from gcs.link.agents_table import ROW_BYTES, ROW_DTYPE, STATE_BYTES, row_report
+from gcs.planning.geodesy import distance_m_array, ned_offset_m_array
 from protocol import status_binary
 from protocol.packets import Geofence, StatusReport
 from protocol.status_binary import ARMED, LANDED
@@ -46,7 +46,7 @@ vectorised estimate agrees with it to ~1e-9 %, so the margin only guards roundin
 class Fleet:
     """Per agent slot: the newest raw report row, its version and arrival, home, battery history.
 
-    ``rows`` are :data:`gcs.agents_table.ROW_BYTES` bytes each, the status table's layout, so a
+    ``rows`` are :data:`gcs.link.agents_table.ROW_BYTES` bytes each, the status table's layout, so a
     tick's rows copy in with one assignment and :attr:`cols` reads them as columns. ``version``
     counts the rows written; a :class:`TrackedAgent` builds its report again only when its row's
     version moved on (``TrackedAgent.status``).

@@ -17,6 +17,7 @@ from typing import TextIO
 
 import numpy as np
 
+from gcs.planning.geodesy import distance_m_array
 from protocol.packets import StatusReport
 
 COLUMNS = [
@@ -46,8 +47,10 @@ def _cell(value: float | None, digits: int = 7) -> str:
     return "" if value is None or not math.isfinite(value) else f"{value:.{digits}f}".rstrip("0").rstrip(".")
 
 
-def status_row(status: StatusReport, time_s: float) -> list[str]:
-    """One CSV row; the caller writes only reports with a position."""
+def flight_log_row(status: StatusReport, time_s: float) -> list[str]:
+    """One flight-log CSV row (``COLUMNS``); the caller writes only reports with a position.
+
+    Not ``gcs.observe.telemetry.status_row``, which makes the telemetry database's row."""
     p, v, b = status.position, status.velocity, status.battery
     assert p is not None, "flight logs record positioned reports only"
     return [
@@ -104,7 +107,7 @@ class FlightLogWriter:
 
     def add(self, status: StatusReport) -> None:
         if status.position is not None:  # no fix yet: no row
-            self._writer.writerow(status_row(status, self.clock(status)))
+            self._writer.writerow(flight_log_row(status, self.clock(status)))
 
     def close(self) -> None:
         self._file.close()
@@ -142,10 +145,8 @@ def summarize(path: Path) -> FlightSummary:
     sl = slice(first, last + 1)
     t = log["time"][sl]
     lat, lon, alt = log["lat"][sl], log["lon"][sl], log["alt_rel"][sl]
-    k_n = math.radians(1.0) * 6_371_008.8
-    k_e = k_n * math.cos(math.radians(float(np.nanmean(lat))))
-    dn, de, du = np.diff(lat) * k_n, np.diff(lon) * k_e, np.diff(alt)
-    step = np.sqrt(dn**2 + de**2 + du**2)
+    across = distance_m_array(lat[:-1], lon[:-1], lat[1:], lon[1:])
+    step = np.sqrt(across**2 + np.diff(alt) ** 2)
     step = np.where(np.isfinite(step) & (step > JITTER_FLOOR_M), step, 0.0)
     power = log["voltage_v"][sl] * np.clip(log["current_a"][sl], 0.0, None)
     if not np.isfinite(power).any():

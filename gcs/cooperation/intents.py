@@ -2,7 +2,7 @@
 
 Monitors (collision, emergency, divergence, connectivity) are pure deciders: they read the fleet
 picture and return a list of these; they never send packets. The service hands each intent to
-:class:`gcs.authority.VehicleAuthority` (which may refuse it: a lower source never undoes a
+:class:`gcs.control.authority.VehicleAuthority` (which may refuse it: a lower source never undoes a
 higher one) or to the event log.
 """
 
@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from gcs.authority import Owner
+from gcs.control.authority import Owner
 from protocol.actions import Action
 
 

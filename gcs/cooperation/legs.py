@@ -10,11 +10,13 @@ reached), later actions follow unchanged. Pure code: no sockets, no asyncio.
 Legs are modelled the way the agent flies them (agent/executor.py): an action (or a waypoint)
 is complete as soon as the vehicle is within the acceptance radius of its target, and the next
 one starts from wherever the vehicle is at that moment, so a chain of legs cuts each corner by
-up to the radius and a ``go_by`` offset is taken from that switch point, not from the previous
-planned target. Dead-reckoning exact legs instead adds up to a radius of error per ``go_by``
-and makes divergence "correct" drones that fly their plan perfectly. The switch point is
-estimated from the two reports around the switch (see :func:`switch_point`), never from the
-plan alone, so the error does not accumulate along a chain.
+up to the radius. A ``go_by`` offset is taken from the previous planned target (the agent's
+anchor), so its target is the dead-reckoned plan's: the same point here and on the agent,
+whatever the reports' lag. (It used to be taken from the switch point, which the daemon could
+only estimate: a chain drifted by a radius per leg, and a detour or replan rebuilt the running
+go_by's target from the estimate, metres off at a simulator's speed-up.) Where a leg starts
+is estimated from the two reports around the switch (see :func:`switch_point`), never from
+the plan alone.
 """
 
 from __future__ import annotations
@@ -121,6 +123,7 @@ class AgentPlanState:
     segment_started: float = 0.0
     segment_start: Point | None = None
     replans: int = 0
+    blocked_since: float | None = None  # report time the drone stopped flying its plan (lag clock)
     _targets: list[Point | None] = field(default_factory=list)
     _last_pos: Point | None = None
     _last_target: Point | None = None  # where the agent was heading at the last report
@@ -152,6 +155,20 @@ class AgentPlanState:
         # At a barrier the vehicle keeps flying to its target and hovers there: the next leg
         # starts from the last waiting report (switch_point with target None keeps ``before``).
         self._last_target = None if status.waiting_sync is not None else self._heading()
+
+    def stop_clock(self, blocked: bool, now: float) -> None:
+        """Stop the running segment's clock while the drone may not fly its plan (paused, held...).
+
+        Why: the along-track lag compares progress with the time since the segment started; a
+        drone held by an operator for 20 s was then reported "51-86 m behind the planned speed"
+        as soon as it flew again. A step that starts while blocked starts its own clock.
+        """
+        if blocked:
+            if self.blocked_since is None:
+                self.blocked_since = now
+        elif self.blocked_since is not None:
+            self.segment_started += max(0.0, now - max(self.blocked_since, self.segment_started))
+            self.blocked_since = None
 
     def passed(self, pos: Point) -> None:
         """A report that changed nothing here was not tracked (gcs/cooperation/fleet.py): the drone
@@ -238,8 +255,6 @@ class AgentPlanState:
             if k < 0:
                 return None
             target = self._targets[k]
-            if k == self.index and isinstance(self.actions[k], GoBy):
-                target = self._go_by_target(self.actions[k])  # type: ignore[arg-type]
             return Leg(waiting_sync, None, target, None) if target is not None else None
         action = self.current_action
         if action is None:
@@ -256,10 +271,12 @@ class AgentPlanState:
         return None
 
     def _go_by_target(self, action: GoBy) -> Point:
-        """Offset from where the action started (as the agent computes it), else from the plan."""
-        base = (
-            self.step_start_pos if self.step_start_pos is not None else self._previous_target() or self.home
-        )
+        """The running go_by's target: its offset from the previous planned target, as the agent
+        anchors it (agent/executor.py ``go_by_target``)."""
+        target = self._targets[self.index] if 0 <= self.index < len(self._targets) else None
+        if target is not None:
+            return target
+        base = self.step_start_pos or self.home  # pragma: no cover - a go_by always has a target
         lat, lon = offset_latlon(base[0], base[1], action.north, action.east)
         return (lat, lon, base[2] + action.up)
 

@@ -3,22 +3,25 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
-from gcs.agents import AgentSession
 from gcs.cooperation.config import CooperationConfig
 from gcs.cooperation.connectivity import preflight_disconnections
 from gcs.cooperation.energy import EnergyModel, capability_power_w, predict_plan_energy
-from gcs.cooperation.geo import LocalFrame
-from gcs.events import EventBus
-from gcs.missions import MissionRejected
+from gcs.missions.runner import MissionRejected
+from gcs.observe.events import EventBus
+from gcs.planning.geodesy import LocalFrame
 from protocol.actions import Action
 from protocol.taskfile import TaskFile
+
+if TYPE_CHECKING:
+    from gcs.core.context import AgentRecord
 
 StartPoints = dict[str, tuple[float, float, float]]
 
 
 def start_points(
-    plans: dict[str, list[Action]], session_of: Callable[[str], AgentSession | None]
+    plans: dict[str, list[Action]], session_of: Callable[[str], AgentRecord | None]
 ) -> StartPoints:
     """Where each drone of ``plans`` starts: its reported position, else its home."""
     homes: StartPoints = {}
@@ -37,7 +40,7 @@ class PreflightChecks:
     def __init__(
         self,
         config: CooperationConfig,
-        session_of: Callable[[str], AgentSession | None],
+        session_of: Callable[[str], AgentRecord | None],
         events: EventBus,
         link_range: Callable[[], float | None],
         base: Callable[[], tuple[float, float] | None],
@@ -67,7 +70,7 @@ class PreflightChecks:
         base = self._base() or (first[0], first[1])
         frame = LocalFrame(base[0], base[1])
         problems = preflight_disconnections(
-            plans, homes, frame, frame.point(*base), w, self.config.connectivity.multihop
+            plans, homes, frame, frame.local_point(*base), w, self.config.connectivity.multihop
         )
         for step, ident in problems:
             self._events.publish(

@@ -21,8 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
-from gcs.authority import Owner, VehicleAuthority
-from gcs.cooperation.geo import LocalFrame
+from gcs.control.authority import Owner, VehicleAuthority
 from gcs.cooperation.returns import (
     RETURN_PREFIX,
     Airborne,
@@ -32,6 +31,7 @@ from gcs.cooperation.returns import (
     cleared_to_descend,
     spread_landing_spots,
 )
+from gcs.planning.geodesy import LocalFrame
 from protocol.actions import Action, Goto, Hold, Land, ReturnToLaunch
 from protocol.packets import GeoPoint, Position, StatusReport
 
@@ -53,7 +53,7 @@ class ReturnSettings:
 class _Return:
     mission_id: str
     kind: ReturnKind
-    column: tuple[float, float]  # local north/east of where it descends
+    column: tuple[float, float]  # local east/north of where it descends
     alt: float
     released: bool = False
     seen: bool = False  # a status of the drone has shown this return's mission id
@@ -101,8 +101,8 @@ class ReturnCoordinator:
         frame = LocalFrame(first.lat, first.lon)
         returners = []
         for ident, view in airborne.items():
-            here = frame.point(view.position.lat, view.position.lon)
-            home = frame.point(view.home.lat, view.home.lon) if kind == "rtl" and view.home else here
+            here = frame.local_point(view.position.lat, view.position.lon)
+            home = frame.local_point(view.home.lat, view.home.lon) if kind == "rtl" and view.home else here
             returners.append(Returner(ident, here, view.position.alt_rel, home))
         cfg = self.settings
         # Layers start above the highest returner, so nobody descends into another's layer.
@@ -111,7 +111,9 @@ class ReturnCoordinator:
         if kind == "land":  # layers keep today's altitudes; only the spots and the order matter
             plans = [ReturnPlan(p.ident, p.layer, r.alt) for p, r in zip(plans, returners, strict=True)]
         # Spots two margins apart: a wait point is reached only to the agent's acceptance radius.
-        spots = spread_landing_spots(returners, plans, 2.0 * cfg.horizontal_margin_m)
+        spots: dict[str, tuple[float, float]] = {}
+        if kind == "land" or any(airborne[r.ident].home is None for r in returners):  # who lands in place
+            spots = spread_landing_spots(returners, plans, 2.0 * cfg.horizontal_margin_m)
         delivered = []
         for returner, plan in zip(returners, plans, strict=True):
             view = airborne[returner.ident]
@@ -132,7 +134,7 @@ class ReturnCoordinator:
                 alt_at_column = max(alt, 1.0)
             else:
                 spot = spots[returner.ident]
-                lat, lon = frame.to_latlon(*spot)
+                lat, lon = frame.geodetic_point(*spot)
                 moved = math.dist(spot, returner.position) > 0.5
                 wait_point: Action = (
                     Goto(step=0, lat=lat, lon=lon, alt=max(view.position.alt_rel, 1.0), sync=True)
@@ -170,7 +172,7 @@ class ReturnCoordinator:
             s = view.status
             if not s.armed or s.landed:
                 continue
-            here = frame.point(view.position.lat, view.position.lon)
+            here = frame.local_point(view.position.lat, view.position.lon)
             job = self.active.get(ident)
             target = job.column if job is not None and not job.released else here
             others.append(Airborne(ident, here, view.position.alt_rel, target))
@@ -191,7 +193,7 @@ class ReturnCoordinator:
             if s.waiting_sync is None:
                 continue
             # It descends from where it actually is (a wait point is never exact).
-            here = frame.point(current.position.lat, current.position.lon)
+            here = frame.local_point(current.position.lat, current.position.lon)
             if cleared_to_descend(
                 ident, here, current.position.alt_rel, others, CLEARANCE * self.settings.horizontal_margin_m
             ):

@@ -2,23 +2,25 @@
 
 I/O lives here and only here. The monitors (collision, emergency, divergence, connectivity) are
 pure and return intents; this service applies them through the vehicle authority
-(:mod:`gcs.authority`), which refuses anything a higher-priority source has overridden, and
+(:mod:`gcs.control.authority`), which refuses anything a higher-priority source has overridden, and
 publishes their events through a throttle so a persistent condition cannot bury the log. A
 ticker re-asserts holds (seed 000: "for safety reasons ... sent periodically"), runs the
 fleet-wide checks when reports are scarce and catches drones whose status stopped arriving.
 
 Per status tick the reports go into the fleet's arrays (gcs/cooperation/fleet.py) in one
 vectorised pass, with the battery estimators; column compares flag the reports the per-agent
-checks (tracking, emergency and divergence edges) may act on, and only those are built into a
-``StatusReport`` and checked, each agent's intents applied before the next's. The fleet-wide
+checks (tracking, emergency and divergence edges) may act on (the gate, gcs/cooperation/tick_gate.py),
+and only those are built into a ``StatusReport`` and checked, each agent's intents applied before
+the next's. The fleet-wide
 checks (collision, connectivity: O(fleet) each) run on their own fixed tick of
 ``collision.min_check_interval_s`` when a report has arrived since the last one, never inside
 the status consumer, so their cost does not grow with the report rate.
 
 In a cluster (docs/cluster.md) the node feeds in the drones linked to other daemons
 (:meth:`CooperationService.remote_status`) and says who decides the airspace
-(:class:`ClusterView`): one daemon at a time runs the collision check over the whole fleet; its
-orders for a drone linked elsewhere go out through that daemon's vehicle authority. The
+(gcs/cooperation/airspace.py, :class:`ClusterView`): one daemon at a time runs the collision
+check over the whole fleet; its orders for a drone linked elsewhere go out through that daemon's
+vehicle authority. The
 per-agent checks (emergency, divergence) and connectivity (to this base station) stay with the
 daemon holding the drone's link.
 """
@@ -29,14 +31,11 @@ import asyncio
 import contextlib
 import logging
 import time
-from typing import Any, Literal, Protocol
+from typing import Any
 
 import numpy as np
 
-from gcs.agents import AgentSession
-from gcs.agents_table import ROW_BYTES, ROW_DTYPE, StatusTick
-from gcs.authority import PRIORITY
-from gcs.context import ServiceContext
+from gcs.cooperation.airspace import ClusterAirspace, ClusterView
 from gcs.cooperation.collision_monitor import CollisionMonitor
 from gcs.cooperation.config import CooperationConfig
 from gcs.cooperation.connectivity_monitor import ConnectivityMonitor
@@ -44,9 +43,9 @@ from gcs.cooperation.divergence import DivergenceJudge
 from gcs.cooperation.divergence_monitor import DivergenceMonitor
 from gcs.cooperation.emergency_monitor import EmergencyMonitor
 from gcs.cooperation.energy import EnergyModel, fallback_model
+from gcs.cooperation.energy_logs import EnergyLogRecorder
 from gcs.cooperation.event_throttle import EventThrottle
 from gcs.cooperation.fleet import Fleet
-from gcs.cooperation.geo import LocalFrame
 from gcs.cooperation.intents import (
     EndOrderIntent,
     EventIntent,
@@ -58,11 +57,16 @@ from gcs.cooperation.intents import (
 )
 from gcs.cooperation.legs import agent_acceptance_radius
 from gcs.cooperation.preflight import PreflightChecks, start_points
-from gcs.cooperation.recording import FlightRecorder
+from gcs.cooperation.tick_gate import TickGate, sticky
 from gcs.cooperation.tracking import Kinematics, TrackedAgent, track
-from gcs.events import Severity
-from protocol.actions import Action, Waypoints
-from protocol.packets import AgentParameters, Geofence, Resume, SetParameters, StatusReport
+from gcs.core.context import ServiceContext
+from gcs.link.agents_table import StatusTick
+from gcs.link.session import AgentSession
+from gcs.link.status_bus import Subscriptions
+from gcs.observe.events import Severity
+from gcs.planning.geodesy import LocalFrame
+from protocol.actions import Action
+from protocol.packets import AgentParameters, Resume, StatusReport
 from protocol.status_binary import BUFFERED, HAS_POSITION
 
 log = logging.getLogger("gcs.cooperation")
@@ -70,29 +74,7 @@ log = logging.getLogger("gcs.cooperation")
 EMERGENCY_MISSION = "cooperation-emergency"
 FLEET_CHECK_DUTY = 4.0  # the fleet-check tick is at least this many times one check's duration
 LOST_LINK_ACTION = {"event": "continue", "hold": "hold", "return": "rtl", "rtl": "rtl"}
-
-Airspace = Literal["fleet", "local", "none"]
-"""Which drones this daemon's collision check decides for: every drone of the cluster, only its
-own (cut off from the cluster), or none (another daemon decides)."""
-
-
-def _carries_more(report: StatusReport | None) -> bool:
-    """A report that came decoded with fields the columns do not hold (exceptions, a failsafe)."""
-    return report is not None and bool(report.exceptions or report.failsafe or report.failure)
-
-
-class ClusterView(Protocol):
-    """What the service needs of the cluster node (gcs/cluster/node.py)."""
-
-    def airspace(self) -> Airspace: ...
-
-    def remote_level(self, ident: str) -> int:
-        """Authority level of a drone at the daemon holding its link (0 if unknown)."""
-        ...
-
-    def remote_collision_hold(self, ident: str) -> bool:
-        """True while the daemon holding the drone's link has it under a collision hold."""
-        ...
+STALL_S = 1.0  # the ticker woke this much late: we were paused or starved, the drones were not silent
 
 
 class CooperationService:
@@ -100,14 +82,14 @@ class CooperationService:
 
     name = "cooperation"
 
-    def __init__(self, config: CooperationConfig) -> None:
+    def __init__(self, config: CooperationConfig, cluster: ClusterView | None = None) -> None:
         self.config = config
         scale = config.vehicle_time_scale
         self.collision = CollisionMonitor(config.collision)
         self.emergency = EmergencyMonitor(config.emergency, scale)
         self.divergence = DivergenceMonitor(config.divergence, scale)
         self.connectivity = ConnectivityMonitor(config.connectivity)
-        self.recorder = FlightRecorder(config.energy)
+        self.recorder = EnergyLogRecorder(config.energy)
         self.agents: dict[str, TrackedAgent] = {}
         self.fleet = Fleet(config.emergency, config.divergence, scale)  # the agents' newest reports as arrays
         self.built = 0  # reports built for the per-agent checks (the rest only went into the arrays)
@@ -118,10 +100,12 @@ class CooperationService:
         self._throttle: EventThrottle | None = None
         self._preflight: PreflightChecks | None = None
         self._tasks: list[asyncio.Task[None]] = []
+        self._subscriptions: Subscriptions | None = None  # its hooks on the status bus, from start()
         self._fleet_due = False  # a report arrived since the last fleet-wide check
-        self.cluster: ClusterView | None = None  # set by the cluster node (docs/cluster.md)
+        self.cluster = cluster  # the cluster node, plugged in by the daemon (docs/cluster.md)
         self.remote: set[str] = set()  # tracked drones linked to other daemons
-        self._airspace: Airspace = "fleet"
+        self.airspace = ClusterAirspace(cluster, self.collision, self.agents, self.remote, lambda: self.ctx)
+        self.gate = TickGate(config, self.fleet, self.agents, self.remote, self._adopt, lambda: self.ctx)
         self.fleet_check_s = 0.0  # how long the last fleet-wide check took (loop time)
 
     # --- lifecycle ------------------------------------------------------------------------------
@@ -137,9 +121,10 @@ class CooperationService:
             lambda: self.base,
             lambda: self.energy_model,
         )
-        ctx.agents.on_status_tick.append(self._on_tick)
-        ctx.agents.on_join.append(self._on_join)
-        ctx.agents.on_lost.append(self._on_lost)
+        self._subscriptions = subscriptions = ctx.agents.subscriptions()  # ended together in stop()
+        subscriptions.subscribe("tick", self._on_tick)
+        subscriptions.subscribe("join", self._on_join)
+        subscriptions.subscribe("lost", self._on_lost)
         ctx.missions.preflight_checks.append(self._preflight)
         if self.config.energy.model_path is not None:
             self.energy_model = EnergyModel.load(self.config.energy.model_path)
@@ -154,16 +139,12 @@ class CooperationService:
         if self._tasks:  # bounded: a cancel swallowed somewhere must not hang the daemon's stop
             await asyncio.wait(self._tasks, timeout=2.0)
         self._tasks = []
+        if self._subscriptions is not None:
+            self._subscriptions.close()
         ctx = self._ctx
-        if ctx is not None:
-            for hooks, hook in (
-                (ctx.agents.on_status_tick, self._on_tick),
-                (ctx.agents.on_join, self._on_join),
-                (ctx.agents.on_lost, self._on_lost),
-                (ctx.missions.preflight_checks, self._preflight),
-            ):
-                with contextlib.suppress(ValueError):
-                    hooks.remove(hook)  # type: ignore[arg-type]
+        if ctx is not None and self._preflight is not None:
+            with contextlib.suppress(ValueError):
+                ctx.missions.preflight_checks.remove(self._preflight)
         for agent in self.agents.values():
             if agent.recorder is not None:
                 agent.recorder.close()
@@ -222,15 +203,16 @@ class CooperationService:
                 await self._return(intent)
 
     async def _return(self, intent: ReturnIntent) -> None:
-        if not self.ctx.authority.may_command(intent.ident, intent.owner):
-            self.ctx.authority.replace(
-                intent.ident, intent.owner, "refused", [], intent.reason
-            )  # records why
-            return
-        self.collision.forget(intent.ident)
-        # Out of the mission first, so its landing does not count as finishing the mission.
-        await self.ctx.missions.withdraw(intent.ident, f"{intent.owner}: {intent.reason}")
-        self.ctx.returns.start([intent.ident], intent.action, intent.owner, intent.reason)
+        """The bring-down use case (gcs/control/bring_down.py) at the intent's priority: refused (and
+        recorded) if outranked; else the collision picture forgets the drone, it leaves its
+        mission (so its landing does not finish it) and starts its return."""
+        await self.ctx.bring_down(
+            [intent.ident],
+            intent.action,
+            intent.owner,
+            intent.reason,
+            on_allowed=self.collision.forget,
+        )
 
     # --- hooks ----------------------------------------------------------------------------------
 
@@ -241,7 +223,7 @@ class CooperationService:
         w = self._link_range()
         if cfg.enabled and cfg.push_lost_link_action and w is not None:
             parameters = AgentParameters(link_range_m=w, lost_link_action=LOST_LINK_ACTION[cfg.policy])  # type: ignore[arg-type]
-            self.ctx.agents.post(session.identity, SetParameters(parameters=parameters))
+            self.ctx.commands.set_parameters(parameters, [session.identity])
 
     async def _on_lost(self, identity: str) -> None:
         if self.cluster is not None:
@@ -338,7 +320,7 @@ class CooperationService:
         except Exception:  # a bug here must not cost the agents their checks: every row is checked
             log.exception("cooperation: status tick gate failed")
             flagged = rows.tolist()
-        owners = tick.owners  # a slice of a tick (gcs/agents.py TICK_SLICE): no yield needed in here
+        owners = tick.owners  # a tick slice (gcs/link/status_tick.py TICK_SLICE): no yield needed in here
         for i in flagged:
             session = owners[i]
             self.built += 1
@@ -350,83 +332,9 @@ class CooperationService:
                     log.exception("cooperation: status handling failed for %s", session.identity)
 
     def _gate(self, tick: StatusTick, rows: np.ndarray[Any, np.dtype[np.intp]], now: float) -> list[int]:
-        """Write the tick's ``rows`` into the fleet's arrays (and battery estimators); the rows whose
-        report the per-agent checks must see: a new or relinked agent, a report that came decoded
-        with exceptions or a failsafe (not in the columns), a fence to check, a changed state, a sticky slot
-        (mission, condition in force), or a column gate (``Fleet.gate``)."""
-        owners, fleet = tick.owners, self.fleet
-        picked = [owners[i] for i in rows.tolist()]
-        known = fleet.by_session.get
-        slots = np.array([known(session, -1) for session in picked], dtype=np.intp)
-        forced = slots < 0  # new agent, or a new session of a known one
-        if not all([session.open for session in picked]):
-            forced |= ~np.array([session.open for session in picked], dtype=bool)
-        built = tick.built()
-        if built:
-            more = {i for i in built if _carries_more(tick.decoded(i))}
-            forced |= np.isin(rows, list(more))
-        remote = self.remote
-        if remote:
-            forced |= np.array([s.identity in remote for s in picked], dtype=bool)
-        for k in np.flatnonzero(slots < 0).tolist():
-            session = picked[k]
-            agent = self.agents.get(session.identity) or self._adopt(session, tick.report(rows[k]), now, True)
-            slots[k] = agent.slot
-        raw = tick.cols.view(np.uint8).reshape(-1, ROW_BYTES)[rows]  # whole rows: mode, mission too
-        cols = raw.view(ROW_DTYPE).reshape(-1)  # (fancy indexing the columns would drop those bytes)
-        flag = fleet.write(slots, raw, now)
-        flag |= forced | fleet.sticky[slots]
-        if self.config.emergency.enabled:
-            fleet.feed_battery(slots, cols)
-            flag |= fleet.gate(slots, cols)
-            if self.ctx.geofences:
-                flag |= self._fence_gate(picked, cols)
-        if self.config.energy.record_dir is not None:  # the flight log takes every report
-            flag[:] = True
-        planned = fleet.planned[slots]
-        if planned.any():
-            flag |= self._plan_gate(slots, cols, planned & ~flag)
-            for k in np.flatnonzero(planned & flag & fleet.skipped[slots]).tolist():
-                agent = fleet.agents[slots[k]]
-                if agent is not None and agent.plan is not None:  # as if the report before was tracked
-                    agent.plan.passed(fleet.previous(agent.slot))
-        fleet.skipped[slots] = ~flag
-        checked: list[int] = rows[flag].tolist()
-        return checked
-
-    def _fence_gate(self, picked: list[AgentSession], cols: np.ndarray[Any, Any]) -> np.ndarray[Any, Any]:
-        """The rows of drones with a fence that are outside it or near its edge (``Fleet.fence_gate``,
-        one pass per fence: usually the fleet shares one)."""
-        flag = np.zeros(len(picked), dtype=bool)
-        fences = self.ctx.geofences
-        groups: dict[int, tuple[Geofence, list[int]]] = {}
-        for k, session in enumerate(picked):
-            fence = fences.get(session.identity)
-            if fence is not None:
-                groups.setdefault(id(fence), (fence, []))[1].append(k)
-        for fence, members in groups.values():
-            flag[members] = self.fleet.fence_gate(cols[members], fence)
-        return flag
-
-    def _plan_gate(
-        self,
-        slots: np.ndarray[Any, np.dtype[np.intp]],
-        cols: np.ndarray[Any, Any],
-        rows: np.ndarray[Any, Any],
-    ) -> np.ndarray[Any, np.dtype[np.bool_]]:
-        """Of ``rows`` (drones in a plan, not flagged yet): those whose plan is gone (tracking must
-        drop it) or whose position is near a divergence limit (``Fleet.leg_gate``)."""
-        flag = np.zeros(len(slots), dtype=bool)
-        plan_of, agents = self.ctx.missions.plan_of, self.fleet.agents
-        for k in np.flatnonzero(rows).tolist():
-            agent = agents[slots[k]]
-            mission = agent.state.mission_id if agent is not None else None
-            flag[k] = agent is None or mission is None or plan_of(mission, agent.ident) is None
-        if self.config.divergence.enabled:
-            rest = rows & ~flag
-            if rest.any():
-                flag[rest] = self.fleet.leg_gate(slots[rest], cols[rest])
-        return flag
+        """The rows of ``rows`` the per-agent checks must see, the rest only fed into the fleet's
+        arrays (gcs/cooperation/tick_gate.py)."""
+        return self.gate.flag(tick, rows, now)
 
     def _checks(self, session: AgentSession, status: StatusReport, now: float) -> list[Intent]:
         """Track one positioned live report and run the per-report checks; the intents to apply."""
@@ -441,26 +349,10 @@ class CooperationService:
             if self.config.divergence.enabled:
                 busy = self.ctx.authority.is_held(ident) or self._outranked(ident, "divergence")
                 intents += self.divergence.on_status(agent, status, busy, now)
-            self.fleet.settle(agent, self._sticky(agent, status))
+            self.fleet.settle(agent, sticky(agent, status))
         except Exception:  # a bug here must not cost the agent its connection
             log.exception("cooperation: status handling failed for %s", ident)
         return intents
-
-    @staticmethod
-    def _sticky(agent: TrackedAgent, status: StatusReport) -> bool:
-        """Must every report of the agent go to the per-agent checks? While its mission's plan is
-        not known here yet, it flies a detour or a waypoints action (the plan position follows each
-        report), a divergence error is being timed or a condition is pending or in force (its edge
-        must see it clear), or it is marked disconnected."""
-        plan, judge = agent.plan, agent.judge
-        return (
-            (status.mission_id is not None and plan is None)  # its plan may turn up
-            or not agent.connected
-            or agent.detour_step is not None
-            or (plan is not None and isinstance(plan.current_action, Waypoints))  # (waypoint by position)
-            or (judge is not None and judge.persisting)
-            or any(name in agent.conditions for name in ("fence", "battery", "gps"))
-        )
 
     def _new_judge(self) -> DivergenceJudge:
         return DivergenceJudge(self.config.divergence)
@@ -483,10 +375,7 @@ class CooperationService:
     # --- fleet-wide checks ----------------------------------------------------------------------
 
     def _outranked(self, ident: str, owner: str) -> bool:
-        level = self.ctx.authority.level(ident)
-        if self.cluster is not None and ident in self.remote:  # what its own daemon has ordered
-            level = max(level, self.cluster.remote_level(ident))
-        return level > PRIORITY[owner]
+        return self.airspace.outranked(ident, owner)
 
     def _stale_limit(self) -> float:
         cfg = self.config.emergency
@@ -508,46 +397,8 @@ class CooperationService:
         return self.collision.check(fresh, self._kinematics(fresh), self.frame, outranked, now)
 
     def _collision_scope(self, now: float) -> list[TrackedAgent]:
-        """The fresh drones this daemon's collision check decides for (all of them, embedded)."""
-        fresh = self._fresh(now)
-        if self.cluster is None:
-            return fresh
-        airspace = self.cluster.airspace()
-        if airspace != self._airspace:
-            self._change_airspace(airspace, now)
-        if airspace == "none":
-            return []
-        return fresh if airspace == "fleet" else [a for a in fresh if a.ident not in self.remote]
-
-    def _change_airspace(self, airspace: Airspace, now: float) -> None:
-        """Another daemon decides now, or we do: hand over or adopt the collision holds in force.
-
-        Handing over forgets our collision picture (the holds stay with the drones' own daemons,
-        whose status reports say so); taking over adopts every collision hold in force in the new
-        scope, so the new decider releases them once clear. Escapes under way finish on the drones.
-        """
-        log.info("airspace: %s -> %s", self._airspace, airspace)
-        self._airspace = airspace
-        avoider = self.collision.avoider
-        for ident in list(avoider.holds) + list(avoider.escaping):
-            avoider.forget(ident)
-        for ident in self.remote:
-            self.ctx.authority.drop_holds(ident, ("collision",), f"airspace scope now {airspace}")
-        if airspace == "none" or self.cluster is None:
-            return
-        for ident in list(self.agents):
-            remote = ident in self.remote
-            if remote and airspace != "fleet":
-                continue
-            held = (
-                self.cluster.remote_collision_hold(ident)
-                if remote
-                else self.ctx.authority.is_held(ident, "collision")
-            )
-            if held:
-                avoider.adopt(ident, now)
-                if remote:  # our authority sends the release when it is clear
-                    self.ctx.authority.restore_hold(ident, "collision", "adopted from the previous decider")
+        """The fresh drones this daemon's collision check decides for (gcs/cooperation/airspace.py)."""
+        return self.airspace.scope(self._fresh(now), now)
 
     def _fleet_checks(self, now: float) -> list[Intent]:
         intents: list[Intent] = []
@@ -594,10 +445,11 @@ class CooperationService:
         """Re-assert holds periodically, run checks between reports, catch drones whose reports stopped."""
         last_reassert = time.monotonic()
         while True:
-            await asyncio.sleep(
-                min(self.config.emergency.check_period_s, self.config.collision.reassert_period_s)
-            )
+            period = min(self.config.emergency.check_period_s, self.config.collision.reassert_period_s)
+            asked = time.monotonic() + period
+            await asyncio.sleep(period)
             now = time.monotonic()
+            stalled = now - asked > STALL_S  # reports waited unread: judge silence next pass
             try:
                 if now - last_reassert >= self.config.collision.reassert_period_s:
                     last_reassert = now
@@ -605,7 +457,7 @@ class CooperationService:
                         if self.ctx.authority.is_held(ident) and self.ctx.agents.session(ident) is not None:
                             self.ctx.authority.reassert(ident)
                 intents: list[Intent] = []
-                if self.config.emergency.enabled:
+                if self.config.emergency.enabled and not stalled:
                     intents += self.emergency.stale(list(self.agents.values()), self._stale_limit(), now)
                 if self.config.collision.enabled and self.frame is not None and self.collision.avoider.holds:
                     intents += self._collision_pass(self._collision_scope(now), now)

@@ -15,8 +15,8 @@ import numpy as np
 from gcs.cooperation.divergence import DivergenceJudge
 from gcs.cooperation.emergency import BatteryView
 from gcs.cooperation.flightlog import FlightLogWriter
-from gcs.cooperation.geo import LocalFrame
 from gcs.cooperation.legs import AgentPlanState, Point
+from gcs.planning.geodesy import LocalFrame
 from protocol.actions import Action
 from protocol.packets import GeoPoint, Position, StatusReport
 
@@ -181,7 +181,7 @@ class Kinematics(NamedTuple):
 
     @classmethod
     def of(cls, cols: np.ndarray[Any, Any]) -> Kinematics:
-        """From status columns (``gcs.agents_table.ROW_DTYPE``)."""
+        """From status columns (``gcs.link.agents_table.ROW_DTYPE``)."""
         return cls(*(np.asarray(cols[name], dtype=np.float64) for name in cls._fields))
 
     def take(self, rows: list[int]) -> Kinematics:
@@ -215,12 +215,16 @@ Velocity = tuple[float, float, float]
 
 
 def leg_motion(
-    agent: TrackedAgent, frame: LocalFrame, default_speed: float, here: Here | None = None
+    agent: TrackedAgent,
+    frame: LocalFrame,
+    default_speed: float,
+    here: Here | None = None,
+    here_local: tuple[float, float] | None = None,
 ) -> tuple[Velocity | None, float | None]:
     """Where the drone wants to go (toward its leg target at the planned speed; still while it
     waits at a barrier) and how far it has left to the target, where it will stop (3-D metres),
     from one look at its leg, in plain floats (the collision check asks for both for every drone
-    of the fleet on each pass)."""
+    of the fleet on each pass; ``here_local``: ``here`` already in ``frame``, as that check has it)."""
     plan, waiting = agent.plan, agent.state.waiting_sync
     if plan is None:
         return None, None
@@ -228,13 +232,13 @@ def leg_motion(
     if leg is None:
         return ((0.0, 0.0, 0.0) if waiting is not None else None), None
     lat, lon, alt_rel = _here(agent, here)
-    n, e = frame.point(lat, lon)
-    tn, te = frame.point(leg.target[0], leg.target[1])
-    dn, de, du = tn - n, te - e, leg.target[2] - alt_rel
+    e, n = here_local if here_local is not None else frame.local_point(lat, lon)
+    te, tn = frame.local_point(leg.target[0], leg.target[1])
+    de, dn, du = te - e, tn - n, leg.target[2] - alt_rel
     norm = math.sqrt(dn * dn + de * de + du * du)
     if leg.start is None:
         return ((0.0, 0.0, 0.0) if waiting is not None else None), norm
     if norm < 0.5:
         return (0.0, 0.0, 0.0), norm
     k = (leg.speed or default_speed) / norm
-    return (dn * k, de * k, du * k), norm
+    return (de * k, dn * k, du * k), norm

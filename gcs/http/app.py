@@ -22,10 +22,11 @@ from gcs.http.deps import TOKEN, ApiProblem, problem
 from gcs.http.guard import HttpGuard
 from gcs.http.ports import ApiPorts
 from gcs.http.routes import agents, dashboard, fleet, history, missions, planning, stream
+from protocol.settings_file import package_version
 
 if TYPE_CHECKING:
-    from gcs.daemon import Daemon
-    from gcs.live import LiveHub
+    from gcs.core.context import DaemonParts
+    from gcs.observe.live import LiveHub
 
 ROUTERS = (
     dashboard.router,
@@ -39,11 +40,11 @@ ROUTERS = (
 """Included in this order (the order of the OpenAPI document's paths)."""
 
 
-def create_app(daemon: Daemon, hub: LiveHub | None = None) -> FastAPI:
+def create_app(daemon: DaemonParts, hub: LiveHub | None = None) -> FastAPI:
     """The API of ``daemon``, over ``hub`` (default: the daemon's own, :meth:`Daemon.live_hub`)."""
     app = FastAPI(
         title="fleetgcs",
-        version="0.2.0",
+        version=package_version(),  # the package's, as `gcs --version` says
         description="Fleet ground control station API: fleet, missions, planning, stream. See docs/api.md.",
         docs_url=None,  # served by dashboard.mount_dashboard from local Swagger UI files: no CDN
         redoc_url=None,
@@ -51,6 +52,10 @@ def create_app(daemon: Daemon, hub: LiveHub | None = None) -> FastAPI:
     ports = ApiPorts.of(daemon, hub if hub is not None else daemon.live_hub())
     app.state.ports = ports
     app.state.hub = ports.hub
+    if ports.hub.coverage_source is None:  # the stream's coverage messages (gcs/missions/live_coverage.py)
+        from gcs.missions.live_coverage import CoverageFeed
+
+        ports.hub.coverage_source = CoverageFeed(daemon)
     app.state.stream_slots = stream.StreamSlots()
     config = daemon.config
     # Host/Origin, token before body, body size while reading (gcs/http/guard.py).
@@ -79,7 +84,7 @@ def _install_problem_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(ApiProblem)
     async def _api_problem(_: Request, exc: ApiProblem) -> JSONResponse:
-        return problem(exc.status, exc.title, exc.detail)
+        return problem(exc.status, exc.title, exc.detail, exc.extra)
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:

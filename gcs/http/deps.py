@@ -8,7 +8,7 @@ Errors are ``application/problem+json`` with a reason: a route raises :class:`Ap
 from __future__ import annotations
 
 import hmac
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Header
 from fastapi.responses import JSONResponse
@@ -22,19 +22,21 @@ from gcs.http.ports import (
     FleetOperator,
     MissionArchive,
     MissionControl,
+    RetaskDesk,
 )
-from gcs.live import LiveHub
+from gcs.observe.live import LiveHub
 
 
 class ApiProblem(Exception):
-    def __init__(self, status: int, title: str, detail: str) -> None:
+    def __init__(self, status: int, title: str, detail: str, extra: dict[str, Any] | None = None) -> None:
         super().__init__(detail)
         self.status, self.title, self.detail = status, title, detail
+        self.extra = extra or {}  # RFC 9457 extension members (e.g. the area a plan could not use)
 
 
-def problem(status: int, title: str, detail: str) -> JSONResponse:
+def problem(status: int, title: str, detail: str, extra: dict[str, Any] | None = None) -> JSONResponse:
     return JSONResponse(
-        {"type": "about:blank", "title": title, "status": status, "detail": detail},
+        {**(extra or {}), "type": "about:blank", "title": title, "status": status, "detail": detail},
         status_code=status,
         media_type="application/problem+json",
     )
@@ -73,6 +75,13 @@ def _hub(conn: HTTPConnection) -> LiveHub:
     return ports(conn).hub
 
 
+def _retask(conn: HTTPConnection) -> RetaskDesk:
+    found = ports(conn).retask
+    if found is None:
+        raise ApiProblem(404, "no re-tasking", "this daemon runs no retask service")
+    return found
+
+
 Ports = Annotated[ApiPorts, Depends(ports)]
 Agents = Annotated[AgentDirectory, Depends(_agents)]
 Missions = Annotated[MissionControl, Depends(_missions)]
@@ -81,6 +90,7 @@ Operator = Annotated[FleetOperator, Depends(_operator)]
 Authority = Annotated[ControlView, Depends(_authority)]
 Events = Annotated[EventLog, Depends(_events)]
 Hub = Annotated[LiveHub, Depends(_hub)]
+Retask = Annotated[RetaskDesk, Depends(_retask)]
 
 
 def require_token(conn: HTTPConnection, authorization: str | None = Header(default=None)) -> None:

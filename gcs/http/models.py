@@ -1,13 +1,13 @@
-"""Pydantic models of the HTTP API, shared by the server (``gcs.http``), the client (``gcs.client``)
+"""Pydantic models of the HTTP API, shared by the server (``gcs.http``), the client (``gcs.http.client``)
 and the OpenAPI schema, so the three never disagree."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from gcs.api_planning import PlanPreview
+from gcs.http.planning_requests import PlanPreview
 from protocol.packets import Capabilities, Geofence, GeoPoint, StatusReport
 
 AgentName = str
@@ -27,6 +27,9 @@ class AgentView(BaseModel):
     status_count: int
     link_age_s: float | None = Field(default=None, description="seconds since the last packet from it")
     connected_at: float | None = None
+    held: str | None = Field(
+        default=None, description="why it is held: each holding source and its reason (None: not held)"
+    )
 
 
 class MissionCreated(BaseModel):
@@ -54,10 +57,29 @@ class MissionGeometry(BaseModel):
 
 
 class Coverage(BaseModel):
+    """What the fleet has seen of a survey mission's area, from its flown tracks (eq. 5 footprint).
+
+    ``grid``: text rows north first, ``#`` seen, ``.`` unseen, space outside (``?detail=grid``);
+    ``unseen``: the unseen cells as a GeoJSON MultiPolygon (``?detail=geojson``).
+    """
+
     mission_id: str
     covered_pct: float | None
     swath_m: float | None
     samples: int
+    area_m2: float | None = None
+    seen_m2: float | None = None
+    cell_m: float | None = None
+    grid: list[str] | None = None
+    unseen: dict[str, Any] | None = None
+    flown_m: float | None = Field(default=None, description="horizontal metres flown by the members")
+    planned_m: float | None = Field(default=None, description="horizontal metres of their final plans")
+    eta_s: float | None = Field(
+        default=None, description="the slowest drone still flying: metres left at its current speed"
+    )
+    drones: list[dict[str, Any]] | None = Field(
+        default=None, description="per drone: planned_m, flown_m, remaining_m, speed_mps, state"
+    )
 
 
 class GeofenceRequest(BaseModel):
@@ -107,3 +129,4 @@ class UiConfig(BaseModel):
 
     tile_url: str | None = None
     status_period_s: float
+    cluster: bool = False  # the dashboard asks /api/v1/cluster only then (no 404 on every load)

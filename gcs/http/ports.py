@@ -15,15 +15,16 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal, Protocol
 
 if TYPE_CHECKING:
-    from gcs.agents import AgentSession
-    from gcs.api_planning import EnergySettings
-    from gcs.authority import VehicleControl
-    from gcs.config import DaemonConfig
-    from gcs.daemon import Daemon
-    from gcs.events import Event, Severity
-    from gcs.live import LiveHub
-    from gcs.missions import ActiveMission, MissionProgress
-    from gcs.store import StoredMission
+    from gcs.control.authority import VehicleControl
+    from gcs.core.config import DaemonConfig
+    from gcs.core.context import DaemonParts
+    from gcs.http.planning_requests import EnergySettings
+    from gcs.link.session import AgentSession
+    from gcs.missions.retask import Decision, SurveyRecord
+    from gcs.missions.runner import ActiveMission, MissionProgress
+    from gcs.observe.events import Event, Severity
+    from gcs.observe.live import LiveHub
+    from gcs.storage.store import StoredMission
     from protocol.packets import Geofence
     from protocol.taskfile import TaskFile
 
@@ -65,7 +66,7 @@ class MissionArchive(Protocol):
 
 
 class FleetOperator(Protocol):
-    """The operator's whole-fleet commands, arbitrated by the vehicle authority (gcs/operator.py)."""
+    """The operator's whole-fleet commands, arbitrated by the vehicle authority (gcs/control/operator.py)."""
 
     async def bring_down(
         self, kind: Literal["rtl", "land"], agents: list[str] | None, reason: str
@@ -96,6 +97,14 @@ class EventLog(Protocol):
     ) -> list[Event]: ...
 
 
+class RetaskDesk(Protocol):
+    """Re-tasking a dropped drone's share and the survey records (gcs/missions/retask.py)."""
+
+    def record(self, mission_id: str) -> SurveyRecord | None: ...
+    def proposals(self, mission_id: str) -> list[dict[str, Any]]: ...
+    def decide(self, mission_id: str, decision_id: str | None, accept: bool, by: str = ...) -> Decision: ...
+
+
 @dataclass(frozen=True)
 class ApiPorts:
     """Everything the routes may touch; ``config`` and ``token`` are read per request (they may change)."""
@@ -111,9 +120,10 @@ class ApiPorts:
     hub: LiveHub
     set_geofence: Callable[[Geofence | None, list[str] | None], Awaitable[list[str]]]
     energy: Callable[[], EnergySettings]
+    retask: RetaskDesk | None = None  # None: the daemon runs no retask service
 
     @classmethod
-    def of(cls, daemon: Daemon, hub: LiveHub) -> ApiPorts:
+    def of(cls, daemon: DaemonParts, hub: LiveHub) -> ApiPorts:
         return cls(
             config=lambda: daemon.config,
             token=lambda: daemon.api_token,
@@ -126,12 +136,19 @@ class ApiPorts:
             hub=hub,
             set_geofence=daemon.set_geofence,
             energy=lambda: _energy_settings(daemon),
+            retask=_retask_desk(daemon),
         )
 
 
-def _energy_settings(daemon: Daemon) -> EnergySettings:
+def _retask_desk(daemon: DaemonParts) -> RetaskDesk | None:
+    from gcs.missions.retask import Retasking
+
+    return next((s for s in daemon.services if isinstance(s, Retasking)), None)
+
+
+def _energy_settings(daemon: DaemonParts) -> EnergySettings:
     """The pre-flight check's estimator, so a preview predicts what the daemon will check."""
-    from gcs.api_planning import EnergySettings
+    from gcs.http.planning_requests import EnergySettings
 
     coop = next((s for s in daemon.services if getattr(s, "name", "") == "cooperation"), None)
     model = getattr(coop, "energy_model", None)

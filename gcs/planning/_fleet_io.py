@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from gcs.planning._rsa_channels import FloatArray
 from gcs.planning.geodesy import LocalFrame
+from gcs.planning.psa import DEFAULT_TRACK_MARGIN_M
 from gcs.planning.rsa import MissedMap
 
 
@@ -59,7 +60,7 @@ class PsaConfig(BaseModel):
         default=None, ge=0, le=10_000, description="None = the collision margin x release factor"
     )
     # a leg starts up to the agent's acceptance radius (default 2 m) from its planned start
-    track_margin_m: float = Field(default=2.0, ge=0, le=10_000)
+    track_margin_m: float = Field(default=DEFAULT_TRACK_MARGIN_M, ge=0, le=10_000)
 
 
 class TargetFile(BaseModel):

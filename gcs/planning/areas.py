@@ -47,6 +47,39 @@ class SearchArea(BaseModel):
         """(N, 2) east/north vertices in ``frame`` (default: the area's own centred frame)."""
         return (frame or self.frame()).points_to_local(self.vertices)
 
+    def crossings(self) -> tuple[str, list[tuple[float, float]]] | None:
+        """Where the boundary crosses itself, in lat/lon: a message and the crossing points.
+
+        Why: the planner finds crossings in its local frame, centred on the area, so a bow-tie's
+        crossing read "(0.00, 0.00)"; an operator needs the place on the map. Edges are numbered
+        from 0 (edge i joins vertex i+1 to vertex i+2, counting vertices from 1). None when the
+        ring does not cross itself (or lost vertices as duplicates: numbering would not match).
+        """
+        from gcs.planning.polygon import as_ring, find_crossings
+
+        frame = self.frame()
+        ring = as_ring(frame.points_to_local(self.vertices))
+        found = find_crossings(ring)
+        if not found or len(ring) != len(self.vertices):
+            return None
+        n = len(self.vertices)
+
+        def vertex(i: int) -> str:
+            lat, lon = self.vertices[i % n]
+            return f"vertex {i % n + 1} ({lat:.6f}, {lon:.6f})"
+
+        def edge(i: int) -> str:
+            return f"{vertex(i)} -> {vertex(i + 1)}"
+
+        points = [(float(a), float(b)) for a, b in frame.points_to_geodetic([c.point for c in found])]
+        parts = [
+            f"edge {c.edge_a} crosses edge {c.edge_b} at ({lat:.6f}, {lon:.6f}) "
+            f"[edge {c.edge_a}: {edge(c.edge_a)}; edge {c.edge_b}: {edge(c.edge_b)}]"
+            for c, (lat, lon) in zip(found[:3], points, strict=False)
+        ]
+        more = f" and {len(found) - 3} more" if len(found) > 3 else ""
+        return "self-intersecting area (lat, lon): " + "; ".join(parts) + more, points
+
 
 def area_from_latlon(vertices: Sequence[Sequence[float]], name: str = "area") -> SearchArea:
     """Plain list of [lat, lon] pairs."""
@@ -105,7 +138,10 @@ def area_from_qgc_plan(obj: dict[str, Any], name: str = "area") -> SearchArea:
     for fence in fences:
         if fence.get("inclusion", True) and fence.get("polygon"):
             return area_from_latlon(fence["polygon"], name)
-    raise AreaFormatError("plan file holds no survey polygon (mission.items[].polygon) nor fence polygon")
+    raise AreaFormatError(
+        "plan file holds no survey polygon (mission.items[].polygon) nor fence polygon; a mission "
+        "of waypoints is flown as it is: `gcs run DRONE.plan`, or the dashboard's 'fly mission files'"
+    )
 
 
 def parse_area(obj: Any, name: str = "area") -> SearchArea:

@@ -13,16 +13,38 @@ are not modelled, so a transit may cross a notch outside the area).
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 from numpy.typing import ArrayLike
-from shapely.geometry import Polygon, box
+from shapely.geometry import Point, Polygon, box
 from shapely.geometry.base import BaseGeometry
 from shapely.ops import unary_union
 
 from gcs.planning.geodesy import FloatArray
-from gcs.planning.patterns import Sweep, _boustrophedon, dedupe, line_grid, path_length, strip_extent, zigzag
-from gcs.planning.polygon import centroid, convex_hull, min_height_rotation, require_simple, rotate
+from gcs.planning.patterns import (
+    STRIP_TOL_M,
+    Sweep,
+    chord_extent,
+    dedupe,
+    line_grid,
+    path_length,
+    strip_extent,
+    zigzag,
+)
+from gcs.planning.polygon import (
+    PolygonType,
+    centroid,
+    classify,
+    convex_hull,
+    min_height_rotation,
+    require_simple,
+    rotate,
+)
+
+MAX_ANGLE_CANDIDATES = 8  # rotations tried by sweep_angle (the minimum-height one included)
+ANGLE_VERTEX_BUDGET = 400  # candidates x vertices: 8 up to 50 vertices, 1 (minimum height) from 400
+ANGLE_BIN_DEG = 1.0  # edge directions closer than this count as one candidate
 
 
 def boustrophedon_cells(q: Polygon) -> list[Polygon]:
@@ -90,7 +112,134 @@ def cover_area(
     p = require_simple(vertices)
     hull = convex_hull(p)
     if angle is None:
-        angle, _ = min_height_rotation(hull)
+        angle = sweep_angle(p, step, concave=True)
+    lines_w, spacing, n_cells = _cell_lines(p, step, angle, start)
+    points = dedupe(lines_w.reshape(-1, 2))
+    hull_sweep = zigzag(hull, step, angle)
+    meta = {
+        "cells": n_cells,
+        "hull_length_m": round(hull_sweep.length, 3),
+        "length_m_vs_hull": round(path_length(points) / hull_sweep.length, 4),
+        "area_m2": round(Polygon(p).area, 3),
+        "hull_area_m2": round(Polygon(hull).area, 3),
+    }
+    return Sweep("zigzag-cells", points, lines_w, step, spacing, angle, meta)
+
+
+def candidate_angles(vertices: ArrayLike, limit: int = MAX_ANGLE_CANDIDATES) -> list[float]:
+    """Sweep rotations worth trying: the hull's minimum-height one, then edge directions by total length.
+
+    Legs along a long edge need no cut where that edge is (an L's arm), so the directions that carry
+    the most boundary are the likely shortest; at most ``limit`` are returned, so planning time
+    stays bounded on 1000-vertex areas.
+    """
+    p = np.asarray(vertices, dtype=float).reshape(-1, 2)
+    first, _ = min_height_rotation(convex_hull(p))
+    d = np.roll(p, -1, axis=0) - p
+    lengths = np.hypot(d[:, 0], d[:, 1])
+    ang = (-np.arctan2(d[:, 1], d[:, 0])) % math.pi  # rotation making each edge horizontal
+    key = np.round(np.degrees(ang) / ANGLE_BIN_DEG).astype(int) % round(180 / ANGLE_BIN_DEG)
+    totals = np.bincount(key, weights=lengths)
+    out = [first]
+    for k in np.argsort(-totals):
+        if totals[k] <= 0 or len(out) >= limit:
+            break
+        members = key == k
+        a = float(ang[members][np.argmax(lengths[members])])  # the longest edge's exact direction
+        if all(
+            abs((a - b + math.pi / 2) % math.pi - math.pi / 2) > math.radians(ANGLE_BIN_DEG / 2) for b in out
+        ):
+            out.append(a)
+    return out
+
+
+def sweep_angle(vertices: ArrayLike, step: float, *, concave: bool | None = None) -> float:
+    """The candidate rotation whose legs, turns and cell transits are shortest when flown.
+
+    The hull's minimum width gives the fewest legs over the hull, not the shortest path over a
+    concave area (an L cut into three cells, 4,363 m, where legs along an arm fly one cell,
+    3,160 m); ties keep the minimum-height angle (fewest turns).
+    """
+    p = require_simple(vertices)
+    # each candidate costs a whole decomposition (quadratic in vertices): bound the total work
+    cands = candidate_angles(p, max(1, min(MAX_ANGLE_CANDIDATES, ANGLE_VERTEX_BUDGET // len(p))))
+    if len(cands) == 1:
+        return cands[0]
+    if concave is None:
+        concave = classify(p) == PolygonType.CONCAVE
+    best, best_len = cands[0], math.inf
+    for a in cands:
+        if concave:
+            lines, _, _ = _cell_lines(p, step, a, None)
+            length = path_length(dedupe(lines.reshape(-1, 2)))
+        else:
+            length = zigzag(p, step, a).length
+        if length < best_len * (1.0 - 1e-9):
+            best, best_len = a, length
+    return best
+
+
+Piece = tuple[float, float, float]  # (y, x0, x1): a straight part of a leg, x0 <= x1
+
+
+def leg_pieces(cell: Polygon, y: float, strip_y: float, half: float, ext: tuple[float, float]) -> list[Piece]:
+    """One leg as straight pieces, left to right: the chord at ``y``, then each end beyond the chord.
+
+    The strip rule spans the cell's extent over ``strip_y +- half``; where that extent reaches past
+    the chord at ``y`` only because the cell is wider higher or lower in the strip (an L's arm
+    ending just inside the strip), flying on at ``y`` would be outside the area for the whole
+    excess (180 m on an L-shaped field). Instead, what lies within ``half`` of the chord's end is
+    already seen from it; the rest is flown at ``y`` clamped into that rest's ordinates: it lies
+    in the strip on one side of ``y``, so every point of it stays within ``half`` of the piece.
+    """
+    chord = chord_extent(cell, y)
+    if chord is None:
+        return [(y, ext[0], ext[1])]
+    # up to the turn margin (half a spacing) past the chord, the leg is flown straight
+    lo = ext[0] if chord[0] - ext[0] <= half else chord[0]
+    hi = ext[1] if ext[1] - chord[1] <= half else chord[1]
+    left = None if lo == ext[0] else _excess(cell, y, strip_y, half, (ext[0], lo), lo)
+    right = None if hi == ext[1] else _excess(cell, y, strip_y, half, (hi, ext[1]), hi)
+    if left is not None and abs(left[0] - y) <= 1e-9:
+        lo, left = left[1], None
+    if right is not None and abs(right[0] - y) <= 1e-9:
+        hi, right = right[2], None
+    return [p for p in (left, (y, lo, hi), right) if p is not None]
+
+
+def _excess(
+    cell: Polygon, y: float, strip_y: float, half: float, span: tuple[float, float], end: float
+) -> Piece | None:
+    """The piece flying a leg's excess over ``span`` (None: all of it is seen from the chord's ``end``)."""
+    eps = min(STRIP_TOL_M, half * 1e-3)
+    part = cell.intersection(box(span[0], strip_y - half + eps, span[1], strip_y + half - eps))
+    # the inscribed polygon of the disc is slightly smaller than the disc: never drops an unseen point
+    rest = part.difference(Point(end, y).buffer(half, quad_segs=32))
+    # rounding slivers (an edge tilted by a lat/lon round trip) would pin the ordinate to the strip's
+    # border: keep the parts with an area
+    parts = [g for g in getattr(rest, "geoms", [rest]) if g.area > 1e-6 * half * half]
+    if not parts:
+        return None
+    rx0, ry0, rx1, ry1 = unary_union(parts).bounds
+    yy = float(np.clip(y, ry0, ry1))
+    return (yy, min(end, rx0), end) if end > span[0] else (yy, end, max(end, rx1))
+
+
+def _boustrophedon_pieces(legs: list[list[Piece]], reverse_first: bool = False) -> FloatArray:
+    """Legs of pieces to an (M, 2, 2) array of straight parts, flown alternately left-right / right-left."""
+    out: list[list[list[float]]] = []
+    for k, leg in enumerate(legs):
+        if (k % 2 == 1) != reverse_first:
+            out.extend([[x1, yy], [x0, yy]] for yy, x0, x1 in reversed(leg))
+        else:
+            out.extend([[x0, yy], [x1, yy]] for yy, x0, x1 in leg)
+    return np.asarray(out, dtype=float).reshape(-1, 2, 2)
+
+
+def _cell_lines(
+    p: FloatArray, step: float, angle: float, start: ArrayLike | None
+) -> tuple[FloatArray, float, int]:
+    """World-frame legs (L, 2, 2) of every cell in visiting order, the line spacing, the cell count."""
     c = centroid(p)
     q = Polygon(rotate(p, angle, c))
     if not q.is_valid:
@@ -98,26 +247,31 @@ def cover_area(
     _, ymin, _, ymax = q.bounds
     grid, spacing = line_grid(ymin, ymax, step)
     cells = boustrophedon_cells(q)
-    cell_legs: list[list[tuple[float, float, float]]] = []
+    cell_legs: list[list[list[Piece]]] = []
     for cell in cells:
         cy0, cy1 = cell.bounds[1], cell.bounds[3]
-        legs = []
+        legs: list[list[Piece]] = []
         for y in grid:
             if y + spacing / 2 <= cy0 or y - spacing / 2 >= cy1:
                 continue
             ext = strip_extent(cell, float(y), spacing / 2)
             if ext is None:
                 continue
-            legs.append((float(np.clip(y, cy0, cy1)), ext[0], ext[1]))
+            legs.append(leg_pieces(cell, float(np.clip(y, cy0, cy1)), float(y), spacing / 2, ext))
         if legs:
             cell_legs.append(legs)
     cur = None if start is None else rotate(np.asarray(start, dtype=float).reshape(1, 2), angle, c)[0]
     # greedy: enter next the cell whose entry corner is nearest (vectorised over cells x 4 corners)
     k_n = len(cell_legs)
     starts = np.empty((k_n, 4, 2))
-    for k, legs in enumerate(cell_legs):
-        (y0, a0, b0), (y1, a1, b1) = legs[0], legs[-1]
-        starts[k] = [[a0, y0], [b0, y0], [a1, y1], [b1, y1]]
+    for k, cl in enumerate(cell_legs):
+        first, last = cl[0], cl[-1]
+        starts[k] = [
+            [first[0][1], first[0][0]],
+            [first[-1][2], first[-1][0]],
+            [last[0][1], last[0][0]],
+            [last[-1][2], last[-1][0]],
+        ]
     todo = np.ones(k_n, dtype=bool)
     ordered: list[FloatArray] = []
     for _ in range(k_n):
@@ -127,25 +281,15 @@ def cover_area(
             d = np.hypot(starts[..., 0] - cur[0], starts[..., 1] - cur[1])
             d[~todo] = np.inf
             k, opt = divmod(int(np.argmin(d)), 4)
-        legs = cell_legs[k] if opt < 2 else cell_legs[k][::-1]
-        lines = _boustrophedon(legs, opt % 2 == 1)
+        seq = cell_legs[k] if opt < 2 else cell_legs[k][::-1]
+        lines = _boustrophedon_pieces(seq, opt % 2 == 1)
         ordered.append(lines)
         cur = lines[-1, 1]
         todo[k] = False
     if not ordered:
         raise ValueError("area too small or degenerate to cover")
     lines_r = np.concatenate(ordered)
-    lines_w = rotate(lines_r.reshape(-1, 2), -angle, c).reshape(-1, 2, 2)
-    points = dedupe(lines_w.reshape(-1, 2))
-    hull_sweep = zigzag(hull, step, angle)
-    meta = {
-        "cells": len(cell_legs),
-        "hull_length_m": round(hull_sweep.length, 3),
-        "length_m_vs_hull": round(path_length(points) / hull_sweep.length, 4),
-        "area_m2": round(Polygon(p).area, 3),
-        "hull_area_m2": round(Polygon(hull).area, 3),
-    }
-    return Sweep("zigzag-cells", points, lines_w, step, spacing, angle, meta)
+    return rotate(lines_r.reshape(-1, 2), -angle, c).reshape(-1, 2, 2), spacing, len(cell_legs)
 
 
 def to_world(cells: list[Polygon], angle: float, about: tuple[float, float]) -> list[BaseGeometry]:

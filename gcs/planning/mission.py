@@ -27,7 +27,7 @@ from protocol.actions import (
     Waypoint,
     Waypoints,
 )
-from protocol.taskfile import AgentPlan, TaskFile
+from protocol.taskfile import AgentPlan, SurveyArea, TaskFile
 
 LatLon = tuple[float, float]
 
@@ -49,6 +49,7 @@ def mission_from_paths(
     name: str = "search",
     sync_timeout_s: float = 120.0,
     chunk: int = MAX_WAYPOINTS_PER_ACTION,
+    survey: SurveyArea | None = None,
 ) -> TaskFile:
     """A validated :class:`TaskFile` flying ``paths_latlon[i]`` with agent ``i``.
 
@@ -101,4 +102,4 @@ def mission_from_paths(
             plans.append(AgentPlan(cid=cids[i], actions=actions))
         else:
             plans.append(AgentPlan(agent=names[i], actions=actions))
-    return TaskFile(name=name, sync_timeout_s=sync_timeout_s, plans=plans)
+    return TaskFile(name=name, sync_timeout_s=sync_timeout_s, plans=plans, survey=survey)

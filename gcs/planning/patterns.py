@@ -32,6 +32,8 @@ from gcs.planning.geodesy import FloatArray
 from gcs.planning.polygon import centroid, convex_hull, min_height_rotation, rotate
 
 TURN_THRESHOLD_DEG = 10.0
+GRID_TOL_M = 1e-6  # rounding allowance of line_grid's height (metres)
+STRIP_TOL_M = 1e-6  # rounding allowance of strip_extent's strip borders (metres)
 
 
 @dataclass(frozen=True)
@@ -124,7 +126,9 @@ def line_grid(ymin: float, ymax: float, step: float) -> tuple[FloatArray, float]
     if step <= 0:
         raise ValueError("step must be positive")
     height = ymax - ymin
-    n = max(1, math.ceil(height / step - 1e-9))
+    # a height that is a multiple of the step up to rounding (a lat/lon round trip leaves ~1e-8 m)
+    # must not add a line: GRID_TOL_M of overrun is far below any footprint
+    n = max(1, math.ceil((height - GRID_TOL_M) / step))
     spacing = height / n if height > 0 else step
     ys: FloatArray = ymin + spacing * (np.arange(n, dtype=float) + 0.5)
     return ys, spacing
@@ -133,7 +137,11 @@ def line_grid(ymin: float, ymax: float, step: float) -> tuple[FloatArray, float]
 def strip_extent(poly: Polygon, y: float, half: float) -> tuple[float, float] | None:
     """x-range of the polygon within the strip [y - half, y + half] (None if it misses)."""
     minx, _, maxx, _ = poly.bounds
-    piece = poly.intersection(box(minx - 1.0, y - half, maxx + 1.0, y + half))
+    # the strip is shrunk by STRIP_TOL_M: a neighbouring part of the polygon that only touches a
+    # border line up to rounding (an L's inner edge) is the next leg's, not a reason to fly 180 m
+    # outside the area
+    eps = min(STRIP_TOL_M, half * 1e-3)
+    piece = poly.intersection(box(minx - 1.0, y - half + eps, maxx + 1.0, y + half - eps))
     if piece.is_empty or piece.area <= 1e-12 * max(poly.area, 1.0):
         return None
     x0, _, x1, _ = piece.bounds

@@ -19,7 +19,7 @@ from shapely.geometry.base import BaseGeometry
 from gcs.planning.areas import SearchArea
 from gcs.planning.camera import Spacing
 from gcs.planning.coverage import CoverageReport, evaluate_coverage
-from gcs.planning.decompose import cover_area
+from gcs.planning.decompose import cover_area, sweep_angle
 from gcs.planning.division import (
     DroneSpec,
     InsufficientCapabilityError,
@@ -31,7 +31,7 @@ from gcs.planning.mission import mission_from_paths
 from gcs.planning.partition import partition_for_search
 from gcs.planning.patterns import Sweep, curved_cover, path_length, segmented, spiral, zigzag
 from gcs.planning.polygon import PolygonType, classify, convex_hull, min_height_rotation, require_simple
-from protocol.taskfile import TaskFile
+from protocol.taskfile import SurveyArea, TaskFile
 
 Pattern = Literal["zigzag", "spiral", "segmented", "curved"]
 
@@ -124,7 +124,12 @@ def plan_search(
             d.model_copy(update={"home": (float(e), float(n))}) for d, (e, n) in zip(drones, own, strict=True)
         ]
     drones = [d if d.home is not None else d.model_copy(update={"home": (home[0], home[1])}) for d in drones]
-    angle = math.radians(cfg.angle_deg) if cfg.angle_deg is not None else min_height_rotation(work)[0]
+    if cfg.angle_deg is not None:
+        angle = math.radians(cfg.angle_deg)
+    elif cfg.pattern == "spiral":
+        angle = min_height_rotation(work)[0]  # spirals need no rotation; region cuts use the narrowest
+    else:
+        angle = sweep_angle(work, spacing.step)  # the shortest flown, not the hull's narrowest
     paths: list[FloatArray] = []
     regions: list[Any] = []
     meta: dict[str, Any] = {}
@@ -143,47 +148,7 @@ def plan_search(
             for s in shares
         ]
     else:
-        if cfg.division == "partition":
-            # seed 003's capability-proportional partition (the divide protocol's fixed point),
-            # with a drone's capability its flyable range, as region division uses
-            parts = partition_for_search(Polygon(work), [d.range_m for d in drones])
-            total = sum(p.area for p in parts) or 1.0
-            areas: list[tuple[BaseGeometry, float]] = [(part, part.area / total) for part in parts]
-        else:
-            areas = [(rs.region, rs.fraction) for rs in region_division(work, drones, angle, home)]
-        budget = []
-        short = 0.0
-        for d, (region, fraction) in zip(drones, areas, strict=True):
-            regions.append(region)
-            pts: list[FloatArray] = []
-            cur = home
-            for part in getattr(region, "geoms", [region]):
-                if part.geom_type != "Polygon" or part.area <= 1e-6:
-                    continue
-                sw = build_sweep(np.asarray(part.exterior.coords)[:-1], spacing.step, cfg, angle, cur)
-                pts.append(sw.points)
-                cur = sw.points[-1]
-            p = np.vstack(pts) if pts else np.empty((0, 2))
-            survey = path_length(p)
-            trip = 0.0 if len(p) == 0 else float(np.hypot(*(p[0] - home)) + np.hypot(*(p[-1] - home)))
-            if survey + trip > d.range_m:
-                short += survey + trip - d.range_m
-            budget.append(
-                {
-                    "drone": d.name,
-                    "survey_m": round(survey, 1),
-                    "transit_m": round(trip, 1),
-                    "range_m": round(d.range_m, 1),
-                    "area_fraction": round(fraction, 5),
-                }
-            )
-            paths.append(p)
-        if short > 0 and not cfg.allow_partial:
-            raise InsufficientCapabilityError(
-                f"{cfg.division} division: drones would need {short:.0f} m more range than they have; "
-                "add drones, charge batteries or shrink the area",
-                shortfall_m=short,
-            )
+        paths, regions, budget = _region_paths(work, drones, spacing, cfg, angle, home)
     latlon = [[(float(a), float(b)) for a, b in frame.points_to_geodetic(p)] if len(p) else [] for p in paths]
     task = mission_from_paths(
         latlon,
@@ -197,6 +162,11 @@ def plan_search(
         return_mode=cfg.return_mode,
         transit_alt_step=cfg.transit_alt_step,
         name=cfg.name,
+        survey=SurveyArea(
+            area=list(area.vertices),
+            swath_m=spacing.swath,
+            altitude_m=spacing.altitude if spacing.altitude > 0 else None,
+        ),
     )
     cov = evaluate_coverage(Polygon(poly), [p for p in paths if len(p)], spacing.swath)
     summary = {
@@ -214,3 +184,59 @@ def plan_search(
         "total_length_m": round(sum(path_length(p) for p in paths if len(p) > 1), 1),
     }
     return SearchPlan(frame, poly, spacing, list(drones), paths, latlon, home, task, cov, regions, summary)
+
+
+def _region_paths(
+    work: FloatArray,
+    drones: Sequence[DroneSpec],
+    spacing: Spacing,
+    cfg: PlanConfig,
+    angle: float,
+    home: FloatArray,
+) -> tuple[list[FloatArray], list[Any], list[dict[str, Any]]]:
+    """Region or partition division: each drone sweeps its own part of the area (paths, the
+    regions, the range budget); raises InsufficientCapabilityError when a part is out of range."""
+    if cfg.division == "partition":
+        # seed 003's capability-proportional partition (the divide protocol's fixed point),
+        # with a drone's capability its flyable range, as region division uses
+        parts = partition_for_search(Polygon(work), [d.range_m for d in drones])
+        total = sum(p.area for p in parts) or 1.0
+        areas: list[tuple[BaseGeometry, float]] = [(part, part.area / total) for part in parts]
+    else:
+        areas = [(rs.region, rs.fraction) for rs in region_division(work, drones, angle, home)]
+    paths: list[FloatArray] = []
+    regions: list[Any] = []
+    budget: list[dict[str, Any]] = []
+    short = 0.0
+    for d, (region, fraction) in zip(drones, areas, strict=True):
+        regions.append(region)
+        pts: list[FloatArray] = []
+        cur = home
+        for part in getattr(region, "geoms", [region]):
+            if part.geom_type != "Polygon" or part.area <= 1e-6:
+                continue
+            sw = build_sweep(np.asarray(part.exterior.coords)[:-1], spacing.step, cfg, angle, cur)
+            pts.append(sw.points)
+            cur = sw.points[-1]
+        p = np.vstack(pts) if pts else np.empty((0, 2))
+        survey = path_length(p)
+        trip = 0.0 if len(p) == 0 else float(np.hypot(*(p[0] - home)) + np.hypot(*(p[-1] - home)))
+        if survey + trip > d.range_m:
+            short += survey + trip - d.range_m
+        budget.append(
+            {
+                "drone": d.name,
+                "survey_m": round(survey, 1),
+                "transit_m": round(trip, 1),
+                "range_m": round(d.range_m, 1),
+                "area_fraction": round(fraction, 5),
+            }
+        )
+        paths.append(p)
+    if short > 0 and not cfg.allow_partial:
+        raise InsufficientCapabilityError(
+            f"{cfg.division} division: drones would need {short:.0f} m more range than they have; "
+            "add drones, charge batteries or shrink the area",
+            shortfall_m=short,
+        )
+    return paths, regions, budget

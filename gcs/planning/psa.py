@@ -48,6 +48,11 @@ SCAN_TOL = 1e-6  # targets closer than this along an edge share a scan line (the
 TURN_SPACING_FACTOR = 1.0 / float(np.cos(np.pi / 8))
 
 
+# a flown leg starts up to the agent's acceptance radius (2 m) from its planned start; the library,
+# the CLI's target files and the API all plan with this margin unless told otherwise
+DEFAULT_TRACK_MARGIN_M = 2.0
+
+
 class PsaInfeasible(ValueError):
     """The link range cannot hold both the connectivity bound and the separation floor."""
 
@@ -212,7 +217,7 @@ class PsaPlan:
     points: FloatArray = field(repr=False)
     speed: float = 4.0
     min_separation: float = 0.0
-    track_margin: float = 0.0
+    track_margin: float = DEFAULT_TRACK_MARGIN_M
     assembly: Assembly | None = None
 
     def from_homes(self, homes: FloatArray) -> PsaPlan:
@@ -434,7 +439,7 @@ def plan_psa(
     speed: float = 4.0,
     *,
     min_separation: float = 5.0,
-    track_margin: float = 0.0,
+    track_margin: float = DEFAULT_TRACK_MARGIN_M,
     adaptive_width: bool = True,
 ) -> PsaPlan:
     """Plan the fleet's timed trajectories visiting every target with a connected line formation.
@@ -442,7 +447,9 @@ def plan_psa(
     Neighbours are planned at most ``link_range - 2 track_margin`` apart and every pair at least
     ``min_separation + 2 track_margin`` apart at every instant of the flown tracks, formation
     turns included (default floor 5 m: the collision service's 4 m horizontal margin times its
-    1.25 release factor). ``adaptive_width`` narrows the formation to a ring's deepest target
+    1.25 release factor; default track margin the agent's 2 m acceptance radius, as the CLI: with
+    0 a plan certified at ``w`` is flown with neighbours up to ``w + 2 x`` the tracking error
+    apart). ``adaptive_width`` narrows the formation to a ring's deepest target
     (never below what the separation floor needs); ``False`` flies the widest spacing.
     Raises :class:`PsaInfeasible` when the link range cannot satisfy both bounds.
     """

@@ -55,7 +55,9 @@ async function api(method, path, body) {
   try { data = text ? JSON.parse(text) : null; } catch (e) { data = text; }
   if (!res.ok) {
     const msg = data && data.detail ? `${data.title}: ${data.detail}` : `HTTP ${res.status}`;
-    throw new Error(msg);
+    const err = new Error(msg);
+    err.problem = data; // the problem document: extension members such as a bad area's outline
+    throw err;
   }
   return data;
 }
@@ -103,19 +105,51 @@ S.toScreen = (lat, lon) => {  // CSS pixels relative to the canvas, for tests
 function ensureOrigin(lat, lon) { if (!S.origin) { S.origin = [lat, lon]; S.dirty = true; } }
 
 // --- agents -----------------------------------------------------------------------------------------
+// A drone keeps its colour across reloads and daemon restarts: from its name, not its arrival order
+// (drone-3 is the third colour; other names hash).
+function colorOf(identity) {
+  const m = /(\d+)$/.exec(identity);
+  let n = m ? Number(m[1]) - 1 : 0;
+  if (!m) for (const ch of identity) n = (n * 31 + ch.charCodeAt(0)) >>> 0;
+  return COLORS[n % COLORS.length];
+}
+
 function agentEntry(identity) {
   let a = S.agents.get(identity);
   if (!a) {
-    a = { identity, view: null, status: null, received: 0, track: [], color: COLORS[S.agents.size % COLORS.length] };
+    a = { identity, view: null, status: null, received: 0, track: [], color: colorOf(identity) };
     S.agents.set(identity, a);
     renderDronePicks();
   }
   return a;
 }
 
+// Why a drone is held: its holds by owner (operator, collision...) from the daemon's authority.
+async function refreshHeld(a) {
+  try {
+    const c = await api("GET", `/api/v1/agents/${encodeURIComponent(a.identity)}/authority`);
+    const holds = Object.entries(c.holds || {}).map(([owner, why]) => `${owner}: ${why}`);
+    a.held = holds.join("; ") || (c.order ? `${c.order} (${c.order_source})` : "paused");
+  } catch (e) { a.held = "paused"; }
+  S.tableDirty = true; S.dirty = true;
+}
+
+// "-0" (a drone on the ground a few cm below home) reads as 0.
+function fmtNum(v, digits) { const s = v.toFixed(digits); return /^-0(\.0*)?$/.test(s) ? s.slice(1) : s; }
+
+function excludedWhy(identity) {
+  const p = S.mission && S.mission.progress;
+  const ag = p && p.state === "running" && p.agents.find((x) => x.agent === identity && x.excluded);
+  return ag ? ag.why || "excluded" : null;
+}
+
 function onStatus(msg) {
   const a = agentEntry(msg.agent);
   const st = msg.status;
+  if (Boolean(st.paused) !== Boolean(a.status && a.status.paused) || (st.paused && a.held === undefined)) {
+    a.held = st.paused ? "" : undefined;
+    if (st.paused) refreshHeld(a);
+  }
   a.status = st;
   a.received = msg.received;
   const pos = st.position;  // absent until the vehicle has a GPS fix
@@ -143,6 +177,10 @@ function onEvent(ev) {
     }
   }
   if (ev.kind === "geofence_sent") loadGeofence();
+  if (ev.kind.startsWith("retask_") && ev.data && ev.data.id && S.mission && ev.mission_id === S.mission.id) {
+    S.mission.retask.set(ev.data.id, ev.data);
+    renderRetask();
+  }
   if (ev.kind === "agent_retired" && ev.agent) {
     S.agents.delete(ev.agent);
     renderDronePicks();
@@ -169,6 +207,7 @@ function connect() {
       if (msg.type === "status") onStatus(msg);
       else if (msg.type === "event") onEvent(msg.event);
       else if (msg.type === "hello") onHello(msg);
+      else if (msg.type === "coverage") onCoverage(msg);
     }
   };
 }
@@ -213,9 +252,78 @@ async function loadTracks() {
 
 // --- missions ---------------------------------------------------------------------------------------
 async function loadMission(id) {
-  S.mission = { id, name: id, progress: null, geometry: null, coverage: null };
+  S.mission = { id, name: id, progress: null, geometry: null, coverage: null, live: null, retask: new Map() };
+  renderRetask();
   try { S.mission.geometry = await api("GET", `/api/v1/missions/${id}/plan`); } catch (e) { /* none */ }
   await refreshMission();
+  refreshCoverage();
+  try {
+    for (const d of await api("GET", `/api/v1/missions/${id}/retask`)) S.mission.retask.set(d.id, d);
+    renderRetask();
+  } catch (e) { /* no survey */ }
+}
+
+// The stream's coverage message (docs/api.md): seen %, distance, ETA and the raster as bit masks.
+function unpackMask(b64, n) {
+  const bytes = atob(b64);
+  const out = new Uint8Array(n);
+  for (let i = 0; i < n; i++) out[i] = (bytes.charCodeAt(i >> 3) >> (7 - (i & 7))) & 1;
+  return out;
+}
+
+function onCoverage(msg) {
+  if (!S.mission || S.mission.id !== msg.mission_id) {
+    if (!S.mission || !S.mission.progress || S.mission.progress.state !== "running") loadMission(msg.mission_id);
+    return;
+  }
+  const g = msg.grid;
+  const n = g.rows * g.cols;
+  const inside = unpackMask(g.inside, n), seen = unpackMask(g.seen, n);
+  S.mission.live = { msg, inside, seen, ...coverageShapes(g, inside, seen) };
+  S.mission.coverage = msg.covered_pct;
+  S.mission.unseen = null;  // the raster replaces the polled GeoJSON
+  S.dirty = true;
+  renderCoverageText();
+}
+
+function renderCoverageText() {
+  const live = S.mission && S.mission.live;
+  if (!live) return;
+  const m = live.msg;
+  let text = `covered ${m.covered_pct.toFixed(1)} % · flown ${Math.round(m.flown_m)}/${Math.round(m.planned_m)} m`;
+  const p = S.mission.progress;
+  if (m.eta_s != null && (!p || p.state === "running")) text += ` · ETA ${fmtTime(m.eta_s)}`;
+  $("coverage").textContent = text;
+}
+
+function renderRetask() {
+  const box = $("retask");
+  box.innerHTML = "";
+  if (!S.mission) return;
+  for (const d of S.mission.retask.values()) {
+    const div = document.createElement("div");
+    div.className = "retask" + (d.state === "pending" ? "" : " answered");
+    div.dataset.id = d.id;
+    div.dataset.state = d.state;
+    const legs = (d.legs || []).map((l) => `<div>${esc(l.ident)}: +${Math.round(l.survey_m)} m, ${fmtTime(l.time_s)}, ${l.energy_wh.toFixed(1)} Wh</div>`).join("");
+    const head = `<b>re-task ${esc(d.id)}</b> ${esc(d.dropped)} left (${esc(d.why)}): ${esc(d.reason)}`;
+    const tail = d.state === "pending"
+      ? `<button class="accept">Accept</button> <button class="reject danger">Reject</button>`
+      : `<span class="muted">${esc(d.state)}${d.by ? " by the " + esc(d.by) : ""}</span>`;
+    div.innerHTML = `<div>${head}</div><div class="legs">${legs}</div><div>${tail}</div>`;
+    if (d.state === "pending") {
+      div.querySelector(".accept").onclick = () => answerRetask(d.id, "accept");
+      div.querySelector(".reject").onclick = () => answerRetask(d.id, "reject");
+    }
+    box.appendChild(div);
+  }
+}
+
+async function answerRetask(id, answer) {
+  const mission = S.mission && S.mission.id;
+  if (!mission) return;
+  const r = await act(`re-task ${answer}`, () => api("POST", `/api/v1/missions/${mission}/retask/${id}/${answer}`));
+  if (r && S.mission && S.mission.id === mission) { S.mission.retask.set(r.id, r); renderRetask(); }
 }
 
 async function refreshMission() {
@@ -232,8 +340,12 @@ async function refreshMission() {
 async function refreshCoverage() {
   if (!S.mission || !S.mission.geometry || !S.mission.geometry.area) return;
   try {
-    const c = await api("GET", `/api/v1/missions/${S.mission.id}/coverage`);
+    // the daemon's seen/unseen raster (flown tracks, footprint by height): unseen cells drawn in red
+    const c = await api("GET", `/api/v1/missions/${S.mission.id}/coverage?detail=geojson`);
+    if (S.mission.live) return;  // the stream's message is newer and carries distance and ETA
     S.mission.coverage = c.covered_pct;
+    S.mission.unseen = c.unseen || null;
+    S.dirty = true;
     $("coverage").textContent = c.covered_pct == null ? "" : `covered ${c.covered_pct.toFixed(1)} %`;
   } catch (e) { /* ignore */ }
 }
@@ -252,6 +364,7 @@ function renderMission() {
   $("btn-pause").disabled = !running || shown === "paused";
   $("btn-resume").disabled = !running || shown !== "paused";
   $("btn-abort").disabled = !running;
+  renderCoverageText();
   const box = $("progress");
   box.innerHTML = "";
   if (!p) return;
@@ -263,7 +376,7 @@ function renderMission() {
     row.className = "progress" + (ag.done ? " done" : "");
     row.dataset.agent = ag.agent;
     row.dataset.pct = pct.toFixed(0);
-    const what = ag.excluded ? "excluded" : ag.done ? "done" : ag.waiting_sync != null ? `sync ${ag.waiting_sync}` : `step ${ag.step}`;
+    const what = ag.excluded ? `excluded: ${ag.why || "by the mission"}` : ag.done ? "done" : ag.waiting_sync != null ? `sync ${ag.waiting_sync}` : `step ${ag.step}`;
     row.innerHTML = `<span class="name"></span><span class="bar"><span class="fill" style="width:${pct}%"></span></span><span class="label">${done}/${total} ${what}</span>`;
     row.querySelector(".name").textContent = ag.agent;
     box.appendChild(row);
@@ -324,7 +437,8 @@ function planRequest() {
 async function preview() {
   let req;
   try { req = planRequest(); } catch (e) { toast(e.message, true); return; }
-  const p = await act("preview", () => api("POST", "/api/v1/plan", req));
+  S.crossings = null;
+  const p = await act("preview", () => api("POST", "/api/v1/plan", req).catch((e) => { showBadArea(e.problem); throw e; }));
   S.preview = p;
   $("btn-start").disabled = !p;
   if (!p) { $("plan-result").textContent = ""; return; }
@@ -333,6 +447,16 @@ async function preview() {
   $("plan-result").innerHTML = `<div id="plan-summary">total ${(p.total_length_m / 1000).toFixed(2)} km, longest ${fmtTime(p.max_time_s)}, ${p.total_energy_wh.toFixed(1)} Wh` +
     (p.coverage_pct != null ? `, planned coverage ${p.coverage_pct.toFixed(1)} %` : "") + "</div>" + rows.map((r) => `<div>${r}</div>`).join("");
   S.dirty = true;
+}
+
+// A self-intersecting area comes back with its outline and crossings (lat/lon): draw them, so the
+// operator sees where the boundary crosses itself instead of reading metres in the planner's frame.
+function showBadArea(problem) {
+  if (!problem || !Array.isArray(problem.area) || problem.area.length < 3) return;
+  S.area = problem.area;
+  S.crossings = Array.isArray(problem.crossings) ? problem.crossings : [];
+  if (!S.origin) ensureOrigin(problem.area[0][0], problem.area[0][1]);
+  S.userMoved = false; fitView(); S.dirty = true;
 }
 
 async function startMission() {
@@ -393,17 +517,21 @@ function renderTable() {
     const age = a.received ? Math.max(0, now - a.received) : null;
     const speed = st && st.velocity ? Math.hypot(st.velocity.vn, st.velocity.ve) : null;
     const set = (cls, text) => { const td = tr.querySelector("td." + cls.split(" ")[0]); if (td.textContent !== text) td.textContent = text; };
-    set("mode", st ? st.mode + (st.paused ? " (held)" : "") : "-");
+    // A pilot (RC or another ground station) flies it: the daemon sends it nothing (docs/cooperation.md).
+    set("mode", st ? (st.pilot ? `PILOT ${st.pilot}` : st.mode + (st.paused ? " (held)" : "")) : "-");
+    tr.querySelector("td.mode").classList.toggle("pilot", !!(st && st.pilot));
     set("armed", st ? (st.armed ? "yes" : "no") : "-");
-    set("alt", pos ? pos.alt_rel.toFixed(1) + " m" : "-");
+    set("alt", pos ? fmtNum(pos.alt_rel, 1) + " m" : "-");
     set("gs", speed != null ? speed.toFixed(1) + " m/s" : "-");
     set("batt", bat && bat.pct != null ? bat.pct.toFixed(0) + " %" : "-");
     set("volt", bat && bat.voltage_v != null ? bat.voltage_v.toFixed(1) + " V" : "-");
     set("gps", st ? `${st.gps ? st.gps.fix : 0}/${st.gps ? st.gps.satellites : 0}` : "-");
-    set("step", st ? String(st.step) : "-");
+    set("step", st && st.step >= 0 ? String(st.step) : "-");  // -1: no mission step yet
     set("link", age == null ? "-" : age.toFixed(1) + " s");
     tr.querySelector("td.link").classList.toggle("stale", age != null && age > 3);
-    set("exc", st && st.exceptions ? st.exceptions.join("; ") : "");
+    const out = excludedWhy(a.identity);  // why it is held or out of the mission, then its exceptions
+    const notes = [...(st && st.paused ? [`held: ${a.held || "..."}`] : []), ...(out ? [`excluded: ${out}`] : [])];
+    set("exc", [...notes, ...(st && st.exceptions ? st.exceptions : [])].join("; "));
   });
   $("fleet-count").textContent = `${S.agents.size} drones`;
 }
@@ -412,7 +540,18 @@ function renderTable() {
 // which applies each drone's command on the daemon holding its link (through its vehicle authority).
 function fleetPath(cmd) { return S.cluster ? `/api/v1/cluster/fleet/${cmd}` : `/api/v1/fleet/${cmd}`; }
 
+// Commands that take one drone off its mission ask first, as the fleet-wide ones do.
+const DRONE_QUESTIONS = {
+  rtl: "Return {agent} to launch? Its part of the running mission is aborted.",
+  land: "Land {agent} where it is? Its part of the running mission is aborted.",
+};
+
 async function droneCommand(identity, cmd, label) {
+  const question = DRONE_QUESTIONS[cmd];
+  if (question && !(await confirmAction(question.replace("{agent}", identity)))) {
+    toast(`${label} ${identity}: cancelled`);
+    return;
+  }
   await act(`${label} ${identity}`, () => api("POST", fleetPath(cmd), { agents: [identity], reason: "dashboard" }));
 }
 
@@ -445,7 +584,7 @@ function clearTracks() {
 function renderEvents() {
   const ol = $("events");
   ol.innerHTML = S.events.slice(0, 200).map((e) =>
-    `<li class="${e.severity}" data-kind="${esc(e.kind)}"><span class="t">${new Date(e.time * 1000).toLocaleTimeString()}</span>` +
+    `<li class="${e.severity}" data-kind="${esc(e.kind)}"><span class="t">${new Date(e.time * 1000).toLocaleTimeString([], { hourCycle: "h23" })}</span>` +
     `<b>${esc(e.kind)}</b>${e.agent ? " [" + esc(e.agent) + "]" : ""} ${esc(e.message)}</li>`).join("");
 }
 
@@ -560,14 +699,92 @@ function drawDrone(a) {
   ctx.beginPath();
   const s = 9 * dpr;
   ctx.moveTo(0, -s); ctx.lineTo(s * 0.65, s * 0.75); ctx.lineTo(0, s * 0.35); ctx.lineTo(-s * 0.65, s * 0.75); ctx.closePath();
-  ctx.fillStyle = st.exceptions && st.exceptions.length ? "#c92a2a" : a.color;
-  ctx.strokeStyle = "#fff";
-  ctx.lineWidth = 1.5;
+  ctx.fillStyle = st.pilot ? "#f08c00" : st.exceptions && st.exceptions.length ? "#c92a2a" : a.color;
+  ctx.strokeStyle = st.pilot ? "#1d2329" : "#fff";
+  ctx.lineWidth = st.pilot ? 2.5 : 1.5;
   ctx.fill(); ctx.stroke();
   ctx.restore();
-  ctx.fillStyle = "#1d2329";
+  const out = excludedWhy(a.identity);
+  const why = st.paused ? `held${a.held ? ": " + a.held : ""}` : out ? `excluded: ${out}` : "";
+  if (why) {  // an operator order or an exclusion: a ring round the marker and the reason under it
+    ctx.beginPath();
+    ctx.arc(x, y, 14 * dpr, 0, 2 * Math.PI);
+    ctx.strokeStyle = st.paused ? "#e8590c" : "#868e96";
+    ctx.lineWidth = 2.5 * dpr;
+    ctx.setLineDash(st.paused ? [] : [4 * dpr, 3 * dpr]);
+    ctx.stroke();
+    ctx.setLineDash([]);
+  }
+  a.markerNote = why;
+  const who = st.pilot ? ` PILOT ${st.pilot}` : "";
+  const lines = [{ text: `${a.identity} ${fmtNum(st.position.alt_rel, 0)} m${who}`, color: "#1d2329" }];
+  if (why) lines.push({ text: why, color: "#e8590c" });
+  return { identity: a.identity, x, y, lines };
+}
+
+// Labels of drones closer than a label's size would overlap (5 m apart at a survey's zoom): each
+// label goes to the first free place next to its marker (right, then left, stepping up and down
+// by a line), clear of the labels placed before it and of the other markers, with a leader line
+// when it had to move (leaders that would cross another leader or label are avoided where a free place allows),
+// as QGC and Mission Planner declutter theirs. Stable order (by name), so
+// labels do not swap places between frames.
+const LABEL_TRIES = 24;
+function boxesOverlap(a, b) { return a.x < b.x + b.w && b.x < a.x + a.w && a.y < b.y + b.h && b.y < a.y + a.h; }
+function leader(spec, box) {  // marker to the nearest point of its label box
+  return [spec.x, spec.y, Math.min(Math.max(spec.x, box.x), box.x + box.w), Math.min(Math.max(spec.y, box.y), box.y + box.h)];
+}
+function segmentsCross([ax, ay, bx, by], [cx, cy, dx, dy]) {
+  const side = (px, py, qx, qy, rx, ry) => Math.sign((qx - px) * (ry - py) - (qy - py) * (rx - px));
+  return side(ax, ay, bx, by, cx, cy) * side(ax, ay, bx, by, dx, dy) < 0 && side(cx, cy, dx, dy, ax, ay) * side(cx, cy, dx, dy, bx, by) < 0;
+}
+function segmentHitsBox([x0, y0, x1, y1], box) {  // any inner point of the segment inside the box
+  for (let i = 1; i < 12; i++) {
+    const x = x0 + ((x1 - x0) * i) / 12, y = y0 + ((y1 - y0) * i) / 12;
+    if (x > box.x && x < box.x + box.w && y > box.y && y < box.y + box.h) return true;
+  }
+  return false;
+}
+function labelCandidates(spec, w, h, gap, step) {
+  const out = [];
+  for (let k = 0; k < LABEL_TRIES; k++) {
+    const dy = k === 0 ? 0 : (k % 2 ? 1 : -1) * Math.ceil(k / 2) * step;  // 0, +1, -1, +2, -2 ... lines
+    out.push({ x: spec.x + gap, y: spec.y - h / 2 - gap / 2 + dy, w, h, moved: k > 0 });
+    out.push({ x: spec.x - gap - w, y: spec.y - h / 2 - gap / 2 + dy, w, h, moved: true });
+  }
+  return out;
+}
+function placeLabels(specs) {
+  const dpr = window.devicePixelRatio || 1;
+  const lineH = 14 * dpr, pad = 3 * dpr, gap = 11 * dpr, mark = 10 * dpr;
   ctx.font = `${11 * dpr}px system-ui`;
-  ctx.fillText(`${a.identity} ${st.position.alt_rel.toFixed(0)} m`, x + 11 * dpr, y - 6 * dpr);
+  const markers = specs.map((s) => ({ x: s.x - mark, y: s.y - mark, w: 2 * mark, h: 2 * mark, identity: s.identity }));
+  const placed = [];
+  for (const spec of [...specs].sort((p, q) => (p.identity < q.identity ? -1 : p.identity > q.identity ? 1 : 0))) {
+    const w = Math.max(...spec.lines.map((l) => ctx.measureText(l.text).width)) + 2 * pad;
+    const h = spec.lines.length * lineH + pad;
+    const tries = labelCandidates(spec, w, h, gap, lineH + 2 * dpr);
+    // only what is within reach of this label's candidates can collide (a large fleet stays cheap)
+    const reach = w + gap + LABEL_TRIES * lineH;
+    const near = (o) => Math.abs(o.x - spec.x) < 2 * reach && Math.abs(o.y - spec.y) < 2 * reach;
+    const others = placed.filter((o) => near(o.spec)), marks = markers.filter((m) => m.identity !== spec.identity && near(m));
+    const free = (b) => !others.some((o) => boxesOverlap(b, o.box)) && !marks.some((m) => boxesOverlap(b, m));
+    const uncrossed = (b) => !b.moved || !others.some((o) => o.box.moved && segmentsCross(leader(spec, b), leader(o.spec, o.box)));
+    const clear = (b) => !others.some((o) => (b.moved && segmentHitsBox(leader(spec, b), o.box)) || (o.box.moved && segmentHitsBox(leader(o.spec, o.box), b)));
+    const box = tries.find((b) => free(b) && uncrossed(b) && clear(b)) || tries.find((b) => free(b) && uncrossed(b)) || tries.find(free) || tries[0];
+    placed.push({ spec, box });
+  }
+  for (const { spec, box } of placed) {
+    if (box.moved) {  // a leader line from the marker to the nearest point of its label
+      const [x0, y0, x1, y1] = leader(spec, box);
+      ctx.strokeStyle = "#495057"; ctx.lineWidth = 1 * dpr;
+      ctx.beginPath(); ctx.moveTo(x0, y0); ctx.lineTo(x1, y1); ctx.stroke();
+    }
+    ctx.fillStyle = "rgba(255,255,255,0.82)";
+    ctx.fillRect(box.x, box.y, box.w, box.h);
+    spec.lines.forEach((l, i) => { ctx.fillStyle = l.color; ctx.fillText(l.text, box.x + pad, box.y + pad + (i + 0.8) * lineH); });
+  }
+  const k = canvas.clientWidth / canvas.width;  // CSS pixels, for tests (like S.toScreen)
+  S.labelBoxes = placed.map(({ spec, box }) => ({ identity: spec.identity, x: box.x * k, y: box.y * k, w: box.w * k, h: box.h * k }));
 }
 
 function draw() {
@@ -587,12 +804,25 @@ function draw() {
     ctx.fillStyle = "rgba(31,111,235,0.07)"; ctx.strokeStyle = "#1f6feb"; ctx.lineWidth = 2;
     polyline(area, true); ctx.fill(); ctx.stroke();
   }
+  if (S.crossings && !g) {
+    ctx.strokeStyle = "#c92a2a"; ctx.lineWidth = 2;
+    for (const c of S.crossings) {
+      const [x, y] = toScreen(c[0], c[1]);
+      ctx.beginPath(); ctx.arc(x, y, 7, 0, 2 * Math.PI); ctx.stroke();
+      ctx.beginPath(); ctx.moveTo(x - 5, y - 5); ctx.lineTo(x + 5, y + 5); ctx.moveTo(x + 5, y - 5); ctx.lineTo(x - 5, y + 5); ctx.stroke();
+    }
+  }
+  if (S.mission && S.mission.live) drawCoverage(S.mission.live);
+  if (S.mission && S.mission.unseen && S.mission.unseen.coordinates) {
+    ctx.fillStyle = "rgba(201,42,42,0.16)";
+    for (const cell of S.mission.unseen.coordinates) { polyline(cell[0].map((q) => [q[1], q[0]]), true); ctx.fill(); }
+  }
   if (S.drawing && S.drawing.length) {
     ctx.strokeStyle = "#e8590c"; ctx.lineWidth = 2; polyline(S.drawing, false); ctx.stroke();
     for (const p of S.drawing) { const [x, y] = toScreen(p[0], p[1]); ctx.fillStyle = "#e8590c"; ctx.fillRect(x - 3, y - 3, 6, 6); }
   }
   // coverage so far: the flown track of the mission, as wide as the swath
-  if (g && g.swath_m && S.mission) {
+  if (g && g.swath_m && S.mission && !S.mission.live) {
     ctx.strokeStyle = "rgba(46,125,50,0.22)"; ctx.lineWidth = Math.max(1, g.swath_m * S.view.scale); ctx.lineCap = "round"; ctx.lineJoin = "round";
     for (const a of S.agents.values()) {
       const pts = a.track.filter((p) => p[2] === S.mission.id);
@@ -619,7 +849,56 @@ function draw() {
     if (a.track.length > 1) { ctx.strokeStyle = a.color; polyline(a.track.slice(-1500), false); ctx.stroke(); }
   }
   drawGeofence();
-  for (const a of S.agents.values()) drawDrone(a);
+  placeLabels([...S.agents.values()].map(drawDrone).filter(Boolean));
+}
+
+// The coverage layer: seen cells shaded green (a row's run of cells is one quad), the unseen part
+// of the area outlined in red (the cell edges between unseen and anything else). Runs and edges are
+// found once per message (up to 160k cells); a frame only projects and draws them.
+function coverageShapes(g, inside, seen) {
+  const runs = [], edges = [];
+  for (let r = 0; r < g.rows; r++) {
+    let c = 0;
+    while (c < g.cols) {
+      if (!seen[r * g.cols + c]) { c++; continue; }
+      const c0 = c;
+      while (c < g.cols && seen[r * g.cols + c]) c++;
+      runs.push([r, c0, c]);
+    }
+  }
+  const unseen = (r, c) => r >= 0 && c >= 0 && r < g.rows && c < g.cols && inside[r * g.cols + c] && !seen[r * g.cols + c];
+  for (let r = 0; r < g.rows; r++) {
+    for (let c = 0; c < g.cols; c++) {
+      if (!unseen(r, c)) continue;
+      if (!unseen(r - 1, c)) edges.push([r, c, r, c + 1]);
+      if (!unseen(r + 1, c)) edges.push([r + 1, c, r + 1, c + 1]);
+      if (!unseen(r, c - 1)) edges.push([r, c, r + 1, c]);
+      if (!unseen(r, c + 1)) edges.push([r, c + 1, r + 1, c + 1]);
+    }
+  }
+  return { runs, edges };
+}
+
+function drawCoverage(live) {
+  const g = live.msg.grid;
+  const dLat = (g.ne[0] - g.sw[0]) / g.rows, dLon = (g.ne[1] - g.sw[1]) / g.cols;
+  const at = (r, c) => toScreen(g.sw[0] + r * dLat, g.sw[1] + c * dLon);
+  ctx.fillStyle = "rgba(46,125,50,0.35)";
+  ctx.beginPath();
+  for (const [r, c0, c1] of live.runs) {
+    const p = [at(r, c0), at(r, c1), at(r + 1, c1), at(r + 1, c0)];
+    ctx.moveTo(p[0][0], p[0][1]);
+    for (let i = 1; i < 4; i++) ctx.lineTo(p[i][0], p[i][1]);
+    ctx.closePath();
+  }
+  ctx.fill();
+  ctx.strokeStyle = "#c92a2a"; ctx.lineWidth = 1.5;
+  ctx.beginPath();
+  for (const [r0, c0, r1, c1] of live.edges) {
+    const p = at(r0, c0), q = at(r1, c1);
+    ctx.moveTo(p[0], p[1]); ctx.lineTo(q[0], q[1]);
+  }
+  ctx.stroke();
 }
 
 function loop() { draw(); requestAnimationFrame(loop); }
@@ -667,7 +946,7 @@ $("btn-zoom-out").onclick = () => zoom(1 / 1.5);
 $("btn-fit").onclick = () => { S.userMoved = false; fitView(); };
 $("follow").onchange = () => { S.userMoved = false; S.dirty = true; };
 $("btn-draw").onclick = () => {
-  S.drawing = []; S.area = null; S.preview = null; $("btn-start").disabled = true;
+  S.drawing = []; S.area = null; S.crossings = null; S.preview = null; $("btn-start").disabled = true;
   $("btn-draw").classList.add("active"); $("btn-finish-draw").disabled = false; canvas.classList.add("drawing");
   $("follow").checked = false; S.dirty = true;
 };
@@ -676,14 +955,29 @@ $("btn-finish-draw").onclick = () => {
   else toast("an area needs at least 3 corners", true);
   S.drawing = null; $("btn-draw").classList.remove("active"); $("btn-finish-draw").disabled = true; canvas.classList.remove("drawing"); S.dirty = true;
 };
-$("btn-clear-area").onclick = () => { S.area = null; S.drawing = null; S.preview = null; $("area-text").value = ""; $("btn-start").disabled = true; S.dirty = true; };
-$("area-text").addEventListener("input", () => { S.area = null; S.preview = null; $("btn-start").disabled = true; });
+$("btn-clear-area").onclick = () => { S.area = null; S.crossings = null; S.drawing = null; S.preview = null; $("area-text").value = ""; $("btn-start").disabled = true; S.dirty = true; };
+$("area-text").addEventListener("input", () => { S.area = null; S.crossings = null; S.preview = null; $("btn-start").disabled = true; });
 $("area-file").addEventListener("change", async (e) => {
   const f = e.target.files[0];
   if (!f) return;
-  $("area-text").value = await f.text();
-  S.area = null;
+  const text = await f.text();
+  if (!text.trim()) { toast(`${f.name} is empty: no area in it`, true); e.target.value = ""; return; }
+  $("area-text").value = text;
+  S.area = null; S.crossings = null;
   toast(`loaded ${f.name}; press Preview`);
+});
+// QGC .plan / Mission Planner .waypoints files, one per drone (the file name names it): fly them.
+$("mission-files").addEventListener("change", async (e) => {
+  const input = e.target;
+  const files = {};
+  for (const f of input.files) files[f.name] = await f.text();
+  input.value = "";
+  const names = Object.keys(files);
+  if (!names.length) return;
+  const drones = names.map((n) => n.replace(/\.[^.]*$/, "")).join(", ");
+  if (!(await confirmAction(`Fly ${names.join(", ")} on ${drones}? The drones take off.`))) { toast("mission files: cancelled"); return; }
+  const r = await act("fly mission files", () => api("POST", "/api/v1/missions/import", { name: names.length === 1 ? drones : "imported-mission", files }));
+  if (r) await loadMission(r.mission_id);
 });
 $("btn-preview").onclick = preview;
 $("btn-start").onclick = startMission;
@@ -698,8 +992,10 @@ $("btn-clear-tracks").onclick = clearTracks;
 window.addEventListener("resize", () => { S.dirty = true; });
 
 async function init() {
-  try { S.tileUrl = (await api("GET", "/api/v1/ui-config")).tile_url; } catch (e) { /* ignore */ }
-  try { S.cluster = await api("GET", "/api/v1/cluster"); } catch (e) { S.cluster = null; /* embedded: 404 */ }
+  let ui = {};
+  try { ui = await api("GET", "/api/v1/ui-config"); S.tileUrl = ui.tile_url; } catch (e) { /* ignore */ }
+  // only a cluster daemon has /api/v1/cluster: asking a single daemon logged a 404 on every load
+  if (ui.cluster) { try { S.cluster = await api("GET", "/api/v1/cluster"); } catch (e) { S.cluster = null; } }
   try {
     const evs = await api("GET", "/api/v1/events?last=100");
     S.events = evs.reverse();
@@ -707,7 +1003,9 @@ async function init() {
   } catch (e) { /* ignore */ }
   try {
     const running = await api("GET", "/api/v1/missions?state=running&limit=1");
-    if (running.length) await loadMission(running[0].id);
+    // a reload shows the running mission, else the last one (a completed mission stays in view)
+    const last = running.length ? running : await api("GET", "/api/v1/missions?limit=1");
+    if (last.length) await loadMission(last[0].id);
   } catch (e) { /* ignore */ }
   loadGeofence();
   connect();

@@ -177,11 +177,11 @@ class Commands:
         if mid not in BUILDERS:
             return FAILED, []
         if us < 0:
-            self.v.link.set_message_interval(mid, None)
+            (self.v.reply_link or self.v.link).set_message_interval(mid, None)
         elif us == 0:
-            self.v.link.set_message_interval(mid, 1.0)
+            (self.v.reply_link or self.v.link).set_message_interval(mid, 1.0)
         else:
-            self.v.link.set_message_interval(mid, us / 1e6)
+            (self.v.reply_link or self.v.link).set_message_interval(mid, us / 1e6)
         return ACCEPTED, []
 
     def request_message(self, msg: mav.MAVLink_message, is_int: bool) -> Result:

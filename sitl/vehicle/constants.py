@@ -39,7 +39,12 @@ GUST_LEAK = 0.3  # gusts are faster than the loop, so more of them gets through
 BRAKE_DECEL = 7.5  # m/s^2, ArduCopter BRAKE mode deceleration
 TAKEOFF_DONE_M = 0.3
 LAND_DETECT_S = 1.0
-GPS_FS_S = 5.0  # dead reckoning tolerated before the EKF failsafe fires
+# ArduCopter's EKF failsafe on GPS loss: EKF3 times its position out after EK3's posRetryTimeNoVel
+# (7 s without GPS), then ekf_check (10 Hz) needs 10 bad iterations (1 s) before "EKF variance" and
+# the FS_EKF_ACTION failsafe.
+EK3_POS_TIMEOUT_S = 7.0
+EKF_CHECK_S = 1.0
+GPS_FS_S = EK3_POS_TIMEOUT_S + EKF_CHECK_S  # GPS loss to the EKF failsafe, airborne
 VEL_TIMEOUT_S = 3.0  # GUIDED velocity targets expire like ArduCopter's
 
 # RTL sub-states

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import random
 import threading
+from collections import deque
 from collections.abc import Mapping
 
 from sitl.dialect import mavlink as mav
@@ -37,11 +38,12 @@ from sitl.vehicle.constants import (
     AUTO,
     GUST_LEAK,
     MODE_NAMES,
+    SEV_CRITICAL,
     SEV_INFO,
     STABILIZE,
     WIND_LEAK,
 )
-from sitl.vehicle.failsafes import Failsafes
+from sitl.vehicle.failsafes import Failsafes, ekf_failsafe, ekf_failsafe_delay
 from sitl.vehicle.fence import Fence
 from sitl.vehicle.guidance import Guidance
 from sitl.vehicle.inbound import Inbound
@@ -96,6 +98,10 @@ class SimVehicle:
         self.power = PowerModel()
         self.battery = Battery(capacity_mah=self.params["BATT_CAPACITY"])
         self.link: LinkAPI = NullLink()
+        self.reply_link: LinkAPI | None = None  # the link whose message is being handled
+        # Commands and targets received (sim t, link name, message, command id, source system): what
+        # each ground station (the agent's link "gcs", a second one "pilot") asked of the vehicle.
+        self.command_log: deque[tuple[float, str, str, int | None, int]] = deque(maxlen=5000)
         # The parts, each with one job (see the package docstring); they read and change this state.
         self.guidance = Guidance(self)
         self.modes = ModeSwitch(self)
@@ -171,8 +177,9 @@ class SimVehicle:
 
     # ------------------------------------------------------------------ shared helpers
     def send(self, msg: mav.MAVLink_message) -> None:
-        """Send to the attached link (which drops it when nobody listens or the link is down)."""
-        self.link.send(msg)
+        """Send to the link being answered, else the vehicle's own (which drops it when nobody listens
+        or the link is down)."""
+        (self.reply_link or self.link).send(msg)
 
     def statustext(self, severity: int, text: str) -> None:
         """STATUSTEXT to the GCS (ArduPilot sends the words operators see)."""
@@ -185,11 +192,12 @@ class SimVehicle:
 
     @property
     def gps_ok(self) -> bool:
-        """True when GPS has a fix (booted, no injected loss, SIM_GPS_DISABLE off)."""
+        """True when GPS has a fix (booted, no injected loss, SIM_GPS_DISABLE off, SIM_GPS1_ENABLE on)."""
         return (
             self.t >= self.gps_lost_until
             and self.t >= self.gps_boot_s
             and self.params.get("SIM_GPS_DISABLE") == 0
+            and self.params.get("SIM_GPS1_ENABLE", 1.0) != 0
         )
 
     @property
@@ -274,6 +282,18 @@ class SimVehicle:
         """Set up a return: the return altitude and the climb to it."""
         self.guidance.start_rtl()
 
+    def gnss_failsafe_delay(self) -> float | None:
+        """Sim seconds from GPS loss to the autopilot's position failsafe (None: disabled)."""
+        return ekf_failsafe_delay(self)
+
+    def gnss_failsafe(self) -> None:
+        """The autopilot's own reaction to a lost position estimate (ArduCopter: EKF failsafe)."""
+        ekf_failsafe(self)
+
+    def gnss_failsafe_cleared(self) -> None:
+        """GPS is back after the position failsafe (the mode stays as the failsafe left it)."""
+        self.statustext(SEV_CRITICAL, "EKF Failsafe Cleared")
+
     def item_reached(self, seq: int) -> None:
         """MISSION_ITEM_REACHED for stored item ``seq``."""
         self.auto.item_reached(seq)
@@ -356,8 +376,10 @@ class SimVehicle:
         with self.lock:
             self.link_down_until = max(self.link_down_until, self.t + seconds)
 
-    def inject_gps_loss(self, seconds: float) -> None:
-        """No GPS fix for ``seconds`` of sim time: dead reckoning, EKF failsafe after 5 s airborne."""
+    def inject_gps_loss(self, seconds: float = math.inf) -> None:
+        """No GPS fix for ``seconds`` of sim time (default: for good): GPS_RAW_INT fix 0, no satellites,
+        its position frozen; the estimate dead-reckons and the personality's position failsafe follows
+        (:meth:`gnss_failsafe_delay`)."""
         with self.lock:
             self.gps_lost_until = max(self.gps_lost_until, self.t + seconds)
 

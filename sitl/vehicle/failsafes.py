@@ -5,9 +5,11 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from sitl.vehicle.constants import (
+    ALT_HOLD,
     AUTO,
     GPS_FS_S,
     LAND,
+    MODE_NAMES,
     POSITION_MODES,
     RTL,
     SEV_CRITICAL,
@@ -15,6 +17,26 @@ from sitl.vehicle.constants import (
 
 if TYPE_CHECKING:
     from sitl.vehicle.core import SimVehicle
+
+
+def ekf_failsafe_delay(v: SimVehicle) -> float | None:
+    """ArduCopter: sim seconds from GPS loss to the EKF failsafe; None when FS_EKF_THRESH <= 0 (off)."""
+    return GPS_FS_S if v.params.get("FS_EKF_THRESH", 0.8) > 0 else None
+
+
+def ekf_failsafe(v: SimVehicle) -> None:
+    """ArduCopter's failsafe_ekf_event: "EKF variance", then FS_EKF_ACTION in a mode that needs GPS.
+
+    1 (default) LAND, 2 ALT_HOLD (LAND if refused), 3 LAND even from a manual mode; 0 only reports.
+    A vehicle already in LAND goes on landing (without GPS), with no mode change.
+    """
+    v.statustext(SEV_CRITICAL, "EKF variance")
+    action = int(v.params["FS_EKF_ACTION"])
+    if not action or v.mode == LAND or (v.mode not in POSITION_MODES and action != 3):
+        return
+    if not (action == 2 and v.set_mode(ALT_HOLD)):
+        v.set_mode(LAND)
+    v.statustext(SEV_CRITICAL, f"EKF Failsafe: changed to {MODE_NAMES.get(v.mode, v.mode)} Mode")
 
 
 class Failsafes:
@@ -47,23 +69,21 @@ class Failsafes:
                         v.set_mode(RTL)
         elif self.batt_low_since is not None and v.battery.voltage_v >= low:
             self.batt_low_since = None
-        # EKF failsafe on GPS loss in a position mode
+        # EKF failsafe on GPS loss: the personality says after how long and what it does
+        delay = v.gnss_failsafe_delay()
         if (
             v.gps_lost_since is not None
+            and delay is not None
             and not v.ekf_failsafe
             and v.armed
             and not v.landed
-            and v.t - v.gps_lost_since >= GPS_FS_S
+            and v.t - v.gps_lost_since >= delay
         ):
             v.ekf_failsafe = True
-            action = int(p["FS_EKF_ACTION"])
-            if action and v.mode in POSITION_MODES:
-                v.set_mode(LAND)
-                v.statustext(SEV_CRITICAL, "EKF Failsafe: changed to LAND Mode")
-            else:
-                v.statustext(SEV_CRITICAL, "EKF variance")
-        if v.gps_lost_since is None:
+            v.gnss_failsafe()
+        if v.gps_lost_since is None and v.ekf_failsafe:
             v.ekf_failsafe = False
+            v.gnss_failsafe_cleared()
         # GCS failsafe (FS_GCS_ENABLE: 1 RTL, 2 continue AUTO else RTL, 5 LAND)
         fs_gcs = int(p["FS_GCS_ENABLE"])
         if (

@@ -84,4 +84,4 @@ class Inbound:
         interval = 1.0 / msg.req_message_rate if (msg.start_stop and msg.req_message_rate > 0) else None
         for g in groups:
             for mid in STREAM_GROUPS.get(g, ()):
-                v.link.set_message_interval(mid, interval)
+                (v.reply_link or v.link).set_message_interval(mid, interval)

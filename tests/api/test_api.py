@@ -7,12 +7,13 @@ from pathlib import Path
 
 import pytest
 
-from gcs.client import ApiError, FleetClient, StatusMessage
-from gcs.events import Event
+from gcs.http.client import ApiError, StatusMessage
+from gcs.observe.events import Event
 from protocol.geo import offset_latlon
 from protocol.packets import FenceCircle, Geofence
-from tests.api.fleet import Fleet, running_fleet
-from tests.backbone.helpers import HOME, survey_mission, wait_for
+from tests.api.fleet import client, running_fleet
+from tests.backbone.helpers import HOME, survey_mission
+from tests.support.polling import wait_for
 
 
 def area(north: float = 12.0, size: float = 20.0) -> list[tuple[float, float]]:
@@ -20,10 +21,6 @@ def area(north: float = 12.0, size: float = 20.0) -> list[tuple[float, float]]:
         offset_latlon(HOME[0], HOME[1], n, e)
         for n, e in ((north, -4), (north, size), (north + size, size), (north + size, -4))
     ]
-
-
-def client(fleet: Fleet, token: bool = True) -> FleetClient:
-    return FleetClient(fleet.base_url, "test-token" if token else None)
 
 
 async def test_fleet_reads_agents_history_and_openapi(tmp_path: Path) -> None:
@@ -147,7 +144,7 @@ async def test_plan_previews_for_search_psa_and_rsa(tmp_path: Path) -> None:
         assert search.taskfile.plans[0].actions[0].kind == "takeoff"
         targets = [{"lat": a, "lon": b} for a, b in area(30, 40)]
         psa = await gcs.plan(
-            {"method": "psa", "targets": targets, "link_range_m": 10, "drones": ["drone-1", "drone-2"]}
+            {"method": "psa", "targets": targets, "link_range_m": 20, "drones": ["drone-1", "drone-2"]}
         )
         assert len(psa.drones) == 2 and psa.targets is not None
         rsa = await gcs.plan(
@@ -176,6 +173,15 @@ async def test_plan_previews_for_search_psa_and_rsa(tmp_path: Path) -> None:
             assert bad.value.status == 422 and (words in bad.value.detail or words in bad.value.title), (
                 bad.value
             )
+        # A bow-tie is located in lat/lon (it read "(0.00, 0.00)" in the planner's local metres) and
+        # comes back with its outline and crossing, for the dashboard to draw.
+        answer = await gcs._http.post("/api/v1/plan", json={"method": "search", "area": bowtie})
+        body = answer.json()
+        assert answer.status_code == 422 and "(0.00, 0.00)" not in body["detail"], body
+        crossing = offset_latlon(HOME[0], HOME[1], 22.0, 8.0)
+        assert f"at ({crossing[0]:.6f}, {crossing[1]:.6f})" in body["detail"], body["detail"]
+        assert body["area"] == [list(p) for p in bowtie]
+        assert body["crossings"] == [pytest.approx(list(crossing), abs=1e-7)]
 
 
 async def test_plan_and_fly_then_pause_resume_and_abort_hold(tmp_path: Path) -> None:

@@ -13,15 +13,16 @@ from agent.autopilot.memory import MemoryAutopilot
 from agent.config import AgentConfig
 from agent.config_file import load_agent_config
 from agent.doctor import diagnose
-from gcs.config_file import load_daemon_config
-from gcs.daemon import Daemon
+from gcs.core.config_file import load_daemon_config
+from gcs.core.daemon import Daemon
 from gcs.extensions import Extension, ExtensionError, load_extension
-from gcs.extensions_builtin.geofence_alarm import GeofenceProximityAlarm, distance_to_fence
+from gcs.extensions.builtin.geofence_alarm import GeofenceProximityAlarm, distance_to_fence
 from protocol.geo import offset_latlon
 from protocol.packets import FenceCircle, Geofence, StatusReport
 from protocol.settings_file import ConfigFileError, JsonFormatter, LoggingConfig, configure_logging
 from tests.api.fleet import running_fleet
-from tests.backbone.helpers import HOME, new_key, running_daemon, survey_mission, wait_for
+from tests.backbone.helpers import HOME, new_key, running_daemon, survey_mission
+from tests.support.polling import wait_for
 
 
 class Recorder(Extension):
@@ -78,14 +79,16 @@ async def test_extension_hooks_schedules_and_commands(tmp_path: Path) -> None:
         await fleet.agents[1].kill()
         await wait_for(lambda: "drone-2" in ext.left, 5, "on_leave")
     assert ext.context is not None and ext._tasks == set()
+    hooks = [*fleet.daemon.agents.on_status, *fleet.daemon.agents.on_join]
+    assert not [h for h in hooks if getattr(h, "__self__", None) is ext]  # its subscriptions ended with it
 
 
 def test_extension_loading_errors() -> None:
     with pytest.raises(ExtensionError, match="cannot import"):
         load_extension("no.such.module")
     with pytest.raises(ExtensionError, match="create_extension"):
-        load_extension("gcs.events")
-    alarm = load_extension("gcs.extensions_builtin.geofence_alarm", {"margin_m": 5})
+        load_extension("gcs.observe.events")
+    alarm = load_extension("gcs.extensions.builtin.geofence_alarm", {"margin_m": 5})
     assert isinstance(alarm, GeofenceProximityAlarm) and alarm.margin_m == 5
 
 
@@ -104,7 +107,7 @@ def test_distance_to_fence_circle_polygon_and_ceiling() -> None:
 
 async def test_geofence_alarm_warns_and_holds_a_drone_near_the_fence(tmp_path: Path) -> None:
     fence = {"circle": {"lat": HOME[0], "lon": HOME[1], "radius_m": 40.0}}
-    module = "gcs.extensions_builtin.geofence_alarm"
+    module = "gcs.extensions.builtin.geofence_alarm"
     async with running_fleet(
         tmp_path,
         drones=1,
@@ -133,10 +136,10 @@ def test_daemon_toml_environment_and_flags(tmp_path: Path) -> None:
 listen_host = "0.0.0.0"
 http_port = 9000
 status_period_s = 0.25
-extensions = ["gcs.extensions_builtin.geofence_alarm"]
+extensions = ["gcs.extensions.builtin.geofence_alarm"]
 [daemon.agent_parameters]
 battery_low_pct = 30
-[daemon.extension_options."gcs.extensions_builtin.geofence_alarm"]
+[daemon.extension_options."gcs.extensions.builtin.geofence_alarm"]
 margin_m = 12
 [log]
 json_format = true
@@ -150,7 +153,7 @@ json_format = true
     config, log = load_daemon_config(path, {"listen_port": 5000}, env)
     assert config.listen_host == "0.0.0.0" and config.http_port == 9100 and config.listen_port == 5000
     assert config.agent_parameters.battery_low_pct == 30 and config.telemetry.enabled is False
-    assert config.extension_options["gcs.extensions_builtin.geofence_alarm"]["margin_m"] == 12
+    assert config.extension_options["gcs.extensions.builtin.geofence_alarm"]["margin_m"] == 12
     assert log.json_format and log.level == "debug"
     path.write_text("[daemon]\nhttp_port = 'eighty'\n")
     with pytest.raises(ConfigFileError, match=r"daemon\.http_port"):
@@ -239,7 +242,7 @@ async def test_agent_doctor_reports_a_healthy_setup_and_a_wrong_key(tmp_path: Pa
 def test_daemon_loads_extensions_from_its_config(tmp_path: Path) -> None:
     from tests.backbone.helpers import daemon_config
 
-    daemon = Daemon(daemon_config(tmp_path, new_key(), extensions=["gcs.extensions_builtin.geofence_alarm"]))
+    daemon = Daemon(daemon_config(tmp_path, new_key(), extensions=["gcs.extensions.builtin.geofence_alarm"]))
     assert any(isinstance(s, GeofenceProximityAlarm) for s in daemon.services)
     daemon.store.close()
 

@@ -10,12 +10,13 @@ import pytest
 from fastapi.routing import APIRoute, APIWebSocketRoute
 
 import gcs.http.routes
-from gcs.agents import RetireRefused
-from gcs.daemon import Daemon
+from gcs.core.daemon import Daemon
 from gcs.http import create_app
 from gcs.http.app import flat_routes
-from gcs.live import LiveHub
-from tests.backbone.helpers import daemon_config, new_key, running_daemon, start_agent, stop_agents, wait_for
+from gcs.link.sessions import RetireRefused
+from gcs.observe.live import LiveHub
+from tests.backbone.helpers import daemon_config, new_key, running_daemon, start_agent, stop_agents
+from tests.support.polling import wait_for
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -35,9 +36,13 @@ ROUTES = {
     ("/api/v1/missions", "POST"),
     ("/api/v1/plan", "POST"),
     ("/api/v1/missions/plan", "POST"),
+    ("/api/v1/missions/import", "POST"),
     ("/api/v1/missions/{mission_id}", "GET"),
     ("/api/v1/missions/{mission_id}/plan", "GET"),
     ("/api/v1/missions/{mission_id}/coverage", "GET"),
+    ("/api/v1/missions/{mission_id}/retask", "GET"),
+    ("/api/v1/missions/{mission_id}/retask/{decision_id}/{answer}", "POST"),
+    ("/api/v1/missions/{mission_id}/report", "GET"),
     ("/api/v1/missions/{mission_id}/abort", "POST"),
     ("/api/v1/missions/{mission_id}/pause", "POST"),
     ("/api/v1/missions/{mission_id}/resume", "POST"),
@@ -63,7 +68,7 @@ def test_route_table_and_schema_paths(tmp_path: Path) -> None:
     schema = {(p, m.upper()) for p, ops in app.openapi()["paths"].items() for m in ops}
     hidden = {("/api/v1/tiles/{z}/{x}/{y}", "GET"), ("/metrics", "GET"), ("/", "GET"), ("/docs", "GET")}
     assert schema == {r for r in ROUTES if r[1] != "WEBSOCKET"} - hidden
-    assert len(app.openapi()["paths"]) == 21
+    assert len(app.openapi()["paths"]) == 25
 
 
 def test_routes_never_import_the_daemon() -> None:
@@ -73,7 +78,7 @@ def test_routes_never_import_the_daemon() -> None:
         tree = ast.parse(source.read_text())
         imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
         imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
-        assert "gcs.daemon" not in imported, source.name
+        assert "gcs.core.daemon" not in imported, source.name
         names = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
         assert "daemon" not in names, source.name
 

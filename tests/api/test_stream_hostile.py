@@ -19,14 +19,15 @@ import httpx
 import pytest
 import websockets
 
-from gcs.live import StreamClient
+from gcs.observe.live import StreamClient
 from protocol.actions import Action, Goto, Hold, Takeoff
 from protocol.geo import offset_latlon
 from protocol.taskfile import AgentPlan, TaskFile
 from tests.api.fleet import running_fleet
 from tests.backbone.helpers import HOME
-from tests.backbone.test_cli import BIN, _wait_ready
 from tests.faults.hostile_ws import HostileStats, push_large_messages
+from tests.support.polling import wait_until
+from tests.support.processes import agent_process, serve_daemon, stop_processes, wait_ready
 
 pytestmark = pytest.mark.timeout(180)
 CLIENTS = 60
@@ -58,69 +59,18 @@ def _hover(names: list[str]) -> TaskFile:
 
 def _start(tmp_path: Path) -> tuple[subprocess.Popen[bytes], list[subprocess.Popen[bytes]], int, Path]:
     data_dir, ready = tmp_path / "gcs", tmp_path / "ready"
-    options: list[str | Path] = ["--status-period", "0.2", "--lost-after", "25", "--ready-file", ready]
-    serve = subprocess.Popen(
-        [
-            BIN / "gcs",
-            "serve",
-            "--listen",
-            "127.0.0.1:0",
-            "--http",
-            "127.0.0.1:0",
-            "--data-dir",
-            data_dir,
-            *options,
-        ],
-        stderr=subprocess.PIPE,
-    )
+    options = ("--status-period", "0.2", "--lost-after", "25")
+    serve = serve_daemon(data_dir, ready, options=options, stderr=subprocess.PIPE)
     agents: list[subprocess.Popen[bytes]] = []
     try:
-        agent_port, http_port = _wait_ready(ready, serve)
+        agent_port, http_port = wait_ready(ready, serve)
         for index, name in enumerate(NAMES):
             lat, lon = offset_latlon(HOME[0], HOME[1], 0.0, 6.0 * index)
-            vehicle: list[str | Path] = [
-                "--autopilot-backend",
-                "memory",
-                "--autopilot",
-                f"{lat},{lon},488",
-                "--speedup",
-                "8",
-            ]
-            link: list[str | Path] = [
-                "--gcs",
-                f"127.0.0.1:{agent_port}",
-                "--id",
-                name,
-                "--key-file",
-                data_dir / "fleet.key",
-            ]
-            agents.append(
-                subprocess.Popen([BIN / "agent", "run", *link, *vehicle], stderr=subprocess.DEVNULL)
-            )
+            agents.append(agent_process(name, agent_port, data_dir / "fleet.key", (lat, lon, 488), speedup=8))
     except BaseException:
-        _stop([serve, *agents])
+        stop_processes([serve, *agents])
         raise
     return serve, agents, http_port, data_dir
-
-
-def _stop(procs: list[subprocess.Popen[bytes]]) -> None:
-    for proc in procs:
-        proc.terminate()
-    for proc in procs:
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
-
-
-async def _until(predicate: object, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if await predicate():  # type: ignore[operator]
-            return
-        await asyncio.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 async def _attack(port: int, pid: int) -> tuple[int, list[HostileStats]]:
@@ -162,7 +112,7 @@ async def test_sixty_hostile_stream_clients_leave_memory_and_telemetry_alone(tmp
                 views = (await http.get("/api/v1/agents")).json()
                 return sum(1 for v in views if v["connected"] and v["status"]) == len(NAMES)
 
-            await _until(joined, 30, "agents to join")
+            await wait_until(joined, 30, "agents to join", poll=0.2)
             created = await http.post("/api/v1/missions", json=_hover(NAMES).model_dump(mode="json"))
             assert created.status_code == 201, created.text
             url = base.replace("http", "ws", 1) + "/api/v1/stream"
@@ -191,7 +141,7 @@ async def test_sixty_hostile_stream_clients_leave_memory_and_telemetry_alone(tmp
                         await asyncio.wait_for(ws.recv(), 10)
             assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
     finally:
-        _stop([serve, *agents])
+        stop_processes([serve, *agents])
     log = serve.stderr.read().decode(errors="replace") if serve.stderr else ""
     assert "Traceback" not in log, log[-3000:]
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.support.paths import ROOT
+
 DEFAULT = ROOT.parent / "shared" / "ardupilot" / "arducopter"
 
 

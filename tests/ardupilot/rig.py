@@ -14,12 +14,15 @@ from agent.autopilot.base import Autopilot
 from agent.autopilot.mavlink_backend import MavlinkAutopilot
 from agent.config import AgentSettings
 from gcs.cooperation.config import CollisionConfig, CooperationConfig
-from protocol.geo import offset_latlon
+from gcs.link.beacon import free_udp_port
+from protocol.actions import Goto, Land, Takeoff
+from protocol.geo import distance_m
 from sitl.ardupilot import ArduPilotFleet
 from sitl.fleet import FleetConfig, SimFleet
-from tests.support.rig import FleetRig, Sample
+from tests.support.places import at_vehicle
+from tests.support.rig import FleetRig, Sample, task
 
-__all__ = ["HOME", "Rig", "Sample", "at"]
+__all__ = ["HOME", "LatchedInternalError", "Rig", "Sample", "at"]
 
 HOME = (-35.363261, 149.165230, 584.0)  # ArduPilot's CMAC, where its SITL usually flies
 SPACING_M = 10.0  # homes 5 m apart trip the collision monitor's 4 m / 2 m margins on takeoff
@@ -30,12 +33,16 @@ PARAMS = {"BATT_CAPACITY": 50000.0}
 # Our simulator with ArduCopter's boot timing (sim seconds): no fix for 12 s, arming after 30 s.
 OURS_GPS_BOOT_S = 12.0
 OURS_PREARM_S = 30.0
+LATCHED_ERROR = "Internal errors"  # ArduCopter's arm refusal for a latched internal error
+
+
+class LatchedInternalError(Exception):
+    """A test failed on a rig whose ArduCopter latched an internal error (the only failure rerun)."""
 
 
 def at(north: float, east: float, index: int = 0) -> tuple[float, float]:
     """Lat/lon ``north``/``east`` metres from vehicle ``index``'s home."""
-    lat, lon = offset_latlon(HOME[0], HOME[1], 0.0, SPACING_M * index)
-    return offset_latlon(lat, lon, north, east)
+    return at_vehicle(HOME, SPACING_M, north, east, index)
 
 
 class Rig(FleetRig):
@@ -46,6 +53,8 @@ class Rig(FleetRig):
         self.simulator = simulator
         self.binary = binary
         self.fleet: SimFleet | ArduPilotFleet | None = None
+        # The last drone's agent routes its MAVLink to a ground station on this UDP port (issue 26).
+        self.router_port = 0
 
     speedup = SPEEDUP  # the simulator's speed-up, also the daemon's vehicle time scale
 
@@ -62,6 +71,7 @@ class Rig(FleetRig):
                 base_port=0,
                 host="127.0.0.1",
                 params=PARAMS,
+                pilot_links=True,  # SERIAL1 on loopback: a pilot's ground station (issue 26)
             ).start()
         fleet = SimFleet(
             FleetConfig(
@@ -74,6 +84,7 @@ class Rig(FleetRig):
                 prearm_delay_s=OURS_PREARM_S,
                 gps_boot_s=OURS_GPS_BOOT_S,
                 params={"WPNAV_SPEED": 1000.0, **PARAMS},  # ArduCopter's default speed
+                pilot_links=True,
             )
         )
         fleet.start()
@@ -82,7 +93,16 @@ class Rig(FleetRig):
     def start(self) -> Rig:
         """Boot the simulator, the daemon and the agents; returns as soon as every agent has joined."""
         self.fleet = self.boot_fleet()
-        autopilots: list[Autopilot] = [MavlinkAutopilot(e, telemetry_hz=10.0) for e in self.fleet.endpoints]
+        self.router_port = free_udp_port()
+        last = len(self.fleet.endpoints) - 1
+        autopilots: list[Autopilot] = [
+            MavlinkAutopilot(
+                e,
+                telemetry_hz=10.0,
+                mavlink_out=[f"udp:127.0.0.1:{self.router_port}"] if i == last else (),
+            )
+            for i, e in enumerate(self.fleet.endpoints)
+        ]
         try:
             self.start_agents(
                 autopilots,
@@ -102,6 +122,21 @@ class Rig(FleetRig):
         if self.fleet is not None:
             self.fleet.stop()
 
+    def reboot(self) -> None:
+        """Stop the simulator fleet, the daemon and the agents, and boot them all again."""
+        self.stop()
+        self._fresh()
+        self.start()
+
+    def latched_internal_error(self) -> str | None:
+        """An arm refused for ArduCopter's latched internal error, if any: seen on a loaded 2-core
+        machine as "Internal errors 0x100000 ... flow_of_ctrl" (its scheduler overran). The vehicle then
+        refuses every arm until it reboots, so the rest of a module on this rig cannot fly."""
+        if self.simulator != "arducopter" or self.daemon is None or not self.thread.is_alive():
+            return None
+        refused = [e.message for e in self.events("action_failed") if LATCHED_ERROR in e.message]
+        return refused[0] if refused else None
+
     def param(self, name: str, param: str, value: float | None = None) -> float:
         """Read (or write, then read back) an autopilot parameter over the agent's own link."""
         autopilot = self.agents[name].autopilot
@@ -109,3 +144,25 @@ class Rig(FleetRig):
         if value is None:
             return self.call(autopilot.get_param(param))
         return self.call(autopilot.set_param(param, value))
+
+
+def fly_north_then_wait_for(rig: Rig, name: str, label: str, out_m: float = 30.0) -> str:
+    """Every drone takes off (8/11/14 m) and flies 90 m north at 5 m/s, then lands; returns the mission
+    id once ``name`` is ``out_m`` metres into that leg (where the pilot or GNSS scenarios strike)."""
+    plans: dict[str, list[object]] = {}
+    for i, n in enumerate(rig.names):
+        lat, lon = at(90.0, 0.0, i)
+        plans[n] = [
+            Takeoff(step=0, alt=8.0 + 3 * i, sync=True),
+            Goto(step=1, lat=lat, lon=lon, alt=8.0 + 3 * i, speed=5.0, sync=True),
+            Land(step=2),
+        ]
+    mission_id = rig.submit(task(label, plans))
+    agent, home = rig.agents[name], at(0.0, 0.0, rig.names.index(name))
+
+    def out() -> bool:
+        t = agent.autopilot.telemetry()
+        return agent.queue.current_step == 1 and distance_m(t.lat, t.lon, *home) > out_m
+
+    rig.wait(out, 90.0, f"{name} {out_m:.0f} m into its leg")
+    return mission_id

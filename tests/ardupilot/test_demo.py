@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
-from gcs.demo import DemoOptions, simulator_command
+from gcs.commands.demo_mission import DemoOptions, simulator_command
 from tests.ardupilot.binary import SKIP_REASON, ardupilot_binary
-
-BIN = Path(sys.executable).parent
+from tests.support.processes import BIN
 
 
 def test_demo_simulator_command_for_ardupilot() -> None:

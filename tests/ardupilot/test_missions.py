@@ -10,10 +10,12 @@ import time
 
 import pytest
 
+from agent.autopilot.mavlink_backend import MavlinkAutopilot
 from protocol.actions import GoBy, Goto, Hold, Land, ReturnToLaunch, SetSpeed, Takeoff, Waypoint, Waypoints
 from protocol.geo import distance_m
 from protocol.packets import FenceCircle, Geofence
-from tests.ardupilot.rig import HOME, Rig, at
+from tests.ardupilot.rig import HOME, Rig, at, fly_north_then_wait_for
+from tests.support.pilot import PilotStation
 from tests.support.rig import task
 
 pytestmark = [pytest.mark.ardupilot, pytest.mark.slow, pytest.mark.timeout(240)]
@@ -177,3 +179,77 @@ def test_geofence_upload_reaches_the_autopilot(rig: Rig) -> None:
     finally:
         rig.call(rig.d.set_geofence(None, ["drone-1"]))
         rig.param("drone-1", "FENCE_ENABLE", 0.0)
+
+
+def test_a_pilot_takes_one_drone_mid_leg_and_the_others_complete(rig: Rig) -> None:
+    """Issue 26: a pilot's ground station on drone-2's SERIAL1 sets LOITER mid-leg. It stays in LOITER
+    for 30 s of vehicle time (nothing from the agent switches it back), the daemon shows ``pilot`` and
+    excludes it, the other two complete; the pilot lands it where it is. Last in the module: the
+    operator's release (landed and disarmed) gives drone-2 back to its agent."""
+    assert rig.fleet is not None and rig.fleet.pilot_endpoints
+    station = PilotStation(rig.fleet.pilot_endpoints[1])
+    try:
+        station.wait_heartbeat()
+        mission_id = fly_north_then_wait_for(rig, "drone-2", "pilot")
+        drone2 = rig.agents["drone-2"]
+        assert station.set_mode("LOITER") == 0  # MAV_RESULT_ACCEPTED
+        switched = drone2.autopilot.telemetry()
+        assert switched.vehicle_time_s is not None
+        rig.wait(lambda: rig.d.authority.pilot("drone-2") == "LOITER", 10.0, "the daemon to see the pilot")
+        modes: set[str] = set()
+        for _ in range(600):  # 30 s of vehicle time (bounded: 60 s of wall time)
+            t = drone2.autopilot.telemetry()
+            modes.add(t.mode)
+            if (t.vehicle_time_s or 0.0) >= switched.vehicle_time_s + 30.0:
+                break
+            time.sleep(0.1)
+        else:
+            raise AssertionError("30 s of vehicle time did not pass")
+        assert modes == {"LOITER"}, modes
+        held = drone2.autopilot.telemetry()
+        assert distance_m(held.lat, held.lon, switched.lat, switched.lon) < 15.0
+        progress = rig.finish_without(mission_id, "drone-2", 150.0)
+        assert progress.state == "completed", progress
+        assert any(e.agent == "drone-2" for e in rig.events("agent_excluded"))
+        assert station.set_mode("LAND") == 0
+        rig.wait(lambda: (t := drone2.autopilot.telemetry()).landed and not t.armed, 60.0, "drone-2 landed")
+        down = drone2.autopilot.telemetry()
+        assert distance_m(down.lat, down.lon, held.lat, held.lon) < 10.0  # where the pilot landed it
+        rig.wait(lambda: rig.d.authority.pilot("drone-2") == "LAND", 10.0, "the daemon to see LAND")
+    finally:
+        station.close()
+        rig.call(rig.d.operator.resume(["drone-2"], "test over"))
+        rig.wait(lambda: rig.d.authority.pilot("drone-2") is None, 10.0, "drone-2 released")
+
+
+def test_a_ground_station_through_the_agents_router_sees_the_vehicle_and_sets_its_mode(rig: Rig) -> None:
+    """Issue 26: a "QGroundControl" on UDP, fed by drone-3's agent (``mavlink_out``), sees the
+    autopilot's heartbeats but not the agent's frames nor its ACKs, and sets a mode through the
+    agent's link (ACCEPTED, its own ACK routed back to it). Landed and disarmed, so no takeover."""
+    drone3 = rig.agents["drone-3"]
+    station = PilotStation(f"udpin:127.0.0.1:{rig.router_port}")
+    try:
+        station.wait_heartbeat()
+        autopilot = drone3.autopilot
+        assert isinstance(autopilot, MavlinkAutopilot) and autopilot.link.router is not None
+        router = autopilot.link.router
+        withheld = router.stats["withheld"]
+        rig.call(autopilot.set_mode("GUIDED"))  # the agent's own command: its ACK stays here
+        assert router.stats["withheld"] > withheld
+        kinds: set[tuple[str, int]] = set()
+        until = time.monotonic() + 2.0  # two heartbeats of vehicle time at the least
+        for _ in range(20_000):
+            msg = station.conn.recv_match(blocking=True, timeout=0.1)
+            if msg is not None:
+                kinds.add((msg.get_type(), msg.get_srcComponent()))
+            if time.monotonic() > until:
+                break
+        assert ("HEARTBEAT", 1) in kinds and ("HEARTBEAT", 191) not in kinds, kinds
+        assert not any(kind == "COMMAND_ACK" for kind, _ in kinds), kinds
+        assert station.set_mode("LOITER") == 0  # MAV_RESULT_ACCEPTED
+        rig.wait(lambda: drone3.autopilot.telemetry().mode == "LOITER", 10.0, "drone-3 in LOITER")
+        assert rig.d.authority.pilot("drone-3") is None  # on the ground: not a takeover
+        assert station.set_mode("GUIDED") == 0
+        rig.wait(lambda: drone3.autopilot.telemetry().mode == "GUIDED", 10.0, "drone-3 back in GUIDED")
+    finally:
+        station.close()

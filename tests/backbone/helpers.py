@@ -5,22 +5,21 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import secrets
-import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 
 from agent.autopilot.memory import MemoryAutopilot
 from agent.config import AgentConfig, AgentSettings
 from agent.runtime import Agent
-from gcs.config import DaemonConfig
-from gcs.daemon import Daemon
-from gcs.store import StoredMission
+from gcs.core.config import DaemonConfig
+from gcs.core.daemon import Daemon
+from gcs.storage.store import StoredMission
 from protocol.actions import GoBy, Goto, Land, Takeoff
 from protocol.geo import offset_latlon
 from protocol.taskfile import AgentPlan, TaskFile
-
-HOME = (47.397742, 8.545594, 488.0)
+from tests.support.places import HOME
+from tests.support.polling import wait_for
 
 
 def daemon_config(data_dir: Path, key_hex: str, **overrides: object) -> DaemonConfig:
@@ -58,9 +57,10 @@ def start_agent(
     index: int = 0,
     speedup: float = 8.0,
     settings: AgentSettings | None = None,
+    spacing_m: float = 6.0,
     **config_overrides: object,
 ) -> RunningAgent:
-    lat, lon = offset_latlon(HOME[0], HOME[1], 0.0, 6.0 * index)
+    lat, lon = offset_latlon(HOME[0], HOME[1], 0.0, spacing_m * index)
     autopilot = MemoryAutopilot((lat, lon, HOME[2]), speedup=speedup, speed_mps=6.0, climb_mps=4.0)
     config = AgentConfig(
         identity=identity,
@@ -74,16 +74,6 @@ def start_agent(
     ).model_copy(update=config_overrides)
     agent = Agent(config, autopilot)
     return RunningAgent(agent, autopilot, asyncio.create_task(agent.run(), name=f"agent-{identity}"))
-
-
-async def wait_for(predicate: Callable[[], object], timeout: float, what: str, poll: float = 0.02) -> None:
-    """Poll ``predicate`` until true; fail with ``what`` after ``timeout`` seconds (bounded loop)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        await asyncio.sleep(poll)
-    raise AssertionError(f"timed out after {timeout:.1f} s waiting for {what}")
 
 
 async def mission_ended(daemon: Daemon, mission_id: str, timeout: float, what: str) -> StoredMission:

@@ -6,78 +6,28 @@ import json
 import os
 import secrets
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
 from tests.backbone.helpers import survey_mission
-
-BIN = Path(sys.executable).parent
-
-
-def _wait_ready(path: Path, proc: subprocess.Popen[bytes], timeout: float = 20.0) -> list[int]:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if path.exists() and path.read_text().strip():
-            return [int(p) for p in path.read_text().split()]
-        if proc.poll() is not None:
-            detail = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
-            raise AssertionError(f"gcs serve exited with {proc.returncode}: {detail}")
-        time.sleep(0.05)
-    raise AssertionError("gcs serve did not become ready")
+from tests.support.processes import BIN, agent_process, serve_daemon, wait_ready
 
 
 @pytest.mark.slow
 def test_serve_agents_and_run_a_mission_from_the_command_line(tmp_path: Path) -> None:
     data_dir = tmp_path / "gcs"
     ready = tmp_path / "ready"
-    serve = subprocess.Popen(
-        [
-            BIN / "gcs",
-            "serve",
-            "--listen",
-            "127.0.0.1:0",
-            "--http",
-            "127.0.0.1:0",
-            "--data-dir",
-            data_dir,
-            "--status-period",
-            "0.1",
-            "--ready-file",
-            ready,
-        ],
-        stderr=subprocess.PIPE,
-    )
+    serve = serve_daemon(data_dir, ready, options=("--status-period", "0.1"), stderr=subprocess.PIPE)
     agents: list[subprocess.Popen[bytes]] = []
     try:
-        agent_port, http_port = _wait_ready(ready, serve)
+        agent_port, http_port = wait_ready(ready, serve)
         key_file = data_dir / "fleet.key"
         assert oct(key_file.stat().st_mode & 0o777) == "0o600"
         for index, name in enumerate(["cli-1", "cli-2"]):
             lat, lon = 47.397742, 8.545594 + index * 0.0001
-            agents.append(
-                subprocess.Popen(
-                    [
-                        BIN / "agent",
-                        "run",
-                        "--gcs",
-                        f"127.0.0.1:{agent_port}",
-                        "--id",
-                        name,
-                        "--key-file",
-                        key_file,
-                        "--autopilot-backend",
-                        "memory",
-                        "--autopilot",
-                        f"{lat},{lon},488",
-                        "--speedup",
-                        "8",
-                    ],
-                    stderr=subprocess.DEVNULL,
-                )
-            )
+            agents.append(agent_process(name, agent_port, key_file, (lat, lon, 488), speedup=8))
         api = ["--api", f"http://127.0.0.1:{http_port}", "--data-dir", str(data_dir)]
         deadline = time.monotonic() + 20
         listing = ""

@@ -5,13 +5,14 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from gcs.daemon import Daemon
+from gcs.core.daemon import Daemon
 from protocol.packets import Close, CloseReason, Position, StatusReport
 from protocol.session import Accepted, ClientHandshake
 from protocol.stream import client_handshake
 from protocol.wire import encode
-from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, wait_for
-from tests.backbone.test_handshake_and_abuse import RawClient
+from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents
+from tests.support.polling import wait_for
+from tests.support.raw_client import RawClient
 
 
 async def _joined(

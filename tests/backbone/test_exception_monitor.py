@@ -9,7 +9,8 @@ from protocol.actions import Goto, Hold, Takeoff
 from protocol.geo import offset_latlon
 from protocol.packets import FenceCircle, Geofence
 from protocol.taskfile import AgentPlan, TaskFile
-from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent, stop_agents, wait_for
+from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent, stop_agents
+from tests.support.polling import wait_for
 
 
 def hover_mission(identity: str, seconds: float = 60.0, north_m: float = 0.0) -> TaskFile:

@@ -7,18 +7,11 @@ from pathlib import Path
 
 import pytest
 
-from gcs.missions import MissionRejected
+from gcs.missions.runner import MissionRejected
 from protocol.geo import distance_m
 from protocol.packets import FenceCircle, Geofence
-from tests.backbone.helpers import (
-    HOME,
-    new_key,
-    running_daemon,
-    start_agent,
-    stop_agents,
-    survey_mission,
-    wait_for,
-)
+from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent, stop_agents, survey_mission
+from tests.support.polling import wait_for
 
 
 async def test_status_flows_from_every_agent(tmp_path: Path) -> None:

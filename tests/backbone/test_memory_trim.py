@@ -1,4 +1,4 @@
-"""gcs/memory.py: freed memory of a thread's allocations goes back to the system on a trim."""
+"""gcs/observe/memory.py: freed memory of a thread's allocations goes back to the system on a trim."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import threading
 
 import pytest
 
-from gcs.memory import release_free_memory
+from gcs.observe.memory import release_free_memory
 
 
 def _rss_bytes() -> int:

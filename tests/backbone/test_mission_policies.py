@@ -9,15 +9,9 @@ from pathlib import Path
 import pytest
 
 from agent.autopilot.base import CommandRefused
-from gcs.missions import MissionRejected
-from tests.backbone.helpers import (
-    new_key,
-    running_daemon,
-    start_agent,
-    stop_agents,
-    survey_mission,
-    wait_for,
-)
+from gcs.missions.runner import MissionRejected
+from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission
+from tests.support.polling import wait_for
 
 
 async def test_skip_policy_flies_on_after_a_refused_takeoff(tmp_path: Path) -> None:
@@ -129,7 +123,11 @@ async def test_preflight_waits_for_a_fix_and_says_so(tmp_path: Path) -> None:
             await wait_for(lambda: daemon.agents.session("a") is not None, 10, "agent")
             tel = agents[0].autopilot.telemetry()
             tel.gps_fix, tel.position_known = 0, False
-            await wait_for(lambda: daemon.agents.session("a").status.position is None, 5, "no position")  # type: ignore[union-attr]
+            await wait_for(  # (the session is there before its first report: status None until then)
+                lambda: (s := daemon.agents.session("a")) and s.status and s.status.position is None,
+                5,
+                "no position",
+            )
 
             async def fix_later() -> None:
                 await asyncio.sleep(0.8)
@@ -143,7 +141,11 @@ async def test_preflight_waits_for_a_fix_and_says_so(tmp_path: Path) -> None:
             await wait_for(lambda: mission_id not in daemon.missions.active, 30, "mission end")
             # and a fix that never comes: refused with the reason, after the bounded wait
             tel.gps_fix, tel.position_known = 0, False
-            await wait_for(lambda: daemon.agents.session("a").status.position is None, 5, "no position")  # type: ignore[union-attr]
+            await wait_for(  # (the session is there before its first report: status None until then)
+                lambda: (s := daemon.agents.session("a")) and s.status and s.status.position is None,
+                5,
+                "no position",
+            )
             with pytest.raises(MissionRejected, match=r"no 3-D fix after 1 s from a \(GPS fix 0"):
                 await daemon.missions.submit(survey_mission(["a"], sync_legs=1, fix_wait_s=1))
         finally:

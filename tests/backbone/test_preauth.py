@@ -17,14 +17,16 @@ from pathlib import Path
 import pytest
 
 from agent.config import AgentConfig
+from agent.doctor import diagnose, handshake
 from agent.link import DaemonLink
-from gcs.agents import source_of
+from gcs.link.admission import source_of
 from protocol import auth
 from protocol.packets import Close, CloseReason, RequestCid, ResponseCid
 from protocol.session import ClientHandshake, Code, Refused, ServerHandshake, refusal
 from protocol.stream import FramedStream, open_client
-from tests.backbone.helpers import new_key, running_daemon, start_agent, wait_for
+from tests.backbone.helpers import new_key, running_daemon, start_agent
 from tests.faults.proxy import FaultProxy, Script
+from tests.support.polling import wait_for
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -274,3 +276,18 @@ def test_sources_are_addresses_and_ipv6_counts_per_64() -> None:
     assert source_of(("2001:db8:1:2::1", 1, 0, 0)) == "2001:db8:1:2::/64"
     assert source_of(("2001:db8:1:3::1", 1, 0, 0)) != source_of(("2001:db8:1:2::1", 1, 0, 0))
     assert source_of(("fe80::1%eth0", 1, 0, 2)) == "fe80::/64"
+
+
+async def test_agent_doctor_does_not_fall_back_to_v1_on_one_forged_answer(tmp_path: Path) -> None:
+    """`agent doctor` treats a code-less version answer as the link does: unauthenticated, so v1 only
+    after three in a row; one forged answer leaves the probe on v2 (and the report says which)."""
+    key = new_key()
+    async with running_daemon(tmp_path, key) as daemon, FaultProxy(daemon.listen_port) as proxy:
+        proxy.impersonate(V1_ANSWER)
+        config = AgentConfig(identity="doctor-probe", gcs_port=proxy.port, key_hex=key)
+        report = await diagnose(config, None, drift_interval_s=0, timeout=5)
+        assert proxy.stats["forged"] == 1
+        assert report.ok and "protocol v2," in report.render(), report.render()
+        proxy.impersonate(V1_ANSWER, V1_ANSWER, V1_ANSWER)  # a v1 daemon answers every v2 hello so
+        old = await handshake(config, "doctor-probe", 5.0)
+        assert old.version == 1 and proxy.stats["forged"] == 4

@@ -1,4 +1,4 @@
-"""The release journal (gcs/release_journal.py): a release journaled but not yet in the database
+"""The release journal (gcs/missions/release_journal.py): a release journaled but not yet in the database
 (the daemon died between the two) is in the database, with its event, once the store opens again,
 and only if the database agrees (every member had finished the step). A damaged or hostile journal
 never crashes the store, never floods the log, and never releases a barrier nobody reached."""
@@ -11,13 +11,14 @@ from pathlib import Path
 
 import pytest
 
-from gcs.release_journal import TRUNCATE_AT_BYTES
-from gcs.store import Store, StoreError
+from gcs.missions.release_journal import TRUNCATE_AT_BYTES
+from gcs.storage.store import Store, StoreError
 from protocol.packets import Resume, SyncSignal
 from protocol.session import ClientHandshake
 from protocol.stream import open_client
-from tests.backbone.helpers import new_key, running_daemon, survey_mission, wait_for
-from tests.backbone.serve_process import run_serve
+from tests.backbone.helpers import new_key, running_daemon, survey_mission
+from tests.support.polling import wait_for
+from tests.support.processes import run_serve
 
 
 def _store_with_mission(path: Path, completed: int = -1) -> Store:
@@ -148,7 +149,7 @@ def test_a_hostile_line_is_skipped_with_one_warning_naming_it(
 ) -> None:
     """Each line the issue found crashing the start-up (OverflowError, RecursionError) or read as
     a release ("6", 6.9) is skipped; the good line after it is still recovered."""
-    with caplog.at_level(logging.WARNING, logger="gcs.release_journal"):
+    with caplog.at_level(logging.WARNING, logger="gcs.missions.release_journal"):
         store, journal = _open_with_journal(tmp_path, [HOSTILE_LINES[case], _line("m-1", 2, 2.0)])
     assert store.released_steps("m-1") == {2}
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -171,7 +172,7 @@ def test_a_future_barrier_nobody_reached_is_not_recovered(
     store._db.execute("UPDATE mission_agents SET completed_step=3 WHERE agent='a2'")
     store.close()
     Path(str(db) + "-releases").write_text(_line("m-1", 3, 3.0) + "\n" + _line("m-1", 5, 5.0) + "\n")
-    with caplog.at_level(logging.WARNING, logger="gcs.release_journal"):
+    with caplog.at_level(logging.WARNING, logger="gcs.missions.release_journal"):
         reopened = Store(db)
     assert reopened.released_steps("m-1") == {3}  # step 3 agrees with the database; 5 does not
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -197,12 +198,12 @@ def test_400000_lines_of_an_unknown_mission_give_a_bounded_log(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """The issue's 400,000 lines wrote 44 MB of warnings: now the first few, then one summary."""
-    from gcs.release_journal import WARN_LINES
+    from gcs.missions.release_journal import WARN_LINES
 
     db = tmp_path / "fleetgcs.sqlite"
     _store_with_mission(db, completed=5).close()
     Path(str(db) + "-releases").write_bytes((_line("m-nobody", 1, 1.0) + "\n").encode() * 400_000)
-    with caplog.at_level(logging.WARNING, logger="gcs.release_journal"):
+    with caplog.at_level(logging.WARNING, logger="gcs.missions.release_journal"):
         store = Store(db)
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warnings) == WARN_LINES + 1, len(warnings)
@@ -213,7 +214,7 @@ def test_400000_lines_of_an_unknown_mission_give_a_bounded_log(
 
 
 def test_a_journal_far_beyond_its_size_stops_the_store_with_one_line(tmp_path: Path) -> None:
-    from gcs.release_journal import MAX_JOURNAL_BYTES
+    from gcs.missions.release_journal import MAX_JOURNAL_BYTES
 
     db = tmp_path / "fleetgcs.sqlite"
     _store_with_mission(db).close()
@@ -287,3 +288,27 @@ async def test_a_release_not_recovered_is_given_again_once_every_member_says_it_
         finally:
             await ahead.close()
             await behind.close()
+
+
+def test_gcs_log_reads_without_recovering_or_migrating(tmp_path: Path) -> None:
+    """`gcs log` beside a (possibly running) daemon only reads: a journaled release stays for the
+    daemon to recover with its event; the database and the journal are not touched."""
+    import subprocess
+    import sys
+
+    db = tmp_path / "fleetgcs.sqlite"
+    store = _store_with_mission(db, completed=0)
+    store.journal_release("m-1", 0)  # journaled, the row never written (the daemon was killed)
+    store.close()
+    journal = Path(str(db) + "-releases")
+    before = (db.read_bytes(), journal.read_bytes())
+    listed = subprocess.run(
+        [str(Path(sys.executable).parent / "gcs"), "log", "agents", "--database", str(db)],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert listed.returncode == 0, listed.stderr
+    assert (db.read_bytes(), journal.read_bytes()) == before
+    reopened = Store(db)  # the daemon's own open still recovers it, once
+    assert reopened.released_steps("m-1") == {0}
+    assert _released_events(reopened) == [{"step": 0, "recovered": True}]
+    reopened.close()

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-from gcs.config import DaemonConfig
-from gcs.store import Store
-from tests.backbone.serve_process import run_serve
+from gcs.core.config import DaemonConfig
+from gcs.storage.store import Store
+from tests.support.processes import run_serve
 
 
 def _database(data: Path) -> Path:
@@ -65,6 +65,11 @@ def _key_is_directory(data: Path) -> None:
     (data / "fleet.key").mkdir(parents=True)
 
 
+def _empty_api_token(data: Path) -> None:
+    data.mkdir()
+    (data / "api.token").write_text("  \n")  # an empty token would let an empty 'Bearer ' through
+
+
 CASES: dict[str, tuple[Callable[[Path], None], str]] = {
     "database path is a directory": (_directory, "is a directory"),
     "zero-length database": (_zero_length, "is empty (zero bytes)"),
@@ -83,6 +88,7 @@ CASES: dict[str, tuple[Callable[[Path], None], str]] = {
     "fleet.key too short": (_bad_key(b"abcd\n"), "at least 16 bytes"),
     "fleet.key binary": (_bad_key(b"\xff\xfe" * 32), "not ASCII hex"),
     "fleet.key a directory": (_key_is_directory, "cannot read the key file"),
+    "api.token empty": (_empty_api_token, "api.token is empty"),
 }
 
 
@@ -130,3 +136,24 @@ def test_a_bad_configured_fleet_key_is_refused_by_the_configuration() -> None:
     with pytest.raises(ValidationError, match="at least 16 bytes"):
         DaemonConfig(fleet_key_hex="abcd")
     assert DaemonConfig(fleet_key_hex="ab" * 32).fleet_key_hex == "ab" * 32
+
+
+def test_a_stored_running_mission_that_no_longer_validates_is_aborted_not_fatal(tmp_path: Path) -> None:
+    """A running mission stored by another version (its task no longer validates) must not keep the
+    daemon, and with it the rest of the fleet, from starting: it is ended as aborted with the reason,
+    and an error event says so."""
+    data = tmp_path / "data"
+    data.mkdir()
+    store = Store(_database(data), allow_new=True)
+    store.add_mission("m-old", "old survey", '{"name": "old survey", "plans": "not a list"}', ["drone-1"])
+    store.close()
+    result = run_serve(data)
+    assert result.started, result.stderr
+    assert "Traceback" not in result.stderr
+    store = Store(_database(data))
+    stored = store.mission("m-old")
+    events = [e for e in store.events() if e.kind == "mission_restore_failed"]
+    store.close()
+    assert stored is not None and stored.state == "aborted", stored
+    assert stored.result.startswith("not restored after restart: ") and "plans" in stored.result
+    assert len(events) == 1 and events[0].severity == "error" and events[0].mission_id == "m-old"

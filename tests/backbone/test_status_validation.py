@@ -21,9 +21,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gcs.agents_table import StatusTable
-from gcs.daemon import Daemon
-from gcs.status_limits import StatusLimits, plausible, refusal
+from gcs.core.daemon import Daemon
+from gcs.link.agents_table import StatusTable
+from gcs.link.status_limits import StatusLimits, plausible, refusal
 from protocol import status_binary
 from protocol.actions import Action, Goto, Hold, Takeoff
 from protocol.geo import offset_latlon
@@ -32,8 +32,9 @@ from protocol.session import ClientHandshake, Code
 from protocol.stream import client_handshake
 from protocol.taskfile import AgentPlan, TaskFile
 from protocol.wire import FRAME_VERSION, HEADER, MAGIC, STATUS_COMPACT
-from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent, stop_agents, wait_for
-from tests.backbone.test_handshake_and_abuse import RawClient
+from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent, stop_agents
+from tests.support.polling import wait_for
+from tests.support.raw_client import RawClient
 
 FIXED = status_binary.FIXED_SIZE
 
@@ -263,7 +264,7 @@ async def _attack(
 async def test_bad_status_bodies_close_only_their_session_while_a_mission_keeps_its_telemetry_rate(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.ERROR, logger="gcs.agents")
+    caplog.set_level(logging.ERROR, logger="gcs.link")
     key = new_key()
     honest = ["honest-0", "honest-1", "honest-2"]
     async with running_daemon(tmp_path, key) as daemon:
@@ -332,5 +333,32 @@ async def test_an_implausible_json_status_is_refused_like_a_compact_one(tmp_path
             assert session.status is not None and session.status.mode == "GUIDED"
             (event,) = daemon.events.history(kind="status_refused", agent="json-1")
             assert event.severity == "warning" and "position.alt_rel -1000000000.0 m" in event.message
+        finally:
+            client.writer.close()
+
+
+async def test_a_failsafe_in_an_implausible_report_still_reaches_the_authority(tmp_path: Path) -> None:
+    """The vehicle's own failsafe must not be lost because one number of its report glitched: the
+    report is refused (event), but the failsafe reaches the authority with the last plausible
+    position, so no lower-priority order undoes it; the glitched values never reach the table."""
+    key = new_key()
+    async with running_daemon(tmp_path, key) as daemon:
+        client = await RawClient.connect(daemon.listen_port)
+        await client_handshake(client.stream, ClientHandshake("fs-1", bytes.fromhex(key)), timeout=5.0)
+        try:
+            await client.send(_good(mode="GUIDED", armed=True, landed=False))
+            session = daemon.agents.session("fs-1")
+            await wait_for(lambda: session is not None and session.status is not None, 5.0, "first report")
+            glitch = Position(lat=47.3, lon=8.5, alt_rel=-1e9, alt_amsl=500.0)
+            await client.send(
+                _good(mode="RTL", armed=True, landed=False, position=glitch, failsafe="battery: rtl")
+            )
+            await wait_for(lambda: daemon.authority.failsafe("fs-1") == "battery: rtl", 5.0, "the failsafe")
+            assert session is not None and session.status is not None
+            assert session.status.failsafe == "battery: rtl" and session.status.mode == "RTL"
+            assert session.status.position is not None and session.status.position.alt_rel == 10.0
+            assert not daemon.authority.may_command("fs-1", "mission")
+            (event,) = daemon.events.history(kind="status_refused", agent="fs-1")
+            assert "failsafe/failure kept" in event.message
         finally:
             client.writer.close()

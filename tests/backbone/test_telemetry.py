@@ -8,13 +8,12 @@ import itertools
 import json
 import sqlite3
 import subprocess
-import sys
 import time
 from pathlib import Path
 
-from gcs.config import TelemetryConfig
-from gcs.store import _MIGRATIONS, SCHEMA_VERSION, Store
-from gcs.telemetry import CSV_COLUMNS, split_flights
+from gcs.core.config import TelemetryConfig
+from gcs.observe.telemetry import CSV_COLUMNS, split_flights
+from gcs.storage.store import _MIGRATIONS, SCHEMA_VERSION, Store
 from tests.backbone.helpers import (
     new_key,
     running_daemon,
@@ -22,10 +21,9 @@ from tests.backbone.helpers import (
     stop_agents,
     survey_mission,
     telemetry_row,
-    wait_for,
 )
-
-BIN = Path(sys.executable).parent
+from tests.support.polling import wait_for
+from tests.support.processes import BIN
 
 
 async def test_flight_is_logged_including_reports_buffered_during_an_outage(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""The event loop takes the store's write lock ahead of the telemetry writer (gcs/store.py insert_telemetry).
+"""The event loop takes the store's write lock ahead of the telemetry writer (Store.insert_telemetry).
 
 A barrier release is persisted before it is sent; it must not wait for the writer's whole
 chunk. Here the chunk is 50,000 rows (about a quarter of a second of inserts or more): the
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from gcs import store as store_module
-from gcs.store import Store
+from gcs.storage import store as store_module
+from gcs.storage.store import Store
 from tests.backbone.helpers import telemetry_row
 
 ROWS = 50_000

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 from typing import Any
 
 import pytest
 
-from agent.autopilot.base import CommandRefused, FenceCircle, FenceSpec, MissionPoint
+from agent.autopilot.base import CommandRefused, FenceCircle, FenceSpec, MissionPoint, PilotInControl
 from agent.autopilot.mavsdk_backend import MavsdkAutopilot, to_mavsdk_url
 from protocol.geo import distance_m, offset_latlon
 from tests.backends.conftest import HOME, wait_until
+from tests.support.pilot import PilotStation
 
 pytestmark = pytest.mark.slow
 
@@ -92,3 +94,33 @@ async def test_mavsdk_fence_and_mission_upload(sim_fleet: Any, closing: Any) -> 
         "the last waypoint in AUTO",
         timeout=20.0,
     )
+
+
+async def test_mavsdk_a_pilots_mode_switch_stops_every_moving_command(sim_fleet: Any, closing: Any) -> None:
+    """The MAVSDK backend shares the pymavlink backend's pilot gate: a mode the agent did not ask
+    for (a second ground station on the vehicle's pilot link) refuses goto, hold, RTL and land."""
+    fleet = sim_fleet(pilot_links=True)
+    ap = await connected(fleet, closing)
+    assert ap.pilot_modes() is not None
+    await ap.arm(deadline_s=20.0)
+    await ap.takeoff(10.0)
+    await wait_until(ap, lambda t: t.alt_rel >= 9.5, "takeoff to 10 m", timeout=15.0)
+    lat, lon = offset_latlon(HOME[0], HOME[1], 60.0, 0.0)
+    await ap.goto(lat, lon, 10.0, speed_mps=5.0)
+    await ap.hold()  # our own modes (GUIDED, BRAKE) one after the other: never the pilot's
+    assert ap.telemetry().pilot_mode is None
+    station = PilotStation(fleet.pilot_endpoints[0])
+    try:
+        await asyncio.to_thread(station.wait_heartbeat)
+        assert await asyncio.to_thread(station.set_mode, "LOITER") == 0
+        await wait_until(ap, lambda t: t.pilot_mode == "LOITER", "the pilot's mode seen", timeout=5.0)
+        for command in (ap.goto(lat, lon, 10.0), ap.hold(), ap.return_to_launch(), ap.land()):
+            with pytest.raises(PilotInControl):
+                await command
+        assert fleet.vehicle(0).state.mode == "LOITER"  # nothing of ours reached it
+        assert await asyncio.to_thread(station.set_mode, "GUIDED") == 0  # the pilot hands back
+        await wait_until(ap, lambda t: t.pilot_mode is None, "the hand-back", timeout=5.0)
+        await ap.land()
+        await wait_until(ap, lambda t: t.landed, "landed", timeout=30.0)
+    finally:
+        station.close()

@@ -4,11 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import signal
-import sys
 from pathlib import Path
 
-BIN = Path(sys.executable).parent
-ROOT = Path(__file__).resolve().parents[2]
+from tests.support.processes import BIN
 
 
 async def run_tool(*argv: str | Path, timeout: float = 60.0) -> tuple[int, str, str]:

@@ -89,6 +89,18 @@ def _options(tmp: Path) -> list[tuple[list[str], Any, object]]:
             lambda c, a: a.link._signing_key is not None,
             True,
         ),
+        (
+            [
+                "--autopilot-backend",
+                "mavlink",
+                "--mavlink-out",
+                "udp:127.0.0.1:14550",
+                "--mavlink-out",
+                "tcpin::5790",
+            ],
+            lambda c, a: [str(spec) for spec in a.link.router.specs],
+            ["udp:127.0.0.1:14550", "tcpin:0.0.0.0:5790"],
+        ),
     ]
 
 
@@ -154,3 +166,21 @@ def test_missing_identity_or_key_is_one_clear_line(monkeypatch: pytest.MonkeyPat
         _load(["--id", "d1", "--autopilot-backend", "memory"])
     with pytest.raises(SystemExit, match=r"agent run: agent\.capabilities\.max_speed_mps"):
         _load(["--id", "d1", "--key", KEY, "--autopilot-backend", "memory", "--max-speed", "-1"])
+
+
+def test_mavlink_out_from_the_environment_and_a_bad_one_is_one_clear_line(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv("FLEETGCS_AUTOPILOT_MAVLINK_OUT", "udp:10.0.0.9:14550,udpin:0.0.0.0:14551")
+    _, autopilot = _load(["--id", "d1", "--key", KEY, "--autopilot-backend", "mavlink"])
+    assert [str(spec) for spec in autopilot.link.router.specs] == [
+        "udp:10.0.0.9:14550",
+        "udpin:0.0.0.0:14551",
+    ]
+    with pytest.raises(SystemExit, match=r"autopilot\.mavlink_out.*mavlink-out '10\.0\.0\.9:14550'"):
+        _load(
+            ["--id", "d1", "--key", KEY, "--autopilot-backend", "mavlink", "--mavlink-out", "10.0.0.9:14550"]
+        )
+    monkeypatch.delenv("FLEETGCS_AUTOPILOT_MAVLINK_OUT")
+    with pytest.raises(SystemExit, match="need --autopilot-backend mavlink"):
+        _load(["--id", "d1", "--key", KEY, "--autopilot-backend", "memory", "--mavlink-out", "udp:1.2.3.4:1"])

@@ -11,10 +11,13 @@ from pathlib import Path
 
 import pytest
 
-from gcs.telemetry import to_csv, to_geojson
+from gcs.observe.telemetry import to_csv, to_geojson
 from tests.api.fleet import running_fleet
-from tests.backbone.helpers import survey_mission, wait_for
-from tests.cli.common import BIN, ROOT, gcs, interrupt_after, one_line, run_tool
+from tests.backbone.helpers import survey_mission
+from tests.cli.common import gcs, interrupt_after, one_line, run_tool
+from tests.support.paths import ROOT
+from tests.support.polling import wait_for
+from tests.support.processes import BIN
 
 DOWN = "http://127.0.0.1:9"  # discard port: nothing listens
 
@@ -45,7 +48,7 @@ def test_plan_on_a_missing_file_a_directory_and_a_self_intersecting_area(tmp_pat
     )
     crossed = run(BIN / "gcs", "plan", bowtie, "--swath", "10", "--out", tmp_path / "out")
     line = one_line(crossed.stderr)
-    assert crossed.returncode == 1 and "self-intersecting area (lat, lon)" in line, line
+    assert crossed.returncode == 2 and "self-intersecting area (lat, lon)" in line, line
     assert "vertex 1 (47.397000, 8.545000) -> vertex 2 (47.398000, 8.546000)" in line, line
     assert "at (47.397500, 8.545500)" in line, line
 

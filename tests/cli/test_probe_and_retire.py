@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import asyncio
 from pathlib import Path
 
+from agent.autopilot.memory import MemoryAutopilot
 from agent.config import AgentConfig
-from agent.doctor import diagnose
+from agent.doctor import Report, check_autopilot, diagnose
 from tests.api.fleet import running_fleet
-from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
+from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission
 from tests.cli.common import gcs
+from tests.support.polling import wait_for
 
 
 async def test_doctor_probe_is_authenticated_but_never_a_fleet_member(tmp_path: Path) -> None:
@@ -81,3 +84,26 @@ async def test_retire_an_agent_over_the_api_and_the_command_line(tmp_path: Path)
                 assert fleet.daemon.agents.sessions["drone-1"].cid == cid
             finally:
                 await stop_agents([back])
+
+
+class _LateFixAutopilot(MemoryAutopilot):
+    """The memory vehicle as a MAVLink link looks at its first heartbeat: no GPS report yet.
+
+    Its fix (10 satellites) arrives 0.5 s later, as GPS_RAW_INT does after the link comes up.
+    """
+
+    async def connect(self, timeout: float = 30.0) -> None:
+        await super().connect(timeout)
+        fix = self.telemetry().gps_fix, self.telemetry().satellites
+        self._t.gps_fix, self._t.satellites = 0, 0
+        loop = asyncio.get_running_loop()
+        loop.call_later(0.5, lambda: setattr(self._t, "gps_fix", fix[0]))
+        loop.call_later(0.5, lambda: setattr(self._t, "satellites", 10))
+
+
+async def test_doctor_waits_for_the_first_gps_report() -> None:
+    """`agent doctor` read the GPS right after the first heartbeat and said "fix 0 (0 satellites)"."""
+    report = Report()
+    await check_autopilot(report, _LateFixAutopilot(), timeout=5.0)
+    gps = next(c for c in report.checks if c.name == "GPS")
+    assert gps.verdict == "ok" and gps.detail == "fix 3, 10 satellites", gps

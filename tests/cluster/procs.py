@@ -6,12 +6,11 @@ import contextlib
 import os
 import signal
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-BIN = Path(sys.executable).parent
+from tests.support.processes import BIN
 
 
 @dataclass
@@ -37,8 +36,17 @@ class ServeProcess:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 self.process.wait(5)
 
+    def pause(self) -> None:
+        """SIGSTOP: a GC pause, a frozen VM, an overloaded host (resume with :meth:`resume`)."""
+        self.process.send_signal(signal.SIGSTOP)
+
+    def resume(self) -> None:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGCONT)
+
     def stop(self) -> None:
         if self.process.poll() is None:
+            self.resume()  # a paused daemon would never see the SIGTERM
             self.process.terminate()
             try:
                 self.process.wait(10)
@@ -47,7 +55,13 @@ class ServeProcess:
 
 
 def start_serve(
-    name: str, base: Path, nats_urls: str, key_hex: str, lease_ttl_s: float = 2.0, timeout: float = 20.0
+    name: str,
+    base: Path,
+    nats_urls: str,
+    key_hex: str,
+    lease_ttl_s: float = 2.0,
+    timeout: float = 20.0,
+    env: dict[str, str] | None = None,
 ) -> ServeProcess:
     """Start one clustered daemon on free loopback ports and wait until it listens."""
     data_dir = base / name
@@ -55,7 +69,7 @@ def start_serve(
     (data_dir / "fleet.key").write_text(key_hex + "\n")
     ready = data_dir / "ready"
     ready.unlink(missing_ok=True)
-    env = {**os.environ, "FLEETGCS_CLUSTER_LEASE_TTL_S": str(lease_ttl_s)}
+    env = {**os.environ, "FLEETGCS_CLUSTER_LEASE_TTL_S": str(lease_ttl_s), **(env or {})}
     log = open(data_dir / "serve.log", "ab")  # noqa: SIM115 - owned by the process
     process = subprocess.Popen(
         [

@@ -17,7 +17,7 @@ from typing import Any
 
 from agent.runtime import Agent
 from gcs.cooperation.config import CooperationConfig
-from gcs.daemon import Daemon
+from gcs.core.daemon import Daemon
 from sitl.fleet import SimFleet
 from tests.backbone.helpers import daemon_config, new_key
 from tests.cooperation.rig import SPEEDUP, _sample_truth, mavlink_agent, start_sim_fleet, wait_for

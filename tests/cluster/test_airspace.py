@@ -15,19 +15,18 @@ from typing import Any
 import httpx
 import pytest
 
-from gcs.authority import Decision
 from gcs.cluster.natsrun import NatsServer
+from gcs.control.authority import Decision
 from gcs.cooperation.intents import HoldIntent, ReleaseIntent
 from gcs.cooperation.service import CooperationService
-from gcs.daemon import Daemon
+from gcs.core.daemon import Daemon
 from protocol.actions import Hold, Land, Takeoff
 from protocol.geo import ned_offset_m
 from protocol.packets import CloseReason
 from protocol.taskfile import AgentPlan, TaskFile
 from tests.backbone.helpers import daemon_config, new_key, start_agent, stop_agents
 from tests.cluster.simrig import spread_rig, two_daemons
-from tests.cooperation.rig import HOME, SPACING_M, assert_pair_separated, wait_for
-from tests.cooperation.test_collision_flight import head_on_task
+from tests.cooperation.rig import HOME, SPACING_M, assert_pair_separated, head_on_task, wait_for
 
 pytestmark = pytest.mark.slow
 

@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from gcs.cli import build_parser
 from gcs.commands.serve import resolve_config
-from gcs.config_file import ConfigFileError, load_daemon_config
-
-BIN = Path(sys.executable).parent
+from gcs.core.config_file import ConfigFileError, load_daemon_config
+from tests.support.processes import BIN
 
 
 def test_cli_flag_splits_servers() -> None:
@@ -77,3 +75,19 @@ def test_agent_daemon_list() -> None:
     assert config.daemon_addresses() == [("127.0.0.1", 4000), ("10.0.0.2", 4001), ("base3", 4000)]
     with pytest.raises(ValidationError, match="bad port"):
         AgentConfig(identity="d1", key_hex="00" * 32, daemons=["10.0.0.2:http"])
+
+
+def test_cluster_lost_timeout_outlasts_the_agents_switch(tmp_path: Path) -> None:
+    """Another daemon's agents are dropped only after their own daemon-silence switch plus a
+    margin (derived by default); a shorter setting is refused with one line saying why."""
+    from gcs.core.config import CLUSTER_LOST_MARGIN_S, DaemonConfig
+
+    config = DaemonConfig(status_period_s=0.5, lost_after_periods=6.0)  # lost_after_s 3 s
+    assert config.remote_lost_after_s == 5.0 + CLUSTER_LOST_MARGIN_S
+    assert DaemonConfig(agent_daemon_silence_s=2.0, lost_after_periods=20.0).remote_lost_after_s == 10.0
+    path = tmp_path / "gcs.toml"
+    path.write_text("[daemon]\ncluster_lost_after_s = 3.0\n")
+    with pytest.raises(ConfigFileError, match=r"cluster_lost_after_s \(3 s\) must be at least agent_daemon"):
+        load_daemon_config(path, environ={})
+    config, _ = load_daemon_config(path, environ={"FLEETGCS_AGENT_DAEMON_SILENCE_S": "1.0"})
+    assert config.remote_lost_after_s == 3.0

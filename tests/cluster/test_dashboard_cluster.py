@@ -11,8 +11,9 @@ from typing import Any
 import pytest
 
 from gcs.cluster.natsrun import NatsServer
-from tests.backbone.helpers import new_key, start_agent, stop_agents, wait_for
+from tests.backbone.helpers import new_key, start_agent, stop_agents
 from tests.cluster.simrig import two_daemons
+from tests.support.polling import wait_for
 from tests.web.conftest import browser  # noqa: F401 - the Chromium fixture
 from tests.web.dashboard import drone_count, open_dashboard
 

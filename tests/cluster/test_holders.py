@@ -15,13 +15,14 @@ import pytest
 
 from gcs.cluster.natsrun import NatsServer
 from gcs.cluster.node import RemoteSession
-from gcs.missions import MissionRejected
+from gcs.missions.runner import MissionRejected
 from protocol.actions import Hold, Land, Takeoff
 from protocol.packets import CloseReason, StatusReport
 from protocol.taskfile import AgentPlan, TaskFile
 from protocol.wire import encode
-from tests.backbone.helpers import new_key, start_agent, stop_agents, wait_for
+from tests.backbone.helpers import new_key, start_agent, stop_agents
 from tests.cluster.simrig import cluster_daemons, two_daemons
+from tests.support.polling import wait_for
 
 
 def _hover_task(name: str) -> TaskFile:

@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from gcs.cluster.natsrun import free_port
-from gcs.daemon import Daemon
-from tests.backbone.helpers import daemon_config, new_key, running_daemon, start_agent, stop_agents, wait_for
+from gcs.core.daemon import Daemon
+from tests.backbone.helpers import daemon_config, new_key, running_daemon, start_agent, stop_agents
+from tests.support.polling import wait_for
 
 
 async def test_link_moves_to_the_next_daemon(tmp_path: Path) -> None:

@@ -12,8 +12,9 @@ import httpx
 import pytest
 
 from gcs.cluster.natsrun import NatsCluster
-from tests.backbone.helpers import mission_ended, new_key, start_agent, stop_agents, survey_mission, wait_for
+from tests.backbone.helpers import mission_ended, new_key, start_agent, stop_agents, survey_mission
 from tests.cluster.simrig import two_daemons
+from tests.support.polling import wait_for
 
 pytestmark = pytest.mark.slow
 

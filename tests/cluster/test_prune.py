@@ -10,7 +10,7 @@ import pytest
 from gcs.cluster.housekeeping import prune_round
 from gcs.cluster.natsrun import NatsServer
 from gcs.cluster.state import ClusterState
-from tests.backbone.helpers import wait_for
+from tests.support.polling import wait_for
 
 
 async def _state(server: NatsServer, name: str) -> ClusterState:

@@ -8,8 +8,8 @@ import httpx
 import pytest
 
 from gcs.cluster.natsrun import NatsServer
-from gcs.daemon import Daemon
-from gcs.live import LiveHub
+from gcs.core.daemon import Daemon
+from gcs.observe.live import LiveHub
 from tests.backbone.helpers import mission_ended, survey_mission
 from tests.cluster.simrig import spread_rig
 from tests.cooperation.rig import wait_for

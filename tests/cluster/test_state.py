@@ -7,7 +7,7 @@ import time
 
 from gcs.cluster.natsrun import NatsServer
 from gcs.cluster.state import ClusterState
-from tests.backbone.helpers import wait_for
+from tests.support.polling import wait_for
 
 
 async def _state(server: NatsServer, name: str, ttl: float = 1.0) -> ClusterState:

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import math
 import secrets
 import threading
-import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,30 +20,28 @@ from typing import Any
 from agent.autopilot.mavlink_backend import MavlinkAutopilot
 from agent.config import AgentConfig, AgentSettings
 from agent.runtime import Agent
-from gcs.config import DaemonConfig
 from gcs.cooperation.config import CooperationConfig
 from gcs.cooperation.service import CooperationService
-from gcs.daemon import Daemon
-from protocol.geo import ned_offset_m, offset_latlon
+from gcs.core.config import DaemonConfig
+from gcs.core.daemon import Daemon
+from protocol.actions import Goto, Land, Takeoff
+from protocol.geo import ned_offset_m
+from protocol.taskfile import AgentPlan, TaskFile
 from sitl.fleet import FleetConfig, SimFleet
+from tests.support import polling
+from tests.support.places import HOME, at
 
-HOME = (47.397742, 8.545594, 488.0)
 SPEEDUP = 8.0
 SPACING_M = 6.0
 
+wait_for = functools.partial(polling.wait_for, poll=0.05)
+"""The one bounded poll at 20 Hz: flight tests' predicates record what they see (modes, tracks) at the rate
+they were written for; a faster poll sees a vehicle's transients they never meant to judge."""
 
-def at(north: float, east: float) -> tuple[float, float]:
-    """Lat/lon ``north``/``east`` metres from the first home."""
-    return offset_latlon(HOME[0], HOME[1], north, east)
 
-
-async def wait_for(predicate: Callable[[], object], timeout: float, what: str, poll: float = 0.05) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        await asyncio.sleep(poll)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+Interpose = Callable[[str, int, str], Awaitable[tuple[int, str]]]
+"""(agent name, daemon port, vehicle endpoint) -> the daemon port and endpoint the agent uses
+instead: a link in between (tests/faults/links.py)."""
 
 
 @dataclass
@@ -110,9 +108,10 @@ def mavlink_agent(
     endpoint: str,
     settings: AgentSettings | None = None,
     options: dict[str, Any] | None = None,
+    autopilot: dict[str, Any] | None = None,
 ) -> Agent:
     """An in-process agent on the MAVLink backend, its timers shortened for SPEEDUP (``options``:
-    more AgentConfig fields)."""
+    more AgentConfig fields, ``autopilot``: MavlinkAutopilot options)."""
     return Agent(
         AgentConfig(
             identity=name,
@@ -125,7 +124,7 @@ def mavlink_agent(
             monitor_period_s=0.05,
             **(options or {}),
         ),
-        MavlinkAutopilot(endpoint, telemetry_hz=20.0),
+        MavlinkAutopilot(endpoint, **{"telemetry_hz": 20.0, **(autopilot or {})}),
     )
 
 
@@ -168,13 +167,17 @@ async def rig(
     fleet_options: dict[str, Any] | None = None,
     spacing_m: float = SPACING_M,
     agent_options: dict[str, Any] | None = None,
+    interpose: Interpose | None = None,
+    autopilot_options: dict[str, Any] | None = None,
     **daemon_options: Any,
 ) -> AsyncIterator[Rig]:
+    """``interpose``: put links between each agent and the daemon / its vehicle (started once per
+    agent; a restarted agent uses the same ones)."""
     key = secrets.token_hex(32)
     coop = cooperation or CooperationConfig(vehicle_time_scale=SPEEDUP)
     config = DaemonConfig(
         listen_port=0,
-        http_host=None,
+        http_host=daemon_options.pop("http_host", None),  # no HTTP API unless a test asks for it
         data_dir=tmp_path,
         fleet_key_hex=key,
         status_period_s=0.05,
@@ -192,13 +195,18 @@ async def rig(
     truth: list[list[tuple[float, ...]]] = []
     sampler = threading.Thread(target=_sample_truth, args=(fleet, truth, stop), daemon=True)
 
+    routes: dict[str, tuple[int, str]] = {}
+
     def make_agent(name: str, port: int) -> Agent:
-        return mavlink_agent(name, port, key, endpoints[name], settings, agent_options)
+        port, endpoint = routes.get(name, (port, endpoints[name]))
+        return mavlink_agent(name, port, key, endpoint, settings, agent_options, autopilot_options)
 
     the_rig = Rig(daemon, fleet, agents, names, truth, make_agent)
     tasks = the_rig.tasks
     try:
         for name in names:
+            if interpose is not None:
+                routes[name] = await interpose(name, daemon.listen_port, endpoints[name])
             agent = make_agent(name, daemon.listen_port)
             agents[name] = agent
             tasks[name] = asyncio.create_task(agent.run(), name=f"agent-{name}")
@@ -222,3 +230,34 @@ async def rig(
                 await task
         await the_rig.daemon.stop()
         fleet.stop()
+
+
+HEAD_ON_ALT_M = 10.0
+"""Both drones of the head-on course fly at this height (no vertical separation to lean on)."""
+
+
+def head_on_task() -> TaskFile:
+    """Step 1 lines both up on the same north-south line; step 2 swaps them, head-on, same altitude."""
+    east = SPACING_M / 2
+    south, north = at(-25.0, east), at(25.0, east)
+    plans = [
+        AgentPlan(
+            agent="drone-1",
+            actions=[
+                Takeoff(step=0, alt=HEAD_ON_ALT_M, sync=True),
+                Goto(step=1, lat=south[0], lon=south[1], alt=HEAD_ON_ALT_M, speed=5.0, sync=True),
+                Goto(step=2, lat=north[0], lon=north[1], alt=HEAD_ON_ALT_M, speed=5.0, sync=True),
+                Land(step=3),
+            ],
+        ),
+        AgentPlan(
+            agent="drone-2",
+            actions=[
+                Takeoff(step=0, alt=HEAD_ON_ALT_M, sync=True),
+                Goto(step=1, lat=north[0], lon=north[1], alt=HEAD_ON_ALT_M, speed=5.0, sync=True),
+                Goto(step=2, lat=south[0], lon=south[1], alt=HEAD_ON_ALT_M, speed=5.0, sync=True),
+                Land(step=3),
+            ],
+        ),
+    ]
+    return TaskFile(name="head-on", plans=plans)

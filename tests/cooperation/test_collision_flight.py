@@ -6,38 +6,7 @@ from pathlib import Path
 
 from gcs.cooperation.config import CooperationConfig, EnergyConfig
 from gcs.cooperation.flightlog import summarize
-from protocol.actions import Goto, Land, Takeoff
-from protocol.taskfile import AgentPlan, TaskFile
-from tests.cooperation.rig import SPACING_M, SPEEDUP, assert_pair_separated, at, rig, wait_for
-
-ALT = 10.0
-
-
-def head_on_task() -> TaskFile:
-    """Step 1 lines both up on the same north-south line; step 2 swaps them, head-on, same altitude."""
-    east = SPACING_M / 2
-    south, north = at(-25.0, east), at(25.0, east)
-    plans = [
-        AgentPlan(
-            agent="drone-1",
-            actions=[
-                Takeoff(step=0, alt=ALT, sync=True),
-                Goto(step=1, lat=south[0], lon=south[1], alt=ALT, speed=5.0, sync=True),
-                Goto(step=2, lat=north[0], lon=north[1], alt=ALT, speed=5.0, sync=True),
-                Land(step=3),
-            ],
-        ),
-        AgentPlan(
-            agent="drone-2",
-            actions=[
-                Takeoff(step=0, alt=ALT, sync=True),
-                Goto(step=1, lat=north[0], lon=north[1], alt=ALT, speed=5.0, sync=True),
-                Goto(step=2, lat=south[0], lon=south[1], alt=ALT, speed=5.0, sync=True),
-                Land(step=3),
-            ],
-        ),
-    ]
-    return TaskFile(name="head-on", plans=plans)
+from tests.cooperation.rig import SPEEDUP, assert_pair_separated, head_on_task, rig, wait_for
 
 
 async def test_head_on_pair_is_held_apart_and_the_mission_completes(tmp_path: Path) -> None:

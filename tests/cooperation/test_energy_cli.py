@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,8 +16,8 @@ from protocol.actions import Goto, Land, Takeoff
 from protocol.geo import offset_latlon
 from protocol.packets import Battery, Position, StatusReport
 from protocol.taskfile import AgentPlan, TaskFile
+from tests.support.processes import BIN
 
-BIN = Path(sys.executable).parent
 HOME = (47.397742, 8.545594)
 
 

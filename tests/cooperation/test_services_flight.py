@@ -12,7 +12,7 @@ from agent.config import AgentSettings, SanityLimits
 from gcs.cooperation.config import ConnectivityConfig, CooperationConfig, DivergenceConfig
 from gcs.cooperation.divergence import leg_error
 from gcs.cooperation.legs import Leg
-from gcs.missions import MissionRejected
+from gcs.missions.runner import MissionRejected
 from protocol.actions import Goto, Land, Takeoff, Waypoint, Waypoints
 from protocol.geo import distance_m
 from protocol.packets import FenceCircle, Geofence, StatusReport

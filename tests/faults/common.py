@@ -2,61 +2,12 @@
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import time
-from pathlib import Path
-
 from agent.config import AgentSettings
-from gcs.daemon import Daemon
+from gcs.core.daemon import Daemon
 from protocol.actions import Action, Goto, Hold, Land, Takeoff
 from protocol.geo import offset_latlon
 from protocol.taskfile import AgentPlan, TaskFile
 from tests.backbone.helpers import HOME, RunningAgent
-
-BIN = Path(sys.executable).parent
-
-
-def serve_daemon(
-    data_dir: Path, ready: Path, listen: str, env: dict[str, str] | None = None
-) -> subprocess.Popen[bytes]:
-    """``gcs serve`` as its own process (so a test can SIGKILL it), status every 0.1 s; ``env``
-    adds environment variables (``FLEETGCS_...`` settings)."""
-    ready.unlink(missing_ok=True)
-    return subprocess.Popen(
-        [
-            BIN / "gcs",
-            "serve",
-            "--listen",
-            listen,
-            "--http",
-            "127.0.0.1:0",
-            "--data-dir",
-            data_dir,
-            "--status-period",
-            "0.1",
-            "--lost-after",
-            "20",
-            "--ready-file",
-            ready,
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env={**os.environ, **(env or {})},
-    )
-
-
-def wait_ready(path: Path, proc: subprocess.Popen[bytes], timeout: float = 20.0) -> tuple[int, int]:
-    """The (agent port, HTTP port) a ``gcs serve --ready-file`` wrote, once it is ready (bounded)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if path.exists() and path.read_text().strip():
-            agent_port, http_port = (int(p) for p in path.read_text().split())
-            return agent_port, http_port
-        assert proc.poll() is None, f"gcs serve exited with {proc.returncode}"
-        time.sleep(0.05)
-    raise AssertionError("gcs serve did not become ready")
 
 
 def record_releases(running: RunningAgent) -> list[int]:

@@ -14,6 +14,8 @@ back-pressure reaches the sender like a real socket), and a writer task delivers
 Faults (change them at any time from the test, they apply to every connection):
 
 * ``proxy.up.delay_s`` / ``jitter_s``: latency per frame (order kept, as TCP does);
+* ``spike_rate`` / ``spike_s``: a frame (and, order kept, every frame queued behind it) is held
+  ``spike_s`` longer, as TCP's retransmission of a lost segment does (head-of-line blocking);
 * ``drop_rate`` (+ ``drop_types``): whole frames vanish (not TCP-faithful; status reports are
   idempotent, so the protocol must ride through lost ones);
 * ``reorder_rate`` (+ ``reorder_types``): a frame is held back and sent after the next one (or
@@ -59,6 +61,8 @@ class DirectionFaults:
 
     delay_s: float = 0.0
     jitter_s: float = 0.0
+    spike_rate: float = 0.0  # fraction of frames held back by a retransmission timeout
+    spike_s: float = 0.0  # how long such a frame is held (every later frame waits behind it)
     drop_rate: float = 0.0
     drop_types: frozenset[int] | None = None  # None: every type may be dropped
     reorder_rate: float = 0.0
@@ -449,7 +453,11 @@ class FaultProxy:
             if eligible and faults.drop_rate > 0 and self._rng.random() < faults.drop_rate:
                 self._record(conn.id, direction, ptype, seq, raw, "dropped")
                 continue
-            due = max(last_due, arrival + faults.delay_s + self._rng.uniform(0.0, faults.jitter_s))
+            due = arrival + faults.delay_s + self._rng.uniform(0.0, faults.jitter_s)
+            if faults.spike_rate > 0 and self._rng.random() < faults.spike_rate:
+                due += faults.spike_s
+                self.stats[f"{direction}_spiked"] += 1
+            due = max(last_due, due)
             last_due = due
             wait = due - time.monotonic()
             if wait > 0:

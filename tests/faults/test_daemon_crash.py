@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import sqlite3
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -19,35 +18,14 @@ import httpx
 import pytest
 
 from tests.backbone.helpers import HOME, survey_mission
-from tests.faults.common import serve_daemon as _serve
-from tests.faults.common import wait_ready as _wait_ready
+from tests.support.processes import agent_process, serve_daemon, stop_processes, wait_ready
 
-BIN = Path(sys.executable).parent
 NAMES = ["crash-1", "crash-2"]
 SYNC_STEPS = [0, 1, 2, 3, 4, 5]
 
 
 def _agent(name: str, index: int, port: int, key_file: Path) -> subprocess.Popen[bytes]:
-    return subprocess.Popen(
-        [
-            BIN / "agent",
-            "run",
-            "--gcs",
-            f"127.0.0.1:{port}",
-            "--id",
-            name,
-            "--key-file",
-            key_file,
-            "--autopilot-backend",
-            "memory",
-            "--autopilot",
-            f"{HOME[0]},{HOME[1] + index * 0.0001},{HOME[2]}",
-            "--speedup",
-            "4",
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    return agent_process(name, port, key_file, (HOME[0], HOME[1] + index * 0.0001, HOME[2]), speedup=4)
 
 
 def _poll(what: str, timeout: float, probe: Any) -> Any:
@@ -69,10 +47,10 @@ def test_kill_9_mid_mission_then_restart_loses_nothing(tmp_path: Path) -> None:
     data_dir = tmp_path / "gcs"
     ready = tmp_path / "ready"
     procs: list[subprocess.Popen[bytes]] = []
-    serve = _serve(data_dir, ready, "127.0.0.1:0")
+    serve = serve_daemon(data_dir, ready, "127.0.0.1:0")
     procs.append(serve)
     try:
-        agent_port, http_port = _wait_ready(ready, serve)
+        agent_port, http_port = wait_ready(ready, serve)
         procs += [_agent(n, i, agent_port, data_dir / "fleet.key") for i, n in enumerate(NAMES)]
         api = httpx.Client(base_url=f"http://127.0.0.1:{http_port}", timeout=5.0)
         _poll(
@@ -105,9 +83,9 @@ def test_kill_9_mid_mission_then_restart_loses_nothing(tmp_path: Path) -> None:
         assert serve.returncode == -9
         completed_before = {a["agent"]: a["completed_step"] for a in before["agents"]}
 
-        restarted = _serve(data_dir, ready, f"127.0.0.1:{agent_port}")
+        restarted = serve_daemon(data_dir, ready, f"127.0.0.1:{agent_port}")
         procs.append(restarted)
-        _, http_port = _wait_ready(ready, restarted)
+        _, http_port = wait_ready(ready, restarted)
         api = httpx.Client(base_url=f"http://127.0.0.1:{http_port}", timeout=5.0)
         after = _poll("mission end", 60, lambda: (p := progress(api))["state"] != "running" and p)
         assert after["state"] == "completed", after
@@ -127,14 +105,7 @@ def test_kill_9_mid_mission_then_restart_loses_nothing(tmp_path: Path) -> None:
         assert released == SYNC_STEPS  # each step released exactly once across both daemon lives
         assert [e["agent"] for e in events_after if e["kind"] == "agent_joined"].count(NAMES[0]) >= 2
     finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.terminate()
-        for proc in procs:
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+        stop_processes(procs)
 
     with sqlite3.connect(f"file:{data_dir / 'fleetgcs.sqlite'}?mode=ro", uri=True) as db:
         state = db.execute("SELECT state FROM missions WHERE id=?", (mission_id,)).fetchone()

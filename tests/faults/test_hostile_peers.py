@@ -15,14 +15,15 @@ import time
 import zlib
 from pathlib import Path
 
-from gcs.config import DaemonConfig
+from gcs.core.config import DaemonConfig
 from protocol import auth
 from protocol.packets import PROTOCOL_VERSION, Close, CloseReason, Position, RequestCid, StatusReport
 from protocol.wire import FRAME_VERSION, HEADER, MAGIC, encode
-from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
-from tests.backbone.test_handshake_and_abuse import RawClient
+from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission
 from tests.faults.common import first_occurrences, record_releases, released_steps
 from tests.faults.proxy import FaultProxy
+from tests.support.polling import wait_for
+from tests.support.raw_client import RawClient
 
 
 def _status() -> StatusReport:

@@ -11,15 +11,7 @@ import asyncio
 import time
 from pathlib import Path
 
-from tests.backbone.helpers import (
-    HOME,
-    new_key,
-    running_daemon,
-    start_agent,
-    stop_agents,
-    survey_mission,
-    wait_for,
-)
+from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent, stop_agents, survey_mission
 from tests.faults.common import (
     failsafe_settings,
     first_occurrences,
@@ -29,6 +21,7 @@ from tests.faults.common import (
     released_steps,
 )
 from tests.faults.proxy import FaultProxy
+from tests.support.polling import wait_for
 
 METRES_PER_DEG = 111_195.0
 

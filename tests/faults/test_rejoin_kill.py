@@ -21,8 +21,9 @@ from pathlib import Path
 
 import pytest
 
-from tests.backbone.helpers import RunningAgent, start_agent, wait_for
-from tests.faults.common import serve_daemon, wait_ready
+from tests.backbone.helpers import RunningAgent, start_agent
+from tests.support.polling import wait_for
+from tests.support.processes import serve_daemon, wait_ready
 
 NAME = "rejoin-1"
 SLOW_FLUSH = {"FLEETGCS_TELEMETRY__FLUSH_S": "10"}  # the replay waits up to 10 s for its commit

@@ -67,7 +67,7 @@ def test_any_instance_is_feasible_and_bounded(
 
 def test_rounds_peel_rings_of_width_w_max() -> None:
     pts = _paper_instance(60, seed=7)
-    plan = plan_psa(pts, drones=3, link_range=10.0)
+    plan = plan_psa(pts, drones=3, link_range=10.0, track_margin=0.0)  # the paper: no tracking error
     assert len(plan.rounds) >= 2
     for k, rnd in enumerate(plan.rounds[:-1]):
         later = np.concatenate([r.targets for r in plan.rounds[k + 1 :]])
@@ -124,7 +124,7 @@ def test_excursion_shifts_choose_cheapest_direction() -> None:
 
 def test_degenerate_inputs() -> None:
     for pts in (np.array([[5.0, 5.0]]), np.array([[0.0, 0.0], [10.0, 0.0], [30.0, 0.0]])):
-        plan = plan_psa(pts, drones=3, link_range=5.0, min_separation=3.0)
+        plan = plan_psa(pts, drones=3, link_range=5.0, min_separation=3.0, track_margin=0.0)
         assert plan.check().ok
     assert len(convex_hull(np.array([[0, 0], [1, 1], [2, 2]], dtype=float))) == 2
     with pytest.raises(ValueError):

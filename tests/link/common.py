@@ -6,7 +6,7 @@ import asyncio
 import math
 import time
 
-from gcs.daemon import Daemon
+from gcs.core.daemon import Daemon
 from protocol.packets import FenceVertex, Geofence, PerformActions, SetParameters
 from tests.backbone.helpers import RunningAgent
 

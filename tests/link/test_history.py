@@ -13,12 +13,13 @@ import httpx
 import pytest
 from pydantic import TypeAdapter
 
-from gcs.config import TelemetryConfig
-from gcs.live import StatusSample
-from gcs.store import TELEMETRY_COLUMNS, Store
-from gcs.telemetry import TelemetryWriter
+from gcs.core.config import TelemetryConfig
+from gcs.observe.live import StatusSample
+from gcs.observe.telemetry import TelemetryWriter
+from gcs.storage.store import TELEMETRY_COLUMNS, Store
 from protocol.packets import StatusReport
-from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, telemetry_row, wait_for
+from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, telemetry_row
+from tests.support.polling import wait_for
 
 BIG_ROWS = 2_000_000
 PERIOD_S = 0.1
@@ -181,7 +182,7 @@ async def test_live_rings_share_a_fleet_budget_and_older_pages_come_from_the_log
     """The rings bound the daemon's memory as the fleet grows (2,000 drones x 3,000 entries would
     be 1.7 GB): each ring is cut to the fleet's share, and a page older than a ring is read from
     the telemetry log, so nothing an operator asks for is lost."""
-    from gcs.live import MIN_RING, LiveHub
+    from gcs.observe.live import MIN_RING, LiveHub
 
     key = new_key()
     names = ["drone-1", "drone-2", "drone-3"]

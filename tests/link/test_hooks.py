@@ -6,11 +6,12 @@ import asyncio
 import time
 from pathlib import Path
 
-from gcs.agents import AgentSession
-from gcs.dispatch import HookDispatcher, HookKind, HookList
-from gcs.metrics import DaemonMetrics
+from gcs.link.dispatch import HookDispatcher, HookKind, HookList
+from gcs.link.session import AgentSession
+from gcs.observe.metrics import DaemonMetrics
 from protocol.packets import Resume, StatusReport
-from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission, wait_for
+from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, survey_mission
+from tests.support.polling import wait_for
 
 
 class SlowJoins:

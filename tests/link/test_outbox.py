@@ -9,9 +9,10 @@ from pathlib import Path
 from protocol.actions import Hold
 from protocol.packets import AgentParameters, PacketType, PerformActions, SetParameters, SyncSignal
 from protocol.wire import Frame
-from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents, wait_for
-from tests.backbone.test_handshake_and_abuse import RawClient, build_status_report
+from tests.backbone.helpers import new_key, running_daemon, start_agent, stop_agents
 from tests.link.common import record_actions, stall_outbox
+from tests.support.polling import wait_for
+from tests.support.raw_client import RawClient, build_status_report
 
 HOLD_BOUND_S = 0.1
 

@@ -10,14 +10,15 @@ import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
-from gcs.daemon import Daemon
+from gcs.core.daemon import Daemon
 from protocol.packets import PerformActions, Position, StatusReport
 from protocol.session import ClientHandshake
 from protocol.stream import client_handshake
-from tests.backbone.helpers import new_key, running_daemon, wait_for
-from tests.backbone.test_handshake_and_abuse import RawClient
-from tests.backbone.test_tls import make_pki
+from tests.backbone.helpers import new_key, running_daemon
 from tests.link.common import BIG_FENCE, stall_outbox
+from tests.support.pki import make_pki
+from tests.support.polling import wait_for
+from tests.support.raw_client import RawClient
 
 T0 = time.time()  # report times near the daemon's clock (it refuses others)
 

@@ -31,10 +31,11 @@ from pathlib import Path
 import httpx
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from tests.support.paths import ROOT
+
 WHEELHOUSE = Path(sys.prefix) / "wheelhouse"
 HEAVY = ("ortools", "scipy", "sklearn", "fastapi", "uvicorn", "matplotlib", "numpy", "shapely", "mavsdk")
-AGENT_TESTS = ["tests/backends/test_backend_units.py", "tests/protocol"]
+AGENT_TESTS = ["tests/backends/units/test_backend_units.py", "tests/protocol"]
 
 pytestmark = pytest.mark.slow
 

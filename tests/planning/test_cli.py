@@ -67,8 +67,19 @@ def test_cli_rejects_self_intersecting_area(tmp_path, capsys):
     area = tmp_path / "bow.json"
     area.write_text(json.dumps([[47.0, 8.0], [47.001, 8.001], [47.001, 8.0], [47.0, 8.001]]))
     rc = _main(["plan", str(area), "--swath", "20", "--alt", "30", "--out", str(tmp_path / "o")])
-    assert rc == 1
+    assert rc == 2  # bad input, as README says
     assert "edge 0 crosses edge 2" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("drones", ["0", "-2", "two"])
+def test_cli_refuses_a_drone_count_below_one(tmp_path, capsys, drones):
+    area = tmp_path / "a.json"
+    area.write_text(json.dumps([[47.0, 8.0], [47.001, 8.0], [47.001, 8.001], [47.0, 8.001]]))
+    with pytest.raises(SystemExit) as exit_:
+        _main(["plan", str(area), "--swath", "20", f"--drones={drones}", "--out", str(tmp_path / "o")])
+    last = capsys.readouterr().err.strip().splitlines()[-1]  # after argparse's usage lines
+    assert exit_.value.code == 2 and "argument --drones:" in last and "--battery" not in last, last
+    assert not (tmp_path / "o").exists()
 
 
 def test_cli_needs_area_or_method(tmp_path, capsys):

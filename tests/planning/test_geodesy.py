@@ -101,3 +101,37 @@ def test_readers(tmp_path):
         parse_area({"fileType": "Plan", "mission": {"items": []}})
     with pytest.raises(ValueError):
         parse_area([[95.0, 0.0], [0, 1], [1, 1]])
+
+
+def test_numpy_frame_runs_the_scalar_formulae():
+    """The vectorised frame is ``protocol.geo.LocalFrame`` with numpy as its math: the same
+    numbers point by point (no second copy of the formulae to drift apart)."""
+    from protocol.geo import LocalFrame as ScalarFrame
+
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        lat0, lon0 = rng.uniform(-80, 80), rng.uniform(-179, 179)
+        vec, one = LocalFrame(lat0, lon0), ScalarFrame(lat0, lon0)
+        east, north = rng.uniform(-50_000, 50_000, 8), rng.uniform(-50_000, 50_000, 8)
+        lats, lons = vec.to_geodetic(east, north)
+        es, ns = vec.to_local(lats, lons)
+        for k in range(8):
+            lat, lon = one.geodetic_point(float(east[k]), float(north[k]))
+            assert abs(lat - lats[k]) < 1e-12 and abs(((lon - lons[k] + 180) % 360) - 180) < 1e-12
+            e, n = one.local_point(float(lats[k]), float(lons[k]))
+            assert abs(e - es[k]) < 1e-9 and abs(n - ns[k]) < 1e-9
+
+
+def test_array_helpers_equal_the_scalar_ones():
+    from gcs.planning.geodesy import distance_m_array, ned_offset_m_array
+    from protocol.geo import ned_offset_m
+
+    rng = np.random.default_rng(9)
+    lat1, lon1 = rng.uniform(-80, 80, 200), rng.uniform(-179, 179, 200)
+    lat2, lon2 = lat1 + rng.uniform(-0.05, 0.05, 200), lon1 + rng.uniform(-0.05, 0.05, 200)
+    dist = distance_m_array(lat1, lon1, lat2, lon2)
+    north, east = ned_offset_m_array(lat1, lon1, lat2, lon2)
+    for k in range(200):
+        a, b, c, d = float(lat1[k]), float(lon1[k]), float(lat2[k]), float(lon2[k])
+        assert abs(dist[k] - distance_m(a, b, c, d)) < 1e-9
+        assert np.hypot(north[k] - ned_offset_m(a, b, c, d)[0], east[k] - ned_offset_m(a, b, c, d)[1]) < 1e-9

@@ -19,6 +19,7 @@ from gcs.planning.interchange import (
     NAV_TAKEOFF,
     NAV_WAYPOINT,
     InterchangeError,
+    export_files,
     items_to_actions,
     kml_document,
     load_area_text,
@@ -32,7 +33,7 @@ from gcs.planning.interchange import (
 )
 from protocol.actions import GoBy, Goto, Hold, Land, ReturnToLaunch, Takeoff, Waypoint, Waypoints
 from protocol.geo import distance_m
-from protocol.taskfile import load_task_text
+from protocol.taskfile import AgentPlan, TaskFile, load_task_text
 
 HOME = (47.39770, 8.54560)
 FIELD = [(47.3980, 8.5450), (47.3980, 8.5480), (47.4000, 8.5480), (47.4000, 8.5450)]
@@ -242,6 +243,57 @@ def test_mission_planner_waypoints_round_trip() -> None:
     _same_items(items, again)
 
 
+def test_a_stand_in_home_is_marked_in_the_waypoints_file_and_re_imports_as_no_home() -> None:
+    """WPL 110 has no room for a note (QGC reads 12 tab-separated columns per line and calls a
+    comment a corrupted file): row 0's ``current`` column says real home (1, as Mission Planner
+    writes it) or stand-in (0). A re-import of a stand-in has no home to fly to or compare with."""
+    items = plan_items(_mission_actions(), HOME)
+    real, stand_in = waypoints_text(items, HOME), waypoints_text(items, HOME, home_assumed=True)
+    for text in (real, stand_in):
+        rows = text.splitlines()[1:]
+        assert all(len(r.split("\t")) == 12 for r in rows), "QGC would call the file corrupted"
+    assert real.splitlines()[1].split("\t")[1] == "1" and stand_in.splitlines()[1].split("\t")[1] == "0"
+    assert stand_in.splitlines()[2:] == real.splitlines()[2:]  # the items are the same
+    home, again = read_waypoints(stand_in)
+    assert home is None
+    _same_items(items, again)
+    assert _close(read_waypoints(real)[0], HOME)
+    # Mission Planner's own row for "no home" (command 0 at 0, 0), and comment lines it skips
+    body = "\n".join(real.splitlines()[2:])
+    assert read_waypoints(f"QGC WPL 110\n0\t1\t0\t0\t0\t0\t0\t0\t0\t0\t0\t1\n{body}")[0] is None
+    home, again = read_waypoints(real.replace("\n1\t", "\n# saved by a tool\n\n1\t", 1))
+    assert _close(home, HOME)
+    _same_items(items, again)
+
+
+def test_exports_with_a_stand_in_home_round_trip_with_it_marked() -> None:
+    """Our exports re-import to the same mission, the stand-in still marked when exported again."""
+    from gcs.missions.mission_files import task_from_mission_files
+
+    actions = [
+        *_mission_actions()[:4],
+        Goto(step=4, lat=47.3985, lon=8.5470, alt=10.0, speed=6.0),
+        Land(step=5),
+    ]
+    task = TaskFile(
+        name="blind",
+        plans=[
+            AgentPlan(agent="drone-1", actions=actions),
+            AgentPlan(agent="drone-2", actions=actions),
+        ],
+    )
+    homes = {"drone-1": HOME, "drone-2": (HOME[0], HOME[1] + 1e-4)}
+    files = export_files(task, homes, ["plan", "waypoints"], assumed_homes={"drone-1"})
+    assert read_waypoints(files["drone-1.waypoints"])[0] is None
+    assert _close(read_waypoints(files["drone-2.waypoints"])[0], homes["drone-2"])
+    assert read_qgc_mission(json.loads(files["drone-1.plan"]))[0] is None
+    assert _close(read_qgc_mission(json.loads(files["drone-2.plan"]))[0], homes["drone-2"])
+    for suffix in ("plan", "waypoints"):
+        mine = {k: v for k, v in files.items() if k.endswith(suffix)}
+        again = task_from_mission_files(mine, "blind")
+        assert export_files(again, homes, [suffix], assumed_homes={"drone-1"}) == mine
+
+
 @pytest.mark.parametrize(
     ("text", "message"),
     [
@@ -292,15 +344,19 @@ def test_gcs_plan_reads_a_kml_area(tmp_path: Path, capsys: pytest.CaptureFixture
     out = tmp_path / "out"
     argv = ["plan", str(area), "--swath", "25", "--alt", "30", "--drones", "2", "--out", str(out)]
     assert _main([*argv, "--export", "plan,waypoints,kml"]) == 0
-    summary = json.loads(capsys.readouterr().out)
+    printed = capsys.readouterr()
+    summary = json.loads(printed.out)
     assert summary["area"] == "North field"
+    # no --home: the area's first corner stands in, and both the command and the files say so
+    assert "note: the exports' homes are the area's first corner" in printed.err, printed.err
+    assert "assumed" in json.loads((out / "drone-1.plan").read_text())["fleetgcsNote"]
     assert summary["coverage"]["covered_pct"] > 99.9
     task = load_task_text((out / "mission.json").read_text())
     for plan in task.plans:
         survey = next(a for a in plan.actions if isinstance(a, Waypoints))
         home, items = read_qgc_mission(json.loads((out / f"{plan.label}.plan").read_text()))
         wp_home, wp_items = read_waypoints((out / f"{plan.label}.waypoints").read_text())
-        assert _close(home, wp_home)
+        assert home is None and wp_home is None  # stand-ins, marked as such: no home to plan from
         _same_items(items, wp_items)
         flown = [(i.lat, i.lon) for i in items if i.command == NAV_WAYPOINT]
         wanted = [(p.lat, p.lon) for p in survey.points]
@@ -337,12 +393,12 @@ def test_bad_area_documents_say_why(text: str, message: str) -> None:
 def test_cli_reports_a_bad_kml_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     area = tmp_path / "broken.kml"
     area.write_text("<kml><Document>")
-    assert _main(["plan", str(area), "--swath", "20", "--alt", "30", "--out", str(tmp_path / "o")]) == 1
+    assert _main(["plan", str(area), "--swath", "20", "--alt", "30", "--out", str(tmp_path / "o")]) == 2
     assert "broken.kml: not valid KML" in capsys.readouterr().err
 
 
 def test_dashboard_preview_reads_kml_text_and_qgc_settings() -> None:
-    from gcs.api_planning import DroneInfo, PlanningError, SearchPlanRequest, plan
+    from gcs.http.planning_requests import DroneInfo, PlanningError, SearchPlanRequest, plan
 
     drones = [DroneInfo(name="drone-1", home=HOME)]
     kml = plan(SearchPlanRequest(area_text=GOOGLE_EARTH_KML, swath_m=25, altitude_m=30), drones)
@@ -358,7 +414,7 @@ def test_dashboard_preview_reads_kml_text_and_qgc_settings() -> None:
 
 
 def test_a_previewed_plan_exports_for_qgc_mission_planner_and_kml() -> None:
-    from gcs.api_planning import DroneInfo, SearchPlanRequest, export_preview, plan
+    from gcs.http.planning_requests import DroneInfo, SearchPlanRequest, export_preview, plan
 
     drones = [DroneInfo(name="drone-1", home=HOME), DroneInfo(name="drone-2", home=HOME)]
     preview = plan(SearchPlanRequest(area=FIELD, swath_m=30, altitude_m=25), drones)
@@ -379,3 +435,30 @@ def test_a_previewed_plan_exports_for_qgc_mission_planner_and_kml() -> None:
     assert _close(kml.polygons[0][1][:-1], FIELD)
     with pytest.raises(ValueError, match="export formats"):
         export_preview(preview, ["gpx"])
+
+
+def test_exports_carry_each_drones_real_home_and_the_whole_flight() -> None:
+    """Exported homes were the area's first corner at 0 m AMSL for every drone, and the KML had no
+    transit or return legs: now each drone's own home (with its altitude), from home and back."""
+    from gcs.http.planning_requests import DroneInfo, SearchPlanRequest, export_preview, plan
+
+    homes = {"drone-1": (47.39770, 8.54560), "drone-2": (47.39770, 8.54630)}
+    drones = [DroneInfo(name=n, home=h, home_alt_amsl=488.5) for n, h in homes.items()]
+    preview = plan(SearchPlanRequest(area=FIELD, swath_m=30, altitude_m=25), drones)
+    files = export_preview(preview, ["plan", "waypoints", "kml"])
+    kml = read_kml(files[f"{preview.name}.kml"])
+    for name, home in homes.items():
+        document = json.loads(files[f"{name}.plan"])
+        assert document["mission"]["plannedHomePosition"] == pytest.approx([*home, 488.5])
+        assert "fleetgcsNote" not in document
+        assert _close(read_waypoints(files[f"{name}.waypoints"])[0], home)
+        line = dict(kml.lines)[name]
+        assert _close(line[0], home) and _close(line[-1], home), line  # out from home and back
+        assert distance_m(*line[0], *line[1]) > 20  # the transit leg to the survey
+    assert "<description>" not in files[f"{preview.name}.kml"]
+    # No home known anywhere: the area's first corner stands in, and the files say so.
+    blind = plan(SearchPlanRequest(area=FIELD, swath_m=30, altitude_m=25), [DroneInfo(name="drone-1")])
+    files = export_preview(blind, ["plan", "kml"])
+    note = json.loads(files["drone-1.plan"])["fleetgcsNote"]
+    assert "assumed" in note and "0 m AMSL is not known" in note, note
+    assert "assumed" in files[f"{blind.name}.kml"]

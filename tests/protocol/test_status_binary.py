@@ -13,57 +13,13 @@ from pydantic import ValidationError
 
 from protocol import status_binary
 from protocol.packets import (
-    ActionFailure,
     Battery,
-    Gps,
     PacketType,
     Position,
     StatusReport,
-    VelocityNed,
 )
 from protocol.wire import STATUS_COMPACT, FrameDecoder, ProtocolError, decode_body, decode_one, encode
-
-finite = st.floats(allow_nan=False, allow_infinity=False)
-small = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e6, max_value=1e6)
-text = st.text(max_size=40)
-
-positions = st.builds(
-    Position,
-    lat=st.floats(-90, 90),
-    lon=st.floats(-180, 180),
-    alt_rel=finite,
-    alt_amsl=finite,
-)
-reports = st.builds(
-    StatusReport,
-    time=finite,
-    vehicle_time=st.none() | st.floats(min_value=0.0, allow_infinity=False),
-    position=st.none() | positions,
-    velocity=st.builds(VelocityNed, vn=finite, ve=finite, vd=finite),
-    heading_deg=st.floats(0.0, 360.0),
-    battery=st.builds(
-        Battery,
-        pct=st.none() | st.floats(0.0, 100.0),
-        voltage_v=st.none() | st.floats(0.0, 1000.0),
-        current_a=st.none() | st.floats(-1000.0, 1000.0),
-    ),
-    mode=st.text(max_size=32),
-    armed=st.booleans(),
-    landed=st.booleans(),
-    gps=st.builds(Gps, fix=st.integers(0, 8), satellites=st.integers(0, 255)),
-    mission_id=st.none() | st.text(min_size=1, max_size=64),
-    step=st.integers(-1, 1 << 40),
-    completed_step=st.integers(-1, 1 << 33),
-    queue_depth=st.integers(0, 1 << 33),
-    waiting_sync=st.none() | st.integers(0, 1 << 33),
-    paused=st.booleans(),
-    exceptions=st.lists(st.text(max_size=50), max_size=3),
-    autopilot_link=st.booleans(),
-    buffered=st.booleans(),
-    failure=st.none()
-    | st.builds(ActionFailure, step=st.integers(0, 1000), kind=st.text(max_size=32), reason=text, time=small),
-    failsafe=st.none() | st.text(max_size=50),
-)
+from tests.support.status_reports import FIELDS, RAW_BODY, reports
 
 
 @settings(max_examples=400, deadline=None)
@@ -95,21 +51,6 @@ def test_a_typical_report_is_compact_and_has_no_tail() -> None:
 
 
 # --- the hand-written range checks agree with pydantic's --------------------------------------------
-
-any_float = st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from(
-    [-90.5, 90.5, -180.5, 180.5, -0.1, 100.1, 360.1, 1000.1, -1000.1, math.nan]
-)
-FIELDS = ("time", "vehicle_time", "lat", "lon", "alt_rel", "alt_amsl", "vn", "ve", "vd", "heading")
-FIELDS += ("pct", "volts", "amps")
-
-
-RAW_BODY = {
-    "floats": st.lists(any_float, min_size=13, max_size=13),
-    "fix": st.integers(0, 255),
-    "ints": st.tuples(st.integers(-3, 3), st.integers(-3, 3), st.integers(-3, 3)),
-    "position": st.booleans(),
-}
-"""A fixed part's values, in and out of range (FIELDS order), for the acceptance tests."""
 
 
 @settings(max_examples=500, deadline=None)

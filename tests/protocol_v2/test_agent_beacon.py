@@ -20,8 +20,8 @@ from agent.beacon import MAX_MISSIONS, MAX_REJECTS_PER_STEP, BeaconListener
 from agent.cli import agent_from_args, build_parser
 from agent.config import AgentConfig
 from agent.config_file import load_agent_config
-from gcs.beacon import LOOPBACK_BROADCAST, free_udp_port
-from gcs.daemon import Daemon
+from gcs.core.daemon import Daemon
+from gcs.link.beacon import LOOPBACK_BROADCAST, free_udp_port
 from protocol.actions import Action, Hold
 from protocol.beacon import VALUE_BYTES, ReleaseChain, encode_beacon
 from protocol.packets import PerformActions, RequestCid, SyncSignal
@@ -33,8 +33,8 @@ from tests.backbone.helpers import (
     start_agent,
     stop_agents,
     survey_mission,
-    wait_for,
 )
+from tests.support.polling import wait_for
 
 BROADCAST = LOOPBACK_BROADCAST
 
@@ -173,7 +173,7 @@ async def test_a_rejoining_agents_barrier_is_released_by_a_beacon(tmp_path: Path
 
 
 async def test_a_mission_flown_with_a_beacon_daemon(tmp_path: Path) -> None:
-    """The daemon's beacons (gcs/beacon.py) and the agents' listeners agree: every barrier is
+    """The daemon's beacons (gcs/link/beacon.py) and the agents' listeners agree: every barrier is
     announced once, each beacon verifies (or comes after its TCP release), the mission completes."""
     key, port = new_key(), free_udp_port()
     names = ["lead-a", "lead-b"]

@@ -10,7 +10,8 @@ from agent.config import SanityLimits
 from protocol.actions import Goto, Hold, Takeoff
 from protocol.geo import offset_latlon
 from protocol.packets import PerformActions, SyncSignal
-from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent, wait_for
+from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent
+from tests.support.polling import wait_for
 
 
 async def test_absurd_orders_are_refused_and_reported(tmp_path: Path) -> None:

@@ -27,7 +27,8 @@ from protocol.actions import (
 from protocol.geo import distance_m, offset_latlon
 from protocol.packets import Capabilities, FenceCircle, Geofence, PerformActions
 from protocol.taskfile import AgentPlan, TaskFile
-from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent, wait_for
+from tests.backbone.helpers import HOME, new_key, running_daemon, start_agent
+from tests.support.polling import wait_for
 
 HOME_LL = (HOME[0], HOME[1])
 ON_THE_GROUND = Place(HOME[0], HOME[1], 0.0)
@@ -181,21 +182,30 @@ async def test_a_daemon_task_of_split_legs_is_refused_at_the_first_crossing_leg(
 
 
 async def test_an_action_is_checked_again_from_the_actual_position_before_it_starts(tmp_path: Path) -> None:
-    """Accepted from home, a go_by is refused when it starts from where the vehicle really is."""
+    """Accepted from home, a go_by is refused when it starts from where the vehicle really is.
+
+    The go_by starts a new batch, so it has no planned point before it (agent/executor.py
+    ``anchor``): it is taken from the vehicle's position. (In a plan, a go_by is taken from the
+    previous action's target and its end does not move with the vehicle.)
+    """
     key = new_key()
     limits = SanityLimits(max_distance_from_home_m=1000.0)
     async with running_daemon(tmp_path, key) as daemon:
         running = start_agent("drifter", daemon.listen_port, key, speedup=1.0, limits=limits)
         try:
             await wait_for(lambda: (s := daemon.agents.session("drifter")) and s.status, 10, "joined")
+            take_off: list[Action] = [Takeoff(step=0, alt=5.0)]
+            daemon.agents.post(
+                "drifter", PerformActions(mission_id="drift", mode="replace", actions=take_off)
+            )
+            queue = running.agent.queue
+            await wait_for(lambda: queue.completed_step == 0, 20, "airborne")
             plan: list[Action] = [
-                Takeoff(step=0, alt=5.0),
                 Hold(step=1, seconds=3.0),
                 GoBy(step=2, north=600.0, east=0.0),  # 600 m from home, as planned: accepted
                 Land(step=3),
             ]
             daemon.agents.post("drifter", PerformActions(mission_id="drift", mode="replace", actions=plan))
-            queue = running.agent.queue
             await wait_for(lambda: queue.current_step == 1, 20, "holding")
             assert queue.depth == 2  # the go_by and the land: nothing was refused
             t = running.autopilot.telemetry()  # carried 500 m north (a gust, a bad fix) during the hold

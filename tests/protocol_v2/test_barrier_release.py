@@ -19,8 +19,9 @@ from typing import Any
 
 import pytest
 
-from tests.backbone.helpers import new_key, running_daemon, survey_mission, wait_for
+from tests.backbone.helpers import new_key, running_daemon, survey_mission
 from tests.protocol_v2.stdlib_agent import StdlibAgent
+from tests.support.polling import wait_for
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -44,7 +45,7 @@ def _persisted(db_path: str, mission_id: str, step: int) -> tuple[bool, bool]:
 
 
 def _journaled(db_path: str, mission_id: str, step: int) -> bool:
-    """The release is a line of the release journal beside the database (gcs/release_journal.py)."""
+    """The release is a line of the release journal beside the database (gcs/missions/release_journal.py)."""
     entries = [json.loads(line) for line in Path(db_path + "-releases").read_text().splitlines()]
     return any(entry["m"] == mission_id and entry["s"] == step for entry in entries)
 

@@ -6,20 +6,19 @@ from __future__ import annotations
 import json
 import stat
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from gcs.store import Store, StoreError
+from gcs.storage.store import Store, StoreError
 from protocol.packets import StatusReport
 from protocol.session import ClientHandshake, Refused
 from protocol.stream import open_client
-from tests.backbone.helpers import new_key, running_daemon, start_agent, wait_for
+from tests.backbone.helpers import new_key, running_daemon, start_agent
 from tests.faults.common import hover_mission
-
-BIN = Path(sys.executable).parent
+from tests.support.polling import wait_for
+from tests.support.processes import BIN
 
 
 def test_database_files_are_private_and_a_vanished_database_is_not_replaced(tmp_path: Path) -> None:

@@ -10,8 +10,8 @@ import pytest
 import websockets
 
 from tests.api.fleet import Fleet, running_fleet
-from tests.backbone.helpers import wait_for
 from tests.faults.common import hover_mission
+from tests.support.polling import wait_for
 
 pytestmark = pytest.mark.timeout(120)
 LIMIT = 64 << 10

@@ -15,9 +15,10 @@ from protocol.packets import Close, CloseReason, Position, RequestCid, StatusRep
 from protocol.session import ClientHandshake, Code, Refused, ServerHandshake
 from protocol.stream import FramedStream, open_client
 from protocol.wire import FRAME_VERSION, HEADER, MAGIC
-from tests.backbone.helpers import new_key, running_daemon, start_agent, survey_mission, wait_for
+from tests.backbone.helpers import new_key, running_daemon, start_agent, survey_mission
 from tests.faults.common import hover_mission
 from tests.protocol_v2.stdlib_agent import StdlibAgent
+from tests.support.polling import wait_for
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -17,16 +17,12 @@ from pathlib import Path
 
 import pytest
 
-from gcs.beacon import LOOPBACK_BROADCAST, free_udp_port
-from gcs.config import DaemonConfig
-from gcs.metrics import DaemonMetrics
-from tests.backbone.helpers import (
-    new_key,
-    running_daemon,
-    survey_mission,
-    wait_for,
-)
+from gcs.core.config import DaemonConfig
+from gcs.link.beacon import LOOPBACK_BROADCAST, free_udp_port
+from gcs.observe.metrics import DaemonMetrics
+from tests.backbone.helpers import new_key, running_daemon, survey_mission
 from tests.protocol_v2.stdlib_agent import StdlibAgent
+from tests.support.polling import wait_for
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -4,7 +4,6 @@ agents side by side, and safety news that does not wait for the status tick."""
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import httpx
@@ -12,24 +11,15 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gcs.agents_table import MAX_BODY, StatusTable
-from gcs.status_limits import UNBOUNDED
+from gcs.link.agents_table import StatusTable
+from gcs.link.status_limits import UNBOUNDED
 from protocol import status_binary
-from protocol.packets import PacketType, Position, StatusReport
-from protocol.session import ClientHandshake
-from protocol.stream import FramedStream, open_client
-from protocol.wire import STATUS_COMPACT, decode_body
-from tests.backbone.helpers import new_key, running_daemon, wait_for
-from tests.protocol.test_status_binary import FIELDS, RAW_BODY, reports
-
-
-def _stored(table: StatusTable, row: int, report: StatusReport) -> None:
-    """What the daemon's ingest does: the compact body as it is if it can, else the decoded report."""
-    body = status_binary.encode(report)
-    if len(body) <= MAX_BODY and not body[1] & (status_binary.HAS_TAIL | status_binary.BUFFERED):
-        table.put(row, body, 1.0)
-    else:
-        table.put_report(row, decode_body(STATUS_COMPACT, body), 1.0)  # type: ignore[arg-type]
+from protocol.packets import PacketType, StatusReport
+from protocol.wire import decode_body
+from tests.backbone.helpers import new_key, running_daemon
+from tests.support.polling import wait_for
+from tests.support.status_reports import FIELDS, RAW_BODY, join, report_at, reports
+from tests.support.status_table import stored_like_ingest
 
 
 @settings(max_examples=300, deadline=None)
@@ -38,7 +28,7 @@ def test_table_rows_give_the_report_that_json_and_binary_bodies_give(batch: list
     table = StatusTable(capacity=2, limits=UNBOUNDED)  # grows while the rows are filled; any values
     rows = [table.attach(object()) for _ in batch]
     for row, report in zip(rows, batch, strict=True):
-        _stored(table, row, report)
+        stored_like_ingest(table, row, report)
     dirty = table.take_dirty()
     assert dirty.tolist() == sorted(rows)
     decoded = table.reports(dirty)
@@ -82,35 +72,14 @@ def test_the_column_checks_accept_exactly_what_the_decoder_accepts(
         assert got == expected
 
 
-def _report(lat: float, **fields: object) -> StatusReport:
-    return StatusReport.model_validate(
-        {
-            "time": time.time(),  # the daemon refuses a time far from its clock
-            "position": Position(lat=lat, lon=8.5, alt_rel=3.0, alt_amsl=503.0).model_dump(),
-            "gps": {"fix": 3, "satellites": 12},
-            "mode": "GUIDED",
-            **fields,
-        }
-    )
-
-
-async def _join(port: int, key: str, identity: str, *, v1: bool) -> FramedStream:
-    handshake = ClientHandshake(
-        identity, bytes.fromhex(key), versions=[1] if v1 else [1, 2], compact_status=not v1
-    )
-    stream, accepted = await open_client("127.0.0.1", port, handshake)
-    assert accepted.compact_status is (not v1) and accepted.version == (1 if v1 else 2)
-    return stream
-
-
 async def test_a_v1_and_a_compact_agent_share_the_table_and_the_api(tmp_path: Path) -> None:
     key = new_key()
     async with running_daemon(tmp_path, key, http_host="127.0.0.1", http_port=0, api_token="t") as daemon:
-        old = await _join(daemon.listen_port, key, "old-1", v1=True)
-        new = await _join(daemon.listen_port, key, "new-1", v1=False)
+        old = await join(daemon.listen_port, key, "old-1", v1=True)
+        new = await join(daemon.listen_port, key, "new-1", v1=False)
         try:
-            await old.send(_report(47.1, armed=True))  # JSON body (v1: no compact)
-            await new.send(_report(47.2, mission_id="m-1", step=4))  # compact body
+            await old.send(report_at(47.1, armed=True))  # JSON body (v1: no compact)
+            await new.send(report_at(47.2, mission_id="m-1", step=4))  # compact body
             manager = daemon.agents
             await wait_for(lambda: manager.sessions["new-1"].status_count == 1, 10, "the compact report")
             await wait_for(lambda: manager.sessions["old-1"].status_count == 1, 10, "the JSON report")
@@ -147,13 +116,13 @@ async def test_a_failsafe_in_a_compact_status_reaches_the_authority_without_wait
 
         daemon.agents.on_status_changes.append(hook)  # every change, and every report handed over at once
         daemon.agents.on_status.append(also)  # (reports built for it must not all count as changes)
-        stream = await _join(daemon.listen_port, key, "fs-1", v1=False)
+        stream = await join(daemon.listen_port, key, "fs-1", v1=False)
         try:
-            await stream.send(_report(47.3))
+            await stream.send(report_at(47.3))
             await wait_for(lambda: len(seen) == 1, 10, "the first report (the first tick runs at once)")
             daemon.agents.status_tick_s = 3600.0  # from here on a plain report waits an hour for its tick
-            await stream.send(_report(47.31))
-            await stream.send(_report(47.32, failsafe="battery"))
+            await stream.send(report_at(47.31))
+            await stream.send(report_at(47.32, failsafe="battery"))
             await wait_for(lambda: len(seen) == 3, 10, "the failsafe report, without a tick")
             assert [s.position.lat for s in seen if s.position] == [47.3, 47.31, 47.32]  # in order
             assert seen[-1].failsafe == "battery"
@@ -165,7 +134,7 @@ async def test_a_failsafe_in_a_compact_status_reaches_the_authority_without_wait
             assert not daemon.authority.may_command("fs-1", "mission")  # the vehicle's own failsafe rules
             assert math.isclose(daemon.agents.sessions["fs-1"].status.position.lat, 47.32)  # type: ignore[union-attr]
             session = daemon.agents.sessions["fs-1"]
-            await stream.send(_report(47.33))  # the failsafe is over; nothing else changed since 47.3
+            await stream.send(report_at(47.33))  # the failsafe is over; nothing else changed since 47.3
             await wait_for(lambda: session.status_count == 4, 10, "the report after the failsafe")
             daemon.agents.tick()  # (the tick still scheduled is an hour away)
             await wait_for(

@@ -10,13 +10,14 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gcs.agents_table import StatusTable, StatusTick
-from gcs.status_limits import UNBOUNDED
-from gcs.telemetry import TickRows, status_row
+from gcs.link.agents_table import StatusTable, StatusTick
+from gcs.link.status_limits import UNBOUNDED
+from gcs.observe.telemetry import TickRows, status_row
 from protocol.packets import StatusReport
-from tests.backbone.helpers import new_key, running_daemon, wait_for
-from tests.protocol.test_status_binary import reports
-from tests.protocol_v2.test_status_table import _join, _report, _stored
+from tests.backbone.helpers import new_key, running_daemon
+from tests.support.polling import wait_for
+from tests.support.status_reports import join, report_at, reports
+from tests.support.status_table import stored_like_ingest
 
 
 def _same(a: tuple[object, ...], b: tuple[object, ...]) -> bool:
@@ -30,7 +31,7 @@ def test_a_tick_gives_the_reports_and_telemetry_rows_of_its_rows(batch: list[Sta
     owners = [type("Owner", (), {"identity": f"a-{i}"})() for i in range(len(batch))]
     rows = [table.attach(owner) for owner in owners]
     for row, report in zip(rows, batch, strict=True):
-        _stored(table, row, report)
+        stored_like_ingest(table, row, report)
     dirty = table.take_dirty()
     cols = table.columns(dirty)
     assert table.check(cols).all() or any(table.objects[r] is not None for r in dirty.tolist())
@@ -47,7 +48,7 @@ def test_a_tick_gives_the_reports_and_telemetry_rows_of_its_rows(batch: list[Sta
     got = list(TickRows(tick, 5.0).rows())
     block = TickRows(tick, 5.0)  # what the recorder queues; the writer thread makes its tuples later
     for row in rows:  # the table moves on before the writer gets to the block
-        _stored(table, row, _report(1.0, armed=True))
+        stored_like_ingest(table, row, report_at(1.0, armed=True))
     assert len(block) == len(got) and all(_same(g, w) for g, w in zip(block.rows(), got, strict=True))
     want = [status_row(o.identity, r, 5.0) for o, r in zip(tick.owners, expected, strict=True) if r.position]
     assert len(got) == len(want) and all(_same(g, w) for g, w in zip(got, want, strict=True))
@@ -60,21 +61,23 @@ def test_changed_rows_are_found_by_their_state_bytes() -> None:
     table = StatusTable()
     row = table.attach(object())
     states = [
-        (_report(47.0), True),  # the first report of a row is a change
-        (_report(47.1), False),  # only the position moved
-        (_report(47.2, armed=True), True),
-        (_report(47.3, armed=True), False),
-        (_report(47.3, armed=True, mode="AUTO"), True),
-        (_report(47.3, armed=True, mode="AUTO", mission_id="m", step=2), True),
-        (_report(47.4, armed=True, mode="AUTO", mission_id="m", step=2, completed_step=1), True),
-        (_report(47.5, armed=True, mode="AUTO", mission_id="m", step=2, completed_step=1), False),
+        (report_at(47.0), True),  # the first report of a row is a change
+        (report_at(47.1), False),  # only the position moved
+        (report_at(47.2, armed=True), True),
+        (report_at(47.3, armed=True), False),
+        (report_at(47.3, armed=True, mode="AUTO"), True),
+        (report_at(47.3, armed=True, mode="AUTO", mission_id="m", step=2), True),
+        (report_at(47.4, armed=True, mode="AUTO", mission_id="m", step=2, completed_step=1), True),
+        (report_at(47.5, armed=True, mode="AUTO", mission_id="m", step=2, completed_step=1), False),
         (
-            _report(47.5, armed=True, mode="AUTO", mission_id="m", step=2, completed_step=1, waiting_sync=2),
+            report_at(
+                47.5, armed=True, mode="AUTO", mission_id="m", step=2, completed_step=1, waiting_sync=2
+            ),
             True,
         ),
     ]
     for report, changed in states:
-        _stored(table, row, report)
+        stored_like_ingest(table, row, report)
         dirty = table.take_dirty()
         assert table.changed(dirty).tolist() == [changed], report
     assert not table.changed(np.array([row], dtype=np.intp)).any()  # nothing new since
@@ -101,12 +104,12 @@ async def test_the_changes_hook_sees_state_changes_and_the_tick_hook_every_repor
 
         daemon.agents.on_status_changes.append(on_change)
         daemon.agents.on_status_tick.append(on_tick)
-        stream = await _join(daemon.listen_port, key, "c-1", v1=False)
+        stream = await join(daemon.listen_port, key, "c-1", v1=False)
         try:
             lats = [47.0 + k / 1000 for k in range(6)]
             for k, lat in enumerate(lats):
                 fields: dict[str, Any] = {"mode": "AUTO"} if k == 3 else {}
-                await stream.send(_report(lat, armed=True, landed=False, **fields))
+                await stream.send(report_at(lat, armed=True, landed=False, **fields))
                 await wait_for(lambda n=k + 1: _count(daemon.agents.sessions) == n, 10, "the report")
                 assert await daemon.agents.drain_hooks()
             assert ticked == lats  # every report as columns (one per tick here)
@@ -118,7 +121,7 @@ async def test_the_changes_hook_sees_state_changes_and_the_tick_hook_every_repor
             assert daemon.agents.sessions["c-1"].status.position.lat == lats[-1]  # type: ignore[union-attr]
             changes.clear()
             for k, lat in enumerate(lats[:2]):  # landed and disarmed: every report (authority drops holds)
-                await stream.send(_report(lat, armed=False, landed=True))
+                await stream.send(report_at(lat, armed=False, landed=True))
                 await wait_for(lambda n=k + 7: _count(daemon.agents.sessions) == n, 10, "the report")
                 assert await daemon.agents.drain_hooks()
             assert [c.position.lat for c in changes if c.position] == lats[:2]

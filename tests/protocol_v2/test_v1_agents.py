@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 from pydantic import BaseModel
 
-from gcs.authority import VehicleAuthority
+from gcs.control.authority import VehicleAuthority
 from protocol.actions import GoBy, Goto, Hold, Land, ReturnToLaunch, SetSpeed, Takeoff, Waypoint, Waypoints
 from protocol.auth import agent_proof
 from protocol.packets import (
@@ -33,7 +33,8 @@ from protocol.packets import (
 )
 from protocol.session import Code, ServerHandshake, close_for, refusal
 from protocol.wire import HEADER, encode
-from tests.backbone.helpers import HOME, new_key, running_daemon, survey_mission, wait_for
+from tests.backbone.helpers import HOME, new_key, running_daemon, survey_mission
+from tests.support.polling import wait_for
 from tests.support.v1_agent import StrictV1Agent
 from tests.support.v1_schema import V1Violation, check_v1_body
 

@@ -22,8 +22,8 @@ from pathlib import Path
 from typing import IO
 
 from sitl.ardupilot import _die_with_parent
+from tests.support.paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[2]
 DEFAULT = ROOT.parent / "shared" / "px4"
 ENV_VAR = "PX4_SITL_DIR"
 API_PORT_BASE = 14540

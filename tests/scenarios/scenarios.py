@@ -7,13 +7,45 @@ long before the other) and the ground-truth separation measure.
 from __future__ import annotations
 
 import math
+import time
+from typing import Any
 
-from gcs.api_planning import DroneInfo
+from gcs.http.planning_requests import DroneInfo
 from protocol.actions import Goto, Hold, Land, Takeoff
+from protocol.geo import distance_m
 from protocol.taskfile import AgentPlan, TaskFile
-from tests.cooperation.rig import HOME, Rig, at
+from sitl.fleet import SimFleet
+from tests.cooperation.rig import HOME, SPEEDUP, Rig, at, wait_for
+from tests.faults.links import LinkRig
 
 H_MARGIN, V_MARGIN = 4.0, 2.0
+# Commands that ask for data, not movement: an agent keeps sending them while a pilot flies.
+NOT_MOVING = frozenset({410, 511, 512, 519, 520})  # GET_HOME_POSITION, SET/REQUEST_MESSAGE, ...
+
+
+def moving_commands(fleet: SimFleet, index: int, since: float) -> list[tuple[Any, ...]]:
+    """What the agent's link asked of vehicle ``index`` that moves it, since sim time ``since``."""
+    log = list(fleet.vehicle(index).command_log)
+    return [e for e in log if e[0] >= since and e[1] == "gcs" and e[3] not in NOT_MOVING]
+
+
+async def rtl_delivery(r: Rig, reason: str) -> dict[str, float]:
+    """Operator RTL to all; wall seconds from the call until the first moving command of the
+    return reaches each vehicle from its agent's link (the safety-order latency)."""
+    since = r.fleet.sim_time
+    started = time.monotonic()
+    delivered, _ = await r.daemon.operator.bring_down("rtl", None, reason)
+    assert sorted(delivered) == r.names, delivered
+    reached: dict[str, float] = {}
+
+    def all_reached() -> bool:
+        for i, name in enumerate(r.names):
+            if name not in reached and moving_commands(r.fleet, i, since):
+                reached[name] = time.monotonic() - started
+        return len(reached) == len(r.names)
+
+    await wait_for(all_reached, 30, "the RTL at every vehicle", poll=0.01)
+    return reached
 
 
 def separation(truth: list[list[tuple[float, ...]]], since: int = 0) -> tuple[float, int]:
@@ -69,6 +101,34 @@ def crossing_task(names: list[str], alt: float = 12.0) -> TaskFile:
             )
         )
     return TaskFile(name="crossing", plans=plans)
+
+
+async def outage_on_first_leg(r: Rig, links: LinkRig, name: str) -> float:
+    """Stall ``name``'s daemon link for its profile's outage once it flies step 1; the wall seconds."""
+    await wait_for(lambda: (s := r.status(name)) is not None and s.step == 1, 60, f"{name} on its leg")
+    outage = links.profile.outage_wall_s(SPEEDUP)
+    await links.proxies[name].partition_for(outage, "stall")
+    return outage
+
+
+def link_task(names: list[str]) -> TaskFile:
+    """Take off, 40 m out, back, a short hover (they stay up for an RTL); every leg a barrier."""
+    plans = []
+    for k, name in enumerate(names):
+        east, alt = 6.0 * k, 10.0 + 2 * k
+        out, back = at(40.0, east), at(8.0, east)
+        plans.append(
+            AgentPlan(
+                agent=name,
+                actions=[
+                    Takeoff(step=0, alt=alt, sync=True),
+                    Goto(step=1, lat=out[0], lon=out[1], alt=alt, speed=6.0, sync=True),
+                    Goto(step=2, lat=back[0], lon=back[1], alt=alt, speed=6.0, sync=True),
+                    Hold(step=3, seconds=1.0),
+                ],
+            )
+        )
+    return TaskFile(name="link-legs", sync_timeout_s=300, plans=plans)
 
 
 def head_on(names: list[str], alt: float = 10.0) -> TaskFile:
@@ -133,3 +193,56 @@ def stack_task(names: list[str], hold_s: float = 200.0) -> TaskFile:
             for k, name in enumerate(names)
         ],
     )
+
+
+def legs_task(names: list[str]) -> TaskFile:
+    """Three drones: take off, a 120 m leg out at 5 m/s, a leg back, land; every step a barrier."""
+    plans = []
+    for k, name in enumerate(names):
+        east = 6.0 * k
+        out, back = at(120.0, east), at(10.0, east)
+        plans.append(
+            AgentPlan(
+                agent=name,
+                actions=[
+                    Takeoff(step=0, alt=10.0 + 2 * k, sync=True),
+                    Goto(step=1, lat=out[0], lon=out[1], alt=10.0 + 2 * k, speed=5.0, sync=True),
+                    Goto(step=2, lat=back[0], lon=back[1], alt=10.0 + 2 * k, speed=5.0, sync=True),
+                    Land(step=3),
+                ],
+            )
+        )
+    return TaskFile(name="pilot-legs", plans=plans)
+
+
+async def on_leg(r: Rig, name: str, metres: float) -> None:
+    """Wait until ``name`` flies its first leg, ``metres`` out from its home."""
+    home = r.daemon.agents.session(name).home  # type: ignore[union-attr]
+    assert home is not None
+
+    def out() -> bool:
+        s = r.status(name)
+        return bool(
+            s
+            and s.step == 1
+            and s.position
+            and distance_m(home.lat, home.lon, s.position.lat, s.position.lon) > metres
+        )
+
+    await wait_for(out, 60, f"{name} {metres:.0f} m into its leg")
+
+
+def hover_task(name: str) -> TaskFile:
+    """One drone: take off to 10 m and hover (a long hold), then land."""
+    return TaskFile(
+        name="pilot-hover",
+        plans=[
+            AgentPlan(
+                agent=name, actions=[Takeoff(step=0, alt=10.0), Hold(step=1, seconds=300.0), Land(step=2)]
+            )
+        ],
+    )
+
+
+def refusals(r: Rig, name: str) -> list[str]:
+    return [e.message for e in r.events("agent_exception", name) if "command_refused" in e.message]

@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 from agent.config import SanityLimits
-from gcs.api_planning import SearchPlanRequest, plan
 from gcs.cooperation.config import CollisionConfig, CooperationConfig
+from gcs.http.planning_requests import SearchPlanRequest, plan
 from protocol.actions import Goto, Hold, Land, Takeoff
 from protocol.geo import distance_m
 from protocol.packets import Geofence
@@ -180,11 +180,12 @@ async def test_fence_emergency_hold_survives_a_collision_escape(tmp_path: Path) 
             ),
         ]
         mission_id = await r.daemon.missions.submit(TaskFile(name="fence", plans=plans))
-        await wait_for(lambda: "fence_breach" in (r.status("drone-2").failsafe or ""), 30, "fence hold")
+        # The vehicle's own fence failsafe (BRAKE: "fence: hold") or the agent's reaction ("fence_breach").
+        await wait_for(lambda: "fence" in (r.status("drone-2").failsafe or ""), 30, "fence hold")
         held_at = r.status("drone-2").position
         await wait_for(lambda: r.daemon.missions.progress(mission_id).agents[0].done, 90, "drone-1 passed")
         s2 = r.status("drone-2")
-        assert s2.armed and not s2.landed and "fence_breach" in (s2.failsafe or "")
+        assert s2.armed and not s2.landed and "fence" in (s2.failsafe or "")
         assert distance_m(s2.position.lat, s2.position.lon, held_at.lat, held_at.lon) < 2.0  # not moved
         assert distance_m(held_at.lat, held_at.lon, here2.lat, here2.lon) < 3.0
         collision_orders = [

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from gcs.beacon import loopback_beacon_address
 from gcs.cooperation.config import CooperationConfig
+from gcs.link.beacon import loopback_beacon_address
 from protocol.geo import distance_m
 from tests.cooperation.rig import SPEEDUP, rig, wait_for
 from tests.scenarios.scenarios import barrier_task

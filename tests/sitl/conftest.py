@@ -180,3 +180,18 @@ def make_gcs() -> Iterator[Callable[..., Gcs]]:
     yield factory
     for g in clients:
         g.close()
+
+
+@pytest.fixture
+def px4(
+    make_fleet: Callable[..., SimFleet], make_gcs: Callable[..., Gcs]
+) -> Callable[..., tuple[SimFleet, Gcs]]:
+    """``px4(**config)``: a one-vehicle PX4 fleet (udpout on an ephemeral port) and a GCS on it."""
+
+    def start(**kw: Any) -> tuple[SimFleet, Gcs]:
+        fleet = make_fleet(flavour="px4", **kw)
+        g = make_gcs(fleet.endpoints[0])
+        g.heartbeat_msg()
+        return fleet, g
+
+    return start

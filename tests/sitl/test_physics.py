@@ -9,10 +9,9 @@ import pytest
 from sitl.dialect import mavlink as mav
 from sitl.failures import parse_failures
 from sitl.physics import Battery, Kinematics, Limits, PowerModel, path_error_m, sqrt_controller
-from sitl.vehicle import BUILDERS, GUIDED, SimVehicle
+from sitl.vehicle import BUILDERS, SimVehicle
 from tests.sitl.conftest import HOME, Gcs, mavlink, offset
-
-DT = 0.02
+from tests.support.sitl_flight import DT, flying_vehicle, goto
 
 
 def test_eq9_path_error_values() -> None:
@@ -63,36 +62,11 @@ def test_power_and_battery_model() -> None:
     assert b.voltage_v < 10.5  # sags under load at low charge
 
 
-def _flying_vehicle(seed: int = 1, speed_cms: float = 500, **kw: object) -> SimVehicle:
-    v = SimVehicle(0, HOME, seed=seed, prearm_delay_s=0.0, params={"WPNAV_SPEED": speed_cms}, **kw)  # type: ignore[arg-type]
-    v.step(DT)
-    assert v.set_mode(GUIDED)
-    assert v.arm() == (True, "")
-    v.handle(mav.MAVLink_command_long_message(1, 1, mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0, 10), 0.0)
-    for _ in range(2000):
-        v.step(DT)
-        if v.takeoff_alt is None:
-            break
-    assert not v.landed and v.state.alt_rel > 9.5
-    return v
-
-
-def _goto(v: SimVehicle, north: float, east: float, alt: float = 10.0) -> None:
-    st = v.state
-    lat, lon = offset(st.home_lat, st.home_lon, north, east)
-    v.handle(
-        mav.MAVLink_set_position_target_global_int_message(
-            0, 1, 1, 6, 0x0DF8, round(lat * 1e7), round(lon * 1e7), alt, 0, 0, 0, 0, 0, 0, 0, 0
-        ),
-        0.0,
-    )
-
-
 def test_battery_drains_more_at_higher_speed() -> None:
     rates = []
     for speed in (200, 500, 1000):
-        v = _flying_vehicle(speed_cms=speed)
-        _goto(v, 2000, 0)
+        v = flying_vehicle(speed_cms=speed)
+        goto(v, 2000, 0)
         for _ in range(int(10 / DT)):  # reach cruise
             v.step(DT)
         e0, t0 = v.energy_used_j, v.t
@@ -106,9 +80,9 @@ def test_battery_drains_more_at_higher_speed() -> None:
 def test_path_error_grows_with_speed() -> None:
     errs = []
     for speed in (200, 1000):
-        v = _flying_vehicle(speed_cms=speed, seed=3)
+        v = flying_vehicle(speed_cms=speed, seed=3)
         v.max_path_error_m = 0.0
-        _goto(v, 300, 0)
+        goto(v, 300, 0)
         for _ in range(int(200 / DT)):
             v.step(DT)
         assert v.state.groundspeed < 0.1
@@ -118,20 +92,20 @@ def test_path_error_grows_with_speed() -> None:
 
 
 def test_wind_pushes_but_controller_holds_nearby() -> None:
-    v = _flying_vehicle(wind=(0.0, 8.0))
+    v = flying_vehicle(wind=(0.0, 8.0))
     for _ in range(int(20 / DT)):
         v.step(DT)
     b1, tgt = v.belief(), v.target
     drift = math.hypot(b1[0] - tgt[0], b1[1] - tgt[1])
     assert 0.3 < drift < 2.0 and b1[1] > tgt[1]  # pushed east a little, not blown away
-    calm = _flying_vehicle()
+    calm = flying_vehicle()
     for _ in range(int(20 / DT)):
         calm.step(DT)
     assert v.energy_used_j > calm.energy_used_j  # holding against the wind costs power
 
 
 def test_gps_noise_is_small_and_present() -> None:
-    v = _flying_vehicle()
+    v = flying_vehicle()
     diffs = []
     for _ in range(int(60 / DT)):
         v.step(DT)
@@ -167,7 +141,7 @@ def test_failure_spec_parser() -> None:
 
 
 def test_low_battery_injection_triggers_failsafe() -> None:
-    v = _flying_vehicle()
+    v = flying_vehicle()
     v.params.set("BATT_FS_LOW_ACT", 2)  # RTL
     v.set_battery(8)
     for _ in range(int(12 / DT)):

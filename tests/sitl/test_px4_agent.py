@@ -17,10 +17,11 @@ from agent.autopilot.mavlink_backend import MavlinkAutopilot
 from protocol.actions import Goto, Land, Takeoff
 from protocol.geo import distance_m, offset_latlon
 from sitl.fleet import FleetConfig, SimFleet
+from sitl.px4 import Px4Vehicle
 from tests.ardupilot.rig import HOME as RIG_HOME
 from tests.ardupilot.rig import SPACING_M, VEHICLES, Rig, at
-from tests.ardupilot.test_missions import task
 from tests.backends.conftest import HOME, closing, sim_fleet, wait_until
+from tests.support.rig import task
 
 __all__ = ["closing", "sim_fleet"]  # fixtures used by name
 
@@ -135,6 +136,11 @@ def test_daemon_pause_stops_a_px4_drone(tmp_path: Any) -> None:
             time.sleep(0.01)
         assert fleet.sim_time - t1 >= 10.0
         assert drift < 3.0, f"drifted {drift:.1f} m while paused"
+        # Paused at cruise, then once more when slow: real PX4 brakes past its point and flies back.
+        for v in fleet.vehicles:
+            assert isinstance(v, Px4Vehicle)
+            speeds = v.pauses
+            assert len(speeds) == 2 and speeds[0] > 0.85 * LEG_SPEED and speeds[1] < 0.5, speeds
         # resumed, the legs go on (the rest of the flight is tests/ardupilot's; the rig stops here)
         rig.call(rig.d.missions.resume(mission_id, "test resume"))
         rig.wait(lambda: all(v.state.groundspeed > 1.0 for v in fleet.vehicles), 20.0, "legs resumed")

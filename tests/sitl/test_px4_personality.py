@@ -5,12 +5,10 @@ binary). Whatever it lets through that real PX4 refuses is a bug: each test pins
 
 from __future__ import annotations
 
-import math
 import socket
 import struct
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -18,85 +16,24 @@ import pytest
 
 from sitl.fleet import SimFleet
 from tests.sitl.conftest import HOME, Gcs, dist_m, mavlink, offset
-
-ACCEPTED = mavlink.MAV_RESULT_ACCEPTED
-REJECTED = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-UNSUPPORTED = mavlink.MAV_RESULT_UNSUPPORTED
-FAILED = mavlink.MAV_RESULT_FAILED
-HOLD = (4, 3)
-TAKEOFF = (4, 2)
-NAN = math.nan
-INT32_MAX = 0x7FFFFFFF
-
-
-def px4_mode(hb: Any) -> tuple[int, int]:
-    return (hb.custom_mode >> 16) & 0xFF, (hb.custom_mode >> 24) & 0xFF
-
-
-def armed(hb: Any) -> bool:
-    return bool(hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-
-
-def set_px4_mode(g: Gcs, main: int, sub: int = 0) -> int:
-    return g.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, main, sub)
-
-
-def wait_mode(g: Gcs, mode: tuple[int, int], timeout: float = 5.0) -> Any:
-    return g.heartbeat_msg(lambda m: px4_mode(m) == mode, timeout)
-
-
-def arm(g: Gcs, timeout: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout
-    for _ in range(500):
-        if g.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == ACCEPTED:
-            return
-        assert time.monotonic() < deadline, f"could not arm; texts {g.texts[-3:]}"
-        time.sleep(0.05)
-
-
-def takeoff(g: Gcs, alt_rel: float, timeout: float = 15.0) -> Any:
-    """Arm in Hold, NAV_TAKEOFF to home + ``alt_rel`` AMSL, wait until within 0.5 m."""
-    arm(g)
-    r = g.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, NAN, NAN, NAN, HOME[2] + alt_rel)
-    assert r == ACCEPTED
-    return g.wait("GLOBAL_POSITION_INT", lambda m: m.relative_alt > (alt_rel - 0.5) * 1000, timeout)
-
-
-def reposition(g: Gcs, lat: float, lon: float, alt_amsl: float, speed: float = -1.0, flags: int = 1) -> int:
-    return g.command_int(
-        mavlink.MAV_CMD_DO_REPOSITION,
-        mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,  # PX4 ignores the frame: z is AMSL anyway
-        speed,
-        flags,
-        round(lat * 1e7),
-        round(lon * 1e7),
-        alt_amsl,
-    )
-
-
-def saw(g: Gcs, text: str, timeout: float = 5.0) -> None:
-    """A STATUSTEXT containing ``text`` arrived (already, e.g. before an ACK, or within ``timeout``)."""
-    if not any(text in t for t in g.texts):
-        g.wait("STATUSTEXT", lambda m: text in m.text, timeout)
-
-
-def speed(m: Any) -> float:
-    return math.hypot(m.vx, m.vy) / 100.0
-
-
-@pytest.fixture
-def px4(
-    make_fleet: Callable[..., SimFleet], make_gcs: Callable[..., Gcs]
-) -> Callable[..., tuple[SimFleet, Gcs]]:
-    """``px4(**config)``: a one-vehicle PX4 fleet (udpout on an ephemeral port) and a GCS on it."""
-
-    def start(**kw: Any) -> tuple[SimFleet, Gcs]:
-        fleet = make_fleet(flavour="px4", **kw)
-        g = make_gcs(fleet.endpoints[0])
-        g.heartbeat_msg()
-        return fleet, g
-
-    return start
+from tests.support.sitl_flight import (
+    ACCEPTED,
+    FAILED,
+    HOLD,
+    NAN,
+    REJECTED,
+    TAKEOFF,
+    UNSUPPORTED,
+    arm,
+    armed,
+    px4_mode,
+    reposition,
+    saw,
+    set_px4_mode,
+    speed,
+    takeoff,
+    wait_mode,
+)
 
 
 def test_heartbeat_is_px4_and_boots_in_hold(px4: Any) -> None:

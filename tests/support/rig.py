@@ -21,10 +21,10 @@ from typing import Any, TypeVar
 from agent.autopilot.base import Autopilot
 from agent.config import AgentConfig, AgentSettings
 from agent.runtime import Agent
-from gcs.config import DaemonConfig
 from gcs.cooperation.config import CooperationConfig
-from gcs.daemon import Daemon
-from gcs.missions import MissionProgress
+from gcs.core.config import DaemonConfig
+from gcs.core.daemon import Daemon
+from gcs.missions.runner import MissionProgress
 from protocol.taskfile import AgentPlan, TaskFile
 from tests.faults.proxy import FaultProxy
 
@@ -59,11 +59,16 @@ class FleetRig:
     def __init__(self, label: str, names: list[str], data_dir: Path, *, proxy: bool = False) -> None:
         self.names = names
         self.data_dir = data_dir
+        self._label = label
+        self._use_proxy = proxy
+        self._fresh()
+
+    def _fresh(self) -> None:
+        """A new loop and empty state: what :meth:`start_agents` needs, also after :meth:`stop_agents`."""
         self.loop = asyncio.new_event_loop()
-        self.thread = threading.Thread(target=self.loop.run_forever, name=f"rig-{label}", daemon=True)
+        self.thread = threading.Thread(target=self.loop.run_forever, name=f"rig-{self._label}", daemon=True)
         self.daemon: Daemon | None = None
         self.proxy: FaultProxy | None = None
-        self._use_proxy = proxy
         self.agents: dict[str, Agent] = {}
         self.samples: dict[str, list[Sample]] = {n: [] for n in self.names}
         self._tasks: list[asyncio.Task[Any]] = []
@@ -209,6 +214,16 @@ class FleetRig:
         """Wait for the mission to end, then for every vehicle to be landed and disarmed."""
         self.wait(lambda: mission_id not in self.d.missions.active, timeout, f"mission {mission_id} to end")
         self.wait(self.all_landed, landed_timeout, "every vehicle landed and disarmed")
+        progress = self.run(lambda: self.d.missions.progress(mission_id))
+        assert progress is not None
+        return progress
+
+    def finish_without(self, mission_id: str, left: str, timeout: float) -> MissionProgress:
+        """Wait for the mission to end, then for every vehicle but ``left`` to be landed and disarmed."""
+        self.wait(lambda: mission_id not in self.d.missions.active, timeout, f"mission {mission_id} to end")
+        others = [a for n, a in self.agents.items() if n != left]
+        down = lambda: all((t := a.autopilot.telemetry()).landed and not t.armed for a in others)  # noqa: E731
+        self.wait(down, 90.0, f"every vehicle but {left} landed and disarmed")
         progress = self.run(lambda: self.d.missions.progress(mission_id))
         assert progress is not None
         return progress

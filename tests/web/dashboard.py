@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
-import time
 from typing import Any
 
 from protocol.geo import offset_latlon
@@ -74,12 +72,3 @@ async def plan_and_start(page: Any, corners: list[tuple[float, float]], swath: i
     await page.click("#btn-start")
     await page.wait_for_function("window.fleetgcs.mission && window.fleetgcs.mission.id", timeout=20_000)
     return str(await page.evaluate("window.fleetgcs.mission.id"))
-
-
-async def wait_until(predicate: Any, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if await predicate():
-            return
-        await asyncio.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")

@@ -7,14 +7,8 @@ from pathlib import Path
 from typing import Any
 
 from tests.api.fleet import running_fleet
-from tests.web.dashboard import (
-    drone_count,
-    marker_positions,
-    open_dashboard,
-    plan_and_start,
-    survey_corners,
-    wait_until,
-)
+from tests.support.polling import wait_until
+from tests.web.dashboard import drone_count, marker_positions, open_dashboard, plan_and_start, survey_corners
 
 
 async def test_mission_planned_and_started_from_the_page_completes(

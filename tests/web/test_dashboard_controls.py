@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import asyncio
+import re
 import sqlite3
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
 
 from tests.api.fleet import running_fleet
-from tests.web.dashboard import drone_count, open_dashboard, wait_until
+from tests.support.paths import MISSIONS
+from tests.support.polling import wait_until
+from tests.web.dashboard import drone_count, open_dashboard
 
 PNG_1X1 = bytes.fromhex(
     "89504e470d0a1a0a0000000d49484452000000010000000108060000001f15c489"
@@ -45,16 +48,76 @@ async def test_per_drone_controls_and_status_columns(tmp_path: Path, browser: An
         await wait_until(lambda: _true(bool(one.status and one.status.paused)), 10, "drone-1 to hold")
         await asyncio.sleep(0.5)
         assert two.status is not None and not two.status.paused, "hold must reach only drone-1"
+        # the reason for the hold, in the table and under the map marker
         await page.wait_for_function(
             "document.querySelector(\"tr[data-agent='drone-1'] td.mode\").textContent.includes('(held)')"
         )
+        await page.wait_for_function(
+            "document.querySelector(\"tr[data-agent='drone-1'] td.exc\").textContent"
+            ".startsWith('held: operator: ')"
+        )
+        assert "dashboard" in await row.locator("td.exc").inner_text()
+        assert await row.locator("td.step").inner_text() == "-"  # no mission: no step, not -1
+        await page.wait_for_function("window.fleetgcs.agents.get('drone-1').markerNote.startsWith('held: ')")
+        await page.screenshot(path=str(artifacts / "dashboard-held-reason.png"))
         await row.locator("button[data-cmd='resume']").click()
         await wait_until(lambda: _true(bool(one.status and not one.status.paused)), 10, "drone-1 to resume")
 
-        # per-drone RTL goes to that drone only, without a question
+        # per-drone RTL and Land ask first (cancel sends nothing); RTL goes to that drone only
+        dialog = page.locator("dialog#confirm")
+        for cmd, words in (("rtl", "Return drone-2 to launch?"), ("land", "Land drone-2 where it is?")):
+            await page.locator(f"#fleet-table tr[data-agent='drone-2'] button[data-cmd='{cmd}']").click()
+            await dialog.wait_for(state="visible", timeout=5_000)
+            assert words in await page.inner_text("#confirm-text")
+            await page.click("#confirm-cancel")
+            await dialog.wait_for(state="hidden", timeout=5_000)
+        await asyncio.sleep(1.0)
+        assert not _kinds(fleet, "fleet_rtl") and not _kinds(fleet, "fleet_land"), "a cancel sent a command"
         await page.locator("#fleet-table tr[data-agent='drone-2'] button[data-cmd='rtl']").click()
+        await page.click("#confirm-ok")
         await wait_until(lambda: _true(bool(_kinds(fleet, "fleet_rtl"))), 10, "the RTL event")
         assert _kinds(fleet, "fleet_rtl")[-1].data["agents"] == ["drone-2"]
+        assert page.errors == []
+
+
+async def test_mission_files_upload_and_start(tmp_path: Path, browser: Any) -> None:
+    """A hand-written QGC .plan and a .waypoints (tests/data/missions), uploaded, asked about, started."""
+    async with running_fleet(tmp_path, drones=2, speedup=8.0) as fleet:
+        page = await open_dashboard(browser, fleet.base_url, "test-token")
+        await wait_until(lambda: _count_is(page, 2), 10, "two drones in the table")
+        await page.set_input_files("#mission-files", [str(p) for p in sorted(MISSIONS.iterdir())])
+        await page.locator("dialog#confirm").wait_for(state="visible", timeout=5_000)
+        assert "on drone-1, drone-2?" in await page.inner_text("#confirm-text")
+        await page.click("#confirm-ok")
+        await page.wait_for_function(
+            "window.fleetgcs.mission && window.fleetgcs.mission.progress", timeout=15_000
+        )
+        mission_id = await page.evaluate("window.fleetgcs.mission.id")
+        progress = fleet.daemon.missions.progress(mission_id)
+        assert progress is not None and progress.name == "imported-mission"
+        assert {a.agent: a.last_step for a in progress.agents} == {"drone-1": 4, "drone-2": 3}
+        # (flying them to the end is tests/cli/test_operator_day.py's, on our MAVLink simulator)
+        async with fleet.client() as http:
+            await http.post(f"/api/v1/missions/{mission_id}/abort", params={"then": "hold"})
+        await wait_until(
+            lambda: _true(getattr(fleet.daemon.store.mission(mission_id), "state", None) == "aborted"),
+            30,
+            "the mission to end",
+        )
+        # a reload keeps the ended mission in view, each drone its colour, events on a 24-hour clock
+        missing: list[str] = []
+        page.on("response", lambda r: missing.append(r.url) if r.status == 404 else None)
+        await page.reload()
+        await page.wait_for_function("window.fleetgcs && window.fleetgcs.connected", timeout=15_000)
+        await page.wait_for_function(
+            f"window.fleetgcs.mission && window.fleetgcs.mission.id === '{mission_id}'", timeout=15_000
+        )
+        await page.wait_for_function("document.querySelector('#mission-state').textContent === 'aborted'")
+        colours = await page.evaluate("[...window.fleetgcs.agents.values()].map(a => [a.identity, a.color])")
+        assert dict(colours) == {"drone-1": "#1f6feb", "drone-2": "#d9480f"}, colours
+        times = await page.locator("#events .t").all_inner_texts()
+        assert times and all(re.fullmatch(r"\d\d:\d\d:\d\d", t) for t in times), times
+        assert missing == [], "a page load asks for what is not there"
         assert page.errors == []
 
 
@@ -208,3 +271,20 @@ async def _old_points(page: Any) -> int:
 
 async def _true(value: bool) -> bool:
     return value
+
+
+async def test_a_bow_tie_area_is_drawn_and_located_in_lat_lon(tmp_path: Path, browser: Any) -> None:
+    """The preview of a self-intersecting area says where it crosses itself in lat/lon (it said
+    "(0.00, 0.00)" in the planner's metres) and draws the outline with the crossing marked."""
+    bowtie = [[47.3970, 8.5450], [47.3980, 8.5460], [47.3980, 8.5450], [47.3970, 8.5460]]
+    async with running_fleet(tmp_path, drones=1) as fleet:
+        page = await open_dashboard(browser, fleet.base_url, "test-token")
+        await page.fill("#area-text", str(bowtie))
+        await page.click("#btn-preview")
+        await page.wait_for_function("document.querySelector('#toast').textContent.includes('cannot plan')")
+        toast = await page.locator("#toast").inner_text()
+        assert "at (47.397500, 8.545500)" in toast and "(0.00, 0.00)" not in toast, toast
+        assert await page.evaluate("window.fleetgcs.area") == bowtie
+        crossings = await page.evaluate("window.fleetgcs.crossings")
+        assert len(crossings) == 1 and abs(crossings[0][0] - 47.3975) < 1e-6, crossings
+        assert not page.errors, page.errors

@@ -7,7 +7,8 @@ from pathlib import Path
 from typing import Any
 
 from tests.api.fleet import running_fleet
-from tests.web.dashboard import drone_count, open_dashboard, wait_until
+from tests.support.polling import wait_until
+from tests.web.dashboard import drone_count, open_dashboard
 
 
 async def _eq(value: Any, expected: Any) -> bool:

@@ -10,10 +10,11 @@ from typing import Any
 
 import pytest
 
-from gcs.config import DaemonConfig
-from gcs.daemon import Daemon
-from gcs.demo import DemoOptions, _start_agents, _start_simulator, _stop
-from tests.web.dashboard import marker_positions, open_dashboard, plan_and_start, survey_corners, wait_until
+from gcs.commands.demo_mission import DemoOptions, _start_agents, _start_simulator, _stop
+from gcs.core.config import DaemonConfig
+from gcs.core.daemon import Daemon
+from tests.support.polling import wait_until
+from tests.web.dashboard import marker_positions, open_dashboard, plan_and_start, survey_corners
 
 HOME = (47.397742, 8.545594, 488.0)
 

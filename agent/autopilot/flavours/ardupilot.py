@@ -28,6 +28,8 @@ class ArduPilotFlavour(Flavour):
         "land": 2,
         "hold": 4,
     }  # FENCE_ACTION (4 = brake)
+    failsafe_modes = ("RTL", "LAND", "SMART_RTL", "BRAKE")
+    release_modes = ("LOITER", "POSHOLD", "BRAKE")
 
     def decode_mode(self, mav_type: int, base_mode: int, custom_mode: int) -> str:
         if not base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:

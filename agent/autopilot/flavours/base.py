@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import abc
 import math
+import time
 from collections.abc import Mapping
 from typing import ClassVar
 
@@ -37,6 +38,14 @@ class Flavour(abc.ABC):
     params_bytewise: bool = False
     return_alt_param: str = ""
     fence_actions: ClassVar[Mapping[str, int]] = {}
+    # Modes the vehicle enters by itself on a failsafe (battery, EKF/position loss, fence, RC/GCS loss).
+    failsafe_modes: tuple[str, ...] = ("RTL", "LAND")
+    # Modes a pilot's control may be released from by the operator: the vehicle holds its position
+    # there without anyone on the sticks, so the pilot can flip the switch again (docs/cooperation.md).
+    release_modes: tuple[str, ...] = ()
+    # The pilot's hand-back: selecting this mode gives the vehicle back to the agent (ArduPilot
+    # GUIDED, PX4 Hold), as well as the mode the agent last asked for.
+    handback_mode = "GUIDED"
 
     @abc.abstractmethod
     def decode_mode(self, mav_type: int, base_mode: int, custom_mode: int) -> str:
@@ -96,6 +105,11 @@ class Flavour(abc.ABC):
         """The mode to report: PX4 flies a goto and a hold in the same mode; see :class:`Px4Flavour`."""
         return mode
 
+    def follows(self, previous: str, mode: str) -> bool:
+        """Whether the vehicle goes from ``previous`` to ``mode`` by itself when a manoeuvre we started
+        ends (PX4: a take-off, a mission or a landing ends in Hold): not a pilot's switch."""
+        return False
+
 
 def base_altitude_amsl(tel: Telemetry) -> float:
     """Home altitude above sea level (or the best estimate: current AMSL minus height above home)."""
@@ -130,3 +144,82 @@ class ShownMode:
         """Mark a leg started or ended; the mode to show now (None before any heartbeat)."""
         self.leg_active = active
         return flavour.shown_mode(self.raw, active) if self.raw else None
+
+
+class ModeOwner:
+    """Whose mode the vehicle is in: one the agent asked for, or someone else's.
+
+    A pilot's mode switch (RC or a second ground station) changes the vehicle's mode without the
+    agent asking. The backend tells :meth:`expect` the raw mode before each command that changes
+    it and feeds every heartbeat to :meth:`heartbeat`. Requests are kept until a heartbeat shows
+    them (at most :data:`REQUEST_SEEN_WITHIN_S`): two commands sent within one heartbeat period (a
+    leg, then a collision hold) show their modes one after the other, and both are ours. A change
+    to any other mode (that is not the vehicle's own end of one of our manoeuvres,
+    :meth:`Flavour.follows`, nor the agent's :attr:`Flavour.handback_mode`) while armed makes
+    :attr:`foreign` that mode, until the vehicle is in an expected mode again (the pilot's
+    hand-back) or the agent :meth:`adopt` s the mode (the operator's release). Not thread-safe by
+    itself: callers hold their telemetry lock.
+    """
+
+    __slots__ = ("_requests", "expected", "foreign", "raw")
+
+    def __init__(self) -> None:
+        self.expected: str | None = None  # the mode of the agent's last request
+        self.raw = ""
+        self.foreign: str | None = None
+        self._requests: list[tuple[str, float]] = []  # (mode, when asked), not yet seen, oldest first
+
+    def expect(self, raw: str | None, now: float | None = None) -> None:
+        """The agent is about to put the vehicle in ``raw`` (a decoded heartbeat mode name)."""
+        self.expected = raw
+        if raw is not None:
+            self._requests.append((raw, time.monotonic() if now is None else now))
+            del self._requests[:-REQUESTS_KEPT]
+
+    def withdraw(self, raw: str | None, before: str | None) -> None:
+        """The vehicle refused the request for ``raw``: the agent still expects ``before``."""
+        self.expected = before
+        for i in range(len(self._requests) - 1, -1, -1):
+            if self._requests[i][0] == raw:
+                del self._requests[i]
+                break
+
+    def _requested(self, raw: str, now: float) -> bool:
+        """Whether ``raw`` answers one of our requests still in flight (it and older ones are done)."""
+        fresh = [(mode, t) for mode, t in self._requests if now - t <= REQUEST_SEEN_WITHIN_S]
+        for i, (mode, _t) in enumerate(fresh):
+            if mode == raw:
+                self._requests = fresh[i + 1 :]
+                return True
+        self._requests = fresh
+        return False
+
+    def heartbeat(self, flavour: Flavour, raw: str, armed: bool, now: float | None = None) -> None:
+        previous, self.raw = self.raw, raw
+        requested = self._requested(raw, time.monotonic() if now is None else now)
+        if raw == previous or not previous:
+            return
+        if raw == self.expected or requested:
+            self.foreign = None  # our own request (the last one, or one sent just before it)
+        elif raw == flavour.handback_mode:
+            # The agent's own mode: the pilot handed back, or the vehicle left a mode that was ours
+            # (e.g. an adopted BRAKE failsafe) for it; never a pilot's takeover.
+            self.expected = raw
+            self.foreign = None
+        elif self.foreign is not None:
+            self.foreign = raw  # the pilot flies on, in another mode (or the vehicle's next one)
+        elif not armed or flavour.follows(previous, raw):
+            self.expected = raw  # on the ground, or the end of our own manoeuvre: still ours
+        else:
+            self.foreign = raw
+
+    def adopt(self) -> None:
+        """The operator's release: the vehicle's present mode is the agent's from now on."""
+        self.expected = self.raw
+        self.foreign = None
+
+
+# How long a mode request waits to be seen in a heartbeat (1 Hz, later under load) before a
+# change to that mode is no longer taken as its answer; and how many requests are remembered.
+REQUEST_SEEN_WITHIN_S = 5.0
+REQUESTS_KEPT = 8

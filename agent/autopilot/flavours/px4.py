@@ -68,6 +68,9 @@ class Px4Flavour(Flavour):
     params_bytewise = True
     return_alt_param = "RTL_RETURN_ALT"
     fence_actions: ClassVar[Mapping[str, int]] = {"report": 1, "hold": 2, "rtl": 3, "land": 5}  # GF_ACTION
+    failsafe_modes = ("RTL", "LAND", "LOITER")
+    handback_mode = "LOITER"  # Hold
+    release_modes = ("POSCTL",)  # the pilot's position mode; Hold (LOITER) is the agent's own already
 
     def decode_mode(self, mav_type: int, base_mode: int, custom_mode: int) -> str:
         main = (custom_mode >> 16) & 0xFF
@@ -82,7 +85,12 @@ class Px4Flavour(Flavour):
 
     def takeoff_params(self, alt_rel_m: float, tel: Telemetry) -> tuple[float, ...]:
         # param7 is AMSL on PX4: an ArduPilot-style "10" is "already higher than takeoff altitude".
-        return (0, 0, 0, math.nan, tel.lat, tel.lon, base_altitude_amsl(tel) + alt_rel_m)
+        # On the ground the base is where the vehicle stands, not HOME_POSITION: PX4 takes its home
+        # where it arms, and the take-off goes out before the new home is heard. The last flight's home
+        # lies up to 0.7 m off the ground after a few flights (SIH baro drift, measured), so a drone
+        # flew to 9.3 m above its new home and never reached 95 % of a 10 m take-off.
+        base = tel.alt_amsl if tel.landed else base_altitude_amsl(tel)
+        return (0, 0, 0, math.nan, tel.lat, tel.lon, base + alt_rel_m)
 
     def reposition_params(
         self, lat: float, lon: float, alt_amsl: float, speed_mps: float | None
@@ -125,3 +133,9 @@ class Px4Flavour(Flavour):
 
     def shown_mode(self, mode: str, leg_active: bool) -> str:
         return "GUIDED" if mode == "LOITER" and leg_active else mode
+
+    def follows(self, previous: str, mode: str) -> bool:
+        # A take-off, a mission, a return or a landing ends in Hold by itself; a return lands.
+        return (mode == "LOITER" and previous in ("TAKEOFF", "AUTO", "RTL", "LAND", "READY")) or (
+            previous == "RTL" and mode == "LAND"
+        )

@@ -6,21 +6,28 @@ import time
 
 from fastapi import APIRouter
 
-from gcs.agents import AgentSession, RetireRefused
-from gcs.authority import VehicleControl
+from gcs.control.authority import VehicleControl
 from gcs.http.deps import TOKEN, Agents, ApiProblem, Archive, Authority, Events, Hub, Missions
 from gcs.http.models import AgentView, Retired
-from gcs.http.ports import AgentDirectory
+from gcs.http.ports import AgentDirectory, ControlView
+from gcs.link.session import AgentSession
+from gcs.link.sessions import RetireRefused
 
 router = APIRouter()
 
 
-def agent_view(agents: AgentDirectory, s: AgentSession) -> AgentView:
+def held(authority: ControlView | None, identity: str) -> str | None:
+    """``operator: fleet hold: dashboard``: who holds the drone and why, or None."""
+    holds = authority.control(identity).holds if authority is not None else {}
+    return "; ".join(f"{owner}: {why}" for owner, why in sorted(holds.items())) or None
+
+
+def agent_view(agents: AgentDirectory, s: AgentSession, authority: ControlView | None = None) -> AgentView:
     return AgentView(
         identity=s.identity,
         cid=s.cid,
         connected=s.open,
-        lost=s.identity in agents.lost,
+        lost=s.identity in agents.lost and agents.sessions.get(s.identity) is s,
         peer=s.peer,
         capabilities=s.capabilities,
         home=s.home,
@@ -28,26 +35,41 @@ def agent_view(agents: AgentDirectory, s: AgentSession) -> AgentView:
         status_count=s.status_count,
         link_age_s=round(time.monotonic() - s.last_rx, 3),
         connected_at=s.connected_at,
+        held=held(authority, s.identity),
     )
 
 
+def link_session(agents: AgentDirectory, identity: str) -> AgentSession | None:
+    """Where ``identity``'s link is, the one answer every view gives: our open session, else (in
+    cluster mode) the mirror of the daemon holding it now, else our last, closed session. An
+    agent that moved to another daemon is shown there, not as our disconnected one."""
+    own = agents.sessions.get(identity)
+    if own is not None and own.open:
+        return own
+    remote = agents.remote.get(identity)
+    return remote if remote is not None and remote.open else own
+
+
 def fleet_sessions(agents: AgentDirectory) -> list[AgentSession]:
-    """This daemon's sessions, and in cluster mode the other daemons' agents (docs/cluster.md)."""
-    own = agents.sessions
-    return [*own.values(), *(s for i, s in agents.remote.items() if i not in own and s.open)]
+    """This daemon's sessions, and in cluster mode the other daemons' agents (docs/cluster.md),
+    each agent once, where its link is (:func:`link_session`)."""
+    names = [*agents.sessions, *(i for i, s in agents.remote.items() if i not in agents.sessions and s.open)]
+    return [s for s in (link_session(agents, i) for i in names) if s is not None]
 
 
 @router.get("/api/v1/agents")
-async def agents(directory: Agents) -> list[AgentView]:
-    return [agent_view(directory, s) for s in sorted(fleet_sessions(directory), key=lambda s: s.cid)]
+async def agents(directory: Agents, authority: Authority) -> list[AgentView]:
+    return [
+        agent_view(directory, s, authority) for s in sorted(fleet_sessions(directory), key=lambda s: s.cid)
+    ]
 
 
 @router.get("/api/v1/agents/{identity}")
-async def agent(identity: str, directory: Agents) -> AgentView:
-    session = directory.sessions.get(identity)
+async def agent(identity: str, directory: Agents, authority: Authority) -> AgentView:
+    session = link_session(directory, identity)
     if session is None:
         raise ApiProblem(404, "no such agent", f"agent {identity!r} has never connected")
-    return agent_view(directory, session)
+    return agent_view(directory, session, authority)
 
 
 @router.delete("/api/v1/agents/{identity}", dependencies=TOKEN)

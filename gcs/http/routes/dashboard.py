@@ -40,7 +40,7 @@ async def health(agents: Agents, missions: Missions) -> Health:
 async def ui_config(ports: Ports) -> UiConfig:
     config = ports.config()
     tile_url = "/api/v1/tiles/{z}/{x}/{y}" if config.tile_mbtiles is not None else config.tile_url
-    return UiConfig(tile_url=tile_url, status_period_s=config.status_period_s)
+    return UiConfig(tile_url=tile_url, status_period_s=config.status_period_s, cluster=bool(config.cluster))
 
 
 @router.get("/api/v1/tiles/{z}/{x}/{y}", include_in_schema=False)

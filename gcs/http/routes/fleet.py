@@ -1,6 +1,6 @@
 """Whole-fleet operator commands (``/api/v1/fleet/{rtl,land,hold,resume}``) and the geofence.
 
-Each command goes to the operator's use cases (gcs/operator.py), which ask the vehicle authority;
+Each command goes to the operator's use cases (gcs/control/operator.py), which ask the vehicle authority;
 the route only times it for ``/metrics``.
 """
 
@@ -14,7 +14,7 @@ from fastapi import APIRouter
 from gcs.http.deps import TOKEN, Hub, Operator, Ports
 from gcs.http.models import Delivered, FleetCommand, FleetCommandResult, GeofenceRequest, GeofenceState
 from gcs.http.ports import FleetOperator
-from gcs.live import LiveHub
+from gcs.observe.live import LiveHub
 
 router = APIRouter()
 

@@ -7,9 +7,9 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query
 from fastapi.responses import Response
 
-from gcs.events import Event
 from gcs.http.deps import Agents, ApiProblem, Events, Hub
-from gcs.live import StatusSample
+from gcs.observe.events import Event
+from gcs.observe.live import StatusSample
 
 router = APIRouter()
 MAX_ID = 2**62

@@ -1,6 +1,6 @@
 """``/api/v1/plan`` (preview without flying) and ``/api/v1/missions/plan`` (plan, then fly it).
 
-The planners themselves are gcs/api_planning.py; here: which drones, the daemon's energy estimator,
+The planners themselves are gcs/http/planning_requests.py; here: which drones, the daemon's energy estimator,
 and a time bound, with planning run off the event loop.
 """
 
@@ -11,9 +11,9 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Body
 
-from gcs.api_planning import DroneInfo, PlanningError, PlanPreview, PlanRequest, plan
 from gcs.http.deps import TOKEN, ApiProblem, Ports
 from gcs.http.models import MissionCreated
+from gcs.http.planning_requests import DroneInfo, PlanningError, PlanPreview, PlanRequest, plan
 from gcs.http.ports import AgentDirectory, ApiPorts, MissionControl
 from gcs.http.routes.missions import submit_task
 
@@ -44,7 +44,7 @@ async def _plan(ports: ApiPorts, request: Any) -> PlanPreview:
         energy = ports.energy()
         return await asyncio.wait_for(asyncio.to_thread(plan, request, infos, energy), PLAN_TIMEOUT_S)
     except PlanningError as exc:
-        raise ApiProblem(422, "cannot plan", str(exc)[:1000]) from None
+        raise ApiProblem(422, "cannot plan", str(exc)[:1000], exc.extra) from None
     except TimeoutError:
         raise ApiProblem(422, "cannot plan", f"planning took longer than {PLAN_TIMEOUT_S:.0f} s") from None
 
@@ -63,9 +63,17 @@ def drone_infos(agents: AgentDirectory, missions: MissionControl, names: list[st
             infos.append(DroneInfo(name=name))
             continue
         home = (session.home.lat, session.home.lon) if session.home else None
+        alt = session.home.alt_amsl if session.home else None
         if home is None and session.status is not None and session.status.position is not None:
             home = (session.status.position.lat, session.status.position.lon)
+            alt = session.status.position.alt_amsl - session.status.position.alt_rel
         infos.append(
-            DroneInfo(name=name, capabilities=session.capabilities, home=home, status=session.status)
+            DroneInfo(
+                name=name,
+                capabilities=session.capabilities,
+                home=home,
+                home_alt_amsl=alt,
+                status=session.status,
+            )
         )
     return infos

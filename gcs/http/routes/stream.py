@@ -12,8 +12,8 @@ from fastapi.responses import Response
 from gcs.http.deps import Hub, Ports
 from gcs.http.ports import AgentDirectory
 from gcs.http.routes.agents import agent_view, fleet_sessions
-from gcs.live import LiveHub, StreamClient
-from gcs.metrics import CONTENT_TYPE
+from gcs.observe.live import LiveHub, StreamClient
+from gcs.observe.metrics import CONTENT_TYPE
 
 router = APIRouter()
 STREAM_SUBPROTOCOL = "fleetgcs"
@@ -35,8 +35,10 @@ async def stream(
     events: bool = True,
     agents: str | None = None,
     max_rate_hz: float = 0.0,
+    coverage: bool = True,
 ) -> None:
-    """Push status reports and events; the first frame is a snapshot of the fleet.
+    """Push status reports, events and survey coverage (at most once a second per mission); the
+    first frame is a snapshot of the fleet.
 
     Output only: a client that sends anything is closed (1008). At most
     ``stream_max_clients`` at once (more are refused before the upgrade); each client's
@@ -49,7 +51,9 @@ async def stream(
         return
     slots.open += 1
     try:
-        await _serve_stream(websocket, ports.agents, ports.hub, status, events, agents, max_rate_hz)
+        await _serve_stream(
+            websocket, ports.agents, ports.hub, (status, events, coverage), agents, max_rate_hz
+        )
     finally:
         slots.open -= 1
 
@@ -58,8 +62,7 @@ async def _serve_stream(
     websocket: WebSocket,
     directory: AgentDirectory,
     hub: LiveHub,
-    status: bool,
-    events: bool,
+    wants: tuple[bool, bool, bool],
     agents: str | None,
     max_rate_hz: float,
 ) -> None:
@@ -69,8 +72,9 @@ async def _serve_stream(
     names = frozenset(a for a in agents.split(",") if a) if agents else None
     rate = max_rate_hz if 0 < max_rate_hz < 1e6 else 0.0
     client = StreamClient(
-        status=status,
-        events=events,
+        status=wants[0],
+        events=wants[1],
+        coverage=wants[2],
         agents=names,
         min_interval_s=1.0 / rate if rate else 0.0,
         max_bytes=config.stream_client_buffer_bytes,

@@ -1,0 +1,1 @@
+"""Control: the one vehicle authority, its command port and the operator's fleet commands."""

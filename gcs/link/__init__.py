@@ -1,0 +1,1 @@
+"""The agent link: admission, sessions, the status table, outboxes, hook dispatch, the release beacon."""

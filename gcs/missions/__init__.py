@@ -1,0 +1,1 @@
+"""Missions: the runner, synchronization barriers, the release journal, imported mission files."""

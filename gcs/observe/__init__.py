@@ -1,0 +1,1 @@
+"""Observation: fleet events, the live hub, metrics, the telemetry log and flight records."""
