@@ -52,7 +52,7 @@ def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
         pytest.importorskip("mavsdk", reason="the MAVSDK backend needs the mavsdk package (extra [mavsdk])")
     first = first_instance()
     if first is None:
-        pytest.skip("PX4 instance ids 0-9 are shared by two xdist workers (gw0, gw1); this is a third")
+        pytest.skip("PX4 instance ids 0-9 hold three blocks of three (xdist workers gw0-gw2); this worker has none")
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     _log_boot(f"PX4 boot: backend {backend}, worker {worker}, instances {first}-{first + 2}, {SPEED:g}x")
     fleet = PX4Rig(px4, backend, tmp_path_factory.mktemp(f"px4-{backend}"), first).start()

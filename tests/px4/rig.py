@@ -40,11 +40,11 @@ HOME = (47.397742, 8.545594, 489.4)  # PX4 SIH's default home (Zurich)
 SPACING_M = 10.0
 VEHICLES = 3
 BACKENDS = ("mavlink", "mavsdk")
-BLOCK = 5  # instance ids per xdist worker
+BLOCK = VEHICLES  # instance ids per xdist worker: gw0 0-2, gw1 3-5, gw2 6-8 (a third for a developer's run)
 
 
 def first_instance() -> int | None:
-    """This worker's first PX4 instance id (``PYTEST_XDIST_WORKER`` gwN -> 5N), None past id 9."""
+    """This worker's first PX4 instance id (``PYTEST_XDIST_WORKER`` gwN -> 3N), None past id 9."""
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
     index = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
     first = BLOCK * index
