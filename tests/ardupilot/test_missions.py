@@ -146,8 +146,10 @@ def test_refused_action_ends_the_mission_with_the_autopilot_reason(rig: Rig) -> 
             name: [Takeoff(step=0, alt=6.0, sync=True), GoBy(step=1, north=20.0, east=0.0), Land(step=2)]
             for name in rig.names
         }
-        for agent in rig.agents.values():
-            agent.executor.config = agent.config.model_copy(update={"arm_deadline_s": 6.0})
+        # Only drone-2 gives up arming early: a loaded ArduCopter can refuse a healthy drone for a few
+        # seconds ("Need Position Estimate", seen in a full suite run), which the others ride out.
+        refused = rig.agents["drone-2"]
+        refused.executor.config = refused.config.model_copy(update={"arm_deadline_s": 6.0})
         mission_id = rig.submit(task("refused", plans))
         progress = rig.finish(mission_id, 90.0)
     finally:
