@@ -19,6 +19,10 @@ A daemon service beside the mission runner (whose class may only shrink), wired 
   legs and the return through the vehicle authority at mission priority once the receiver has
   flown its own survey (at once if it has). The dropped drone left the barriers when it was
   excluded, so nobody waits for it.
+* **kept**: a record is saved in the daemon's store (:mod:`gcs.missions.record_codec`, table
+  ``survey_records``, the last :data:`MAX_RECORDS`) after each decision, when its mission ends and
+  when the daemon stops; :meth:`Retasking.find` reads it back, so the report outlives a restart,
+  and a survey resumed after a restart goes on from the tracks it had.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from gcs.cooperation.config import EnergyConfig
 from gcs.cooperation.energy import capability_power_w, predict_plan_energy
 from gcs.missions.plan_edit import extend_plan, survey_alt, survey_points
+from gcs.missions.record_codec import RecordDecodeError, decode_record, encode_record
 from gcs.planning.retask import Candidate, RetaskProposal, propose_retask
 from protocol.actions import Action, Goto, ReturnToLaunch, Waypoints
 from protocol.geo import distance_m
@@ -52,7 +57,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("gcs.missions.retask")
 
 TRACK_STEP_M = 1.0  # a new track point once the drone moved this far (or changed height by it)
-MAX_RECORDS = 64  # survey missions remembered for reports (oldest forgotten first)
+MAX_RECORDS = 64  # survey missions remembered for reports, in memory and in the store (oldest first out)
+ENDED = frozenset({"mission_completed", "mission_aborted"})  # the runner's events of a mission's end
 MAX_TRACK_POINTS = 200_000  # per drone and mission: hours of flight at one point per metre
 
 State = Literal["pending", "applied", "rejected", "none"]
@@ -144,6 +150,7 @@ class Retasking:
         self._plain: OrderedDict[str, None] = OrderedDict()  # missions seen that are no survey
         self._events: asyncio.Queue[Event] | None = None
         self._task: asyncio.Task[None] | None = None
+        self._saving: set[asyncio.Task[None]] = set()
 
     # --- lifecycle ------------------------------------------------------------------------------
 
@@ -164,6 +171,11 @@ class Retasking:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
+        if self._saving:
+            await asyncio.wait(list(self._saving), timeout=5.0)
+        if self._ctx is not None:  # a survey still flying keeps its tracks so far across the restart
+            for mission_id in [m for m in self.records if m in self._ctx.missions.active]:
+                await self.save(mission_id)
 
     @property
     def ctx(self) -> ServiceContext:
@@ -183,12 +195,56 @@ class Retasking:
             while len(self._plain) > MAX_RECORDS:
                 self._plain.popitem(last=False)
             return None
-        found = self.records[mission_id] = SurveyRecord(
+        found = self.records[mission_id] = self._stored(mission_id) or SurveyRecord(
             mission_id, mission.task.survey, {a: list(p) for a, p in mission.plans.items()}
         )
         while len(self.records) > MAX_RECORDS:
             self.records.popitem(last=False)
         return found
+
+    async def find(self, mission_id: str) -> SurveyRecord | None:
+        """A snapshot of the mission's record: the one in memory, else the store's (a survey this
+        daemon flew before a restart, or one forgotten in memory); None if there is neither."""
+        found = self.record(mission_id)
+        if found is not None:
+            return found.snapshot()
+        blob = self.ctx.store.survey_record(mission_id)
+        if blob is None:
+            return None
+        try:
+            return await asyncio.to_thread(decode_record, blob)
+        except RecordDecodeError as exc:
+            log.warning("survey record of %s not read: %s", mission_id, exc)
+            return None
+
+    def _stored(self, mission_id: str) -> SurveyRecord | None:
+        """The store's copy of a survey resumed after a restart (read once, on the loop)."""
+        blob = self.ctx.store.survey_record(mission_id)
+        if blob is None:
+            return None
+        try:
+            return decode_record(blob)
+        except RecordDecodeError as exc:
+            log.warning("survey record of %s not read: %s", mission_id, exc)
+            return None
+
+    async def save(self, mission_id: str) -> None:
+        """Write the mission's record to the store (encoded in a worker thread)."""
+        rec = self.records.get(mission_id)
+        if rec is None or self._ctx is None:
+            return
+        blob = await asyncio.to_thread(encode_record, rec.snapshot())
+        self._ctx.store.save_survey_record(mission_id, blob, MAX_RECORDS)
+
+    def _save_soon(self, mission_id: str) -> None:
+        task = asyncio.create_task(self.save(mission_id), name=f"retask-save-{mission_id}")
+        self._saving.add(task)
+        task.add_done_callback(self._saved)
+
+    def _saved(self, task: asyncio.Task[None]) -> None:
+        self._saving.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("survey record not saved", exc_info=task.exception())
 
     # --- hooks ----------------------------------------------------------------------------------
 
@@ -220,6 +276,9 @@ class Retasking:
         assert self._events is not None
         while True:
             event = await self._events.get()
+            if event.kind in ENDED and event.mission_id is not None and event.mission_id in self.records:
+                self._save_soon(event.mission_id)
+                continue
             if event.kind != "agent_excluded" or event.agent is None or event.mission_id is None:
                 continue
             try:
@@ -354,6 +413,8 @@ class Retasking:
     def _publish(
         self, rec: SurveyRecord, decision: Decision, kind: str, message: str, severity: Severity | None = None
     ) -> None:
+        """Publish a decision's event and keep the record as it stands now."""
+        self._save_soon(rec.mission_id)
         level: Severity = severity or ("warning" if decision.proposal.verdict == "not_feasible" else "info")
         self.ctx.events.publish(
             kind,
