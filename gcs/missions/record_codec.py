@@ -100,4 +100,5 @@ def _proposal(d: dict[str, Any]) -> RetaskProposal:
         share_m2=float(d["share_m2"]),
         legs=legs,
         gap=d["gap"],
+        pieces=int(d.get("pieces", 1)),
     )

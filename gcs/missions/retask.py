@@ -93,6 +93,7 @@ class Decision:
             "at": self.at,
             "gap_m2": p.gap_m2,
             "share_m2": p.share_m2,
+            "pieces": p.pieces,
             "legs": [
                 {k: v for k, v in leg.__dict__.items() if k != "points"} | {"points": len(leg.points)}
                 for leg in p.legs
