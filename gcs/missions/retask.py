@@ -152,6 +152,7 @@ class Retasking:
         self._events: asyncio.Queue[Event] | None = None
         self._task: asyncio.Task[None] | None = None
         self._saving: set[asyncio.Task[None]] = set()
+        self._last_saved: dict[str, tuple[int, tuple[str, ...]]] = {}  # mission -> _mark() of its last save
 
     # --- lifecycle ------------------------------------------------------------------------------
 
@@ -174,9 +175,10 @@ class Retasking:
                 await self._task
         if self._saving:
             await asyncio.wait(list(self._saving), timeout=5.0)
-        if self._ctx is not None:  # a survey still flying keeps its tracks so far across the restart
-            for mission_id in [m for m in self.records if m in self._ctx.missions.active]:
-                await self.save(mission_id)
+        # What changed since it was last saved (a survey still flying, or one whose end event was
+        # still queued) keeps its tracks so far across the restart.
+        for mission_id in [m for m, rec in self.records.items() if self._last_saved.get(m) != _mark(rec)]:
+            await self.save(mission_id)
 
     @property
     def ctx(self) -> ServiceContext:
@@ -234,8 +236,12 @@ class Retasking:
         rec = self.records.get(mission_id)
         if rec is None or self._ctx is None:
             return
-        blob = await asyncio.to_thread(encode_record, rec.snapshot())
+        snapshot = rec.snapshot()
+        blob = await asyncio.to_thread(encode_record, snapshot)
         self._ctx.store.save_survey_record(mission_id, blob, MAX_RECORDS)
+        self._last_saved[mission_id] = _mark(snapshot)
+        while len(self._last_saved) > MAX_RECORDS:
+            del self._last_saved[next(iter(self._last_saved))]
 
     def _save_soon(self, mission_id: str) -> None:
         task = asyncio.create_task(self.save(mission_id), name=f"retask-save-{mission_id}")
@@ -430,6 +436,11 @@ class Retasking:
         """The mission's re-task decisions (pending ones included), newest last."""
         rec = self.records.get(mission_id)
         return [d.summary(gap=True) for d in rec.decisions] if rec else []
+
+
+def _mark(rec: SurveyRecord) -> tuple[int, tuple[str, ...]]:
+    """What a save depends on, cheaply: the track points and the decisions' states."""
+    return sum(len(t) for t in rec.tracks.values()), tuple(d.state for d in rec.decisions)
 
 
 def _speed(plan: list[Action]) -> float | None:
