@@ -2,7 +2,9 @@
 and the planned coverage of every pattern (curved at shifts -0.5..0.5, with and without wind) over
 random convex polygons.
 
-Run: python bench/bench_planning.py  (writes bench/results/planning.json; < 1 min on 2 cores)
+Run: python bench/bench_planning.py  (writes bench/results/planning.json; < 1 min on 2 cores);
+``--path-only``: only the path per covered area against Fields2Cover's stored references (issue 27),
+exit status 1 if the L-shaped field is more than 5 % off F2C's length.
 """
 
 from __future__ import annotations
@@ -178,9 +180,32 @@ def bench_planned_coverage(polygons: int = 120, seed: int = 0) -> list[dict]:
     return rows
 
 
-# Fields2Cover 2.1 (not installed here: it builds from its PyPI sdist against Debian's libgdal-dev and
-# libgeos-dev); its lengths measured by issue 27 on the same fields, swath 20 m, same footprint code
+# --- Fields2Cover 2.1 reference (issue 27) --------------------------------------------------------
+# F2C is not installed here (it builds from its PyPI sdist against Debian's libgdal-dev and
+# libgeos-dev; see docs/planning.md), so the comparison uses stored references:
+# * the L-shaped field (300 x 300 m minus a 180 x 180 m corner, swath 20 m): F2C 2.1's path,
+#   3,162 m, measured by issue 27 with the same footprint code;
+# * the random convex and concave sets: issue 27 measured fleetgcs at commit 6d3b7e8 at 1.09x
+#   (convex) and 1.18x (concave) F2C's path per covered area (medians over its own 20 + 20 random
+#   fields). Those fields were not stored, so F2C's per-field reference here is estimated as what
+#   6d3b7e8 plans on *these* fields (seed 27, below, stored per field) divided by that median ratio.
+#   The numbers were made with `git archive 6d3b7e8 gcs protocol` unpacked into a scratch folder
+#   and this file's _fly() run on that tree (the same call reproduces the issue's 4,363 m on the
+#   L-field, so the tree is the one the issue measured). It is an estimate: it assumes F2C's edge
+#   over 6d3b7e8 on these fields is the median one of the issue's fields.
 F2C_REFERENCE_M = {"L-field": 3162.0}
+F2C_OLD_RATIO = {"convex": 1.09, "concave": 1.18}  # 6d3b7e8 / F2C, median m per covered ha
+OLD_6D3B7E8_M_PER_HA = {  # 6d3b7e8's m per covered ha on bench_path_per_area's fields, in order
+    "convex": [
+        1024.92, 1637.43, 1876.08, 633.77, 753.67, 1419.94, 590.94, 739.43, 1397.1, 1751.37,
+        650.71, 793.57, 647.39, 682.19, 685.56, 869.47, 684.9, 616.68, 724.41, 748.38,
+    ],
+    "concave": [
+        588.21, 663.95, 555.68, 626.25, 586.81, 708.43, 623.4, 645.04, 553.78, 735.33,
+        616.12, 651.01, 543.9, 583.19, 562.21, 767.59, 628.42, 638.72, 573.6, 634.06,
+    ],
+}  # fmt: skip
+L_FIELD_TOLERANCE = 0.05  # issue 27: the L-field within 5 % of F2C's length
 L_FIELD = np.array([(0, 0), (300, 0), (300, 120), (120, 120), (120, 300), (0, 300)], dtype=float)
 
 
@@ -217,25 +242,62 @@ def _fly(poly: np.ndarray, swath: float) -> dict:
 
 
 def bench_path_per_area(fields: int = 20, seed: int = 27, swath: float = 20.0) -> dict:
-    """Path length per covered area on random convex and concave fields (issue 27's comparison)."""
-    out: dict = {}
+    """Path length per covered area on random convex and concave fields, against the stored F2C
+    references (issue 27's comparison; see F2C_REFERENCE_M above for where they come from)."""
+    out: dict = {"ideal_m_per_ha": round(1e4 / swath, 1)}  # parallel legs one swath apart, no turns
     for kind, gen in (("convex", random_convex), ("concave", random_concave)):
         rng = np.random.default_rng(seed)
         rows = [_fly(gen(rng), swath) for _ in range(fields)]
+        ours = np.array([r["m_per_ha"] for r in rows])
+        old = (
+            np.array(OLD_6D3B7E8_M_PER_HA[kind][:fields]) if (fields, seed, swath) == (20, 27, 20.0) else None
+        )
         out[kind] = {
             "fields": fields,
-            "median_m_per_ha": round(float(np.median([r["m_per_ha"] for r in rows])), 2),
+            "median_m_per_ha": round(float(np.median(ours)), 2),
             "min_covered_pct": round(min(r["covered_pct"] for r in rows), 3),
             "median_plan_s": round(float(np.median([r["seconds"] for r in rows])), 4),
         }
+        if old is not None:
+            f2c = old / F2C_OLD_RATIO[kind]  # the estimated F2C reference per field
+            out[kind] |= {
+                "vs_6d3b7e8_median": round(float(np.median(ours / old)), 4),
+                "f2c_est_median_m_per_ha": round(float(np.median(f2c)), 2),
+                "vs_f2c_est_median": round(float(np.median(ours / f2c)), 4),
+            }
     lf = _fly(L_FIELD, swath)
+    ratio = lf["length_m"] / F2C_REFERENCE_M["L-field"]
     out["L-field"] = {
         "length_m": round(lf["length_m"], 1),
-        "covered_pct": lf["covered_pct"],
+        "covered_pct": round(lf["covered_pct"], 3),
         "f2c_m": F2C_REFERENCE_M["L-field"],
-        "vs_f2c": round(lf["length_m"] / F2C_REFERENCE_M["L-field"], 4),
+        "vs_f2c": round(ratio, 4),
+        "within_5_pct": abs(ratio - 1.0) <= L_FIELD_TOLERANCE,
     }
     return out
+
+
+def print_path_per_area(res: dict) -> None:
+    """Ours against the references, one line per set."""
+    print("\n## path per covered area, swath 20 m: ours vs Fields2Cover 2.1 (stored references, issue 27)")
+    print(f"ideal (legs one swath apart, no turns): {res['ideal_m_per_ha']} m/ha")
+    print(
+        "set | fields | ours median m/ha | F2C est. median m/ha | ours/F2C est. (median) | ours/6d3b7e8 ",
+        end="",
+    )
+    print("| min covered % | plan s")
+    for kind in ("convex", "concave"):
+        r = res[kind]
+        print(
+            f"{kind} | {r['fields']} | {r['median_m_per_ha']} | {r.get('f2c_est_median_m_per_ha', '-')} | "
+            f"{r.get('vs_f2c_est_median', '-')} | {r.get('vs_6d3b7e8_median', '-')} | "
+            f"{r['min_covered_pct']} | {r['median_plan_s']}"
+        )
+    lf = res["L-field"]
+    print(
+        f"L-field | ours {lf['length_m']:.0f} m ({lf['covered_pct']} % covered) | F2C {lf['f2c_m']:.0f} m | "
+        f"{lf['vs_f2c']:.4f}x | within 5 %: {'yes' if lf['within_5_pct'] else 'NO'}"
+    )
 
 
 def table(rows: list[dict], title: str) -> None:
@@ -247,6 +309,10 @@ def table(rows: list[dict], title: str) -> None:
 
 
 def main() -> int:
+    if "--path-only" in sys.argv[1:]:  # the F2C comparison alone (a few seconds); 1 if the L-field is off
+        res = bench_path_per_area()
+        print_path_per_area(res)
+        return 0 if res["L-field"]["within_5_pct"] else 1
     t0 = time.perf_counter()
     cam = Camera(resolution_px=640, fov_deg=60.0, min_pixels=20)  # seed 001 §6.1 camera, 0.5 m tag
     sp = spacing_from_camera(cam, 0.5, side_overlap=0.0)
@@ -273,8 +339,7 @@ def main() -> int:
         results["planned_coverage"],
         "planned coverage over random convex polygons (footprint = line step, on the plan itself)",
     )
-    print("\n## path per covered area, swath 20 m (issue 27; F2C reference where measured)")
-    print(json.dumps(results["path_per_area"], indent=1))
+    print_path_per_area(results["path_per_area"])
     out = Path(__file__).resolve().parent / "results" / "planning.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=2))

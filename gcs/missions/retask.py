@@ -19,6 +19,10 @@ A daemon service beside the mission runner (whose class may only shrink), wired 
   legs and the return through the vehicle authority at mission priority once the receiver has
   flown its own survey (at once if it has). The dropped drone left the barriers when it was
   excluded, so nobody waits for it.
+* **kept**: a record is saved in the daemon's store (:mod:`gcs.missions.record_codec`, table
+  ``survey_records``, the last :data:`MAX_RECORDS`) after each decision, when its mission ends and
+  when the daemon stops; :meth:`Retasking.find` reads it back, so the report outlives a restart,
+  and a survey resumed after a restart goes on from the tracks it had.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from gcs.cooperation.config import EnergyConfig
 from gcs.cooperation.energy import capability_power_w, predict_plan_energy
 from gcs.missions.plan_edit import extend_plan, survey_alt, survey_points
+from gcs.missions.record_codec import RecordDecodeError, decode_record, encode_record
 from gcs.planning.retask import Candidate, RetaskProposal, propose_retask
 from protocol.actions import Action, Goto, ReturnToLaunch, Waypoints
 from protocol.geo import distance_m
@@ -52,7 +57,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("gcs.missions.retask")
 
 TRACK_STEP_M = 1.0  # a new track point once the drone moved this far (or changed height by it)
-MAX_RECORDS = 64  # survey missions remembered for reports (oldest forgotten first)
+MAX_RECORDS = 64  # survey missions remembered for reports, in memory and in the store (oldest first out)
+ENDED = frozenset({"mission_completed", "mission_aborted"})  # the runner's events of a mission's end
 MAX_TRACK_POINTS = 200_000  # per drone and mission: hours of flight at one point per metre
 
 State = Literal["pending", "applied", "rejected", "none"]
@@ -87,6 +93,7 @@ class Decision:
             "at": self.at,
             "gap_m2": p.gap_m2,
             "share_m2": p.share_m2,
+            "pieces": p.pieces,
             "legs": [
                 {k: v for k, v in leg.__dict__.items() if k != "points"} | {"points": len(leg.points)}
                 for leg in p.legs
@@ -144,6 +151,8 @@ class Retasking:
         self._plain: OrderedDict[str, None] = OrderedDict()  # missions seen that are no survey
         self._events: asyncio.Queue[Event] | None = None
         self._task: asyncio.Task[None] | None = None
+        self._saving: set[asyncio.Task[None]] = set()
+        self._last_saved: dict[str, tuple[int, tuple[str, ...]]] = {}  # mission -> _mark() of its last save
 
     # --- lifecycle ------------------------------------------------------------------------------
 
@@ -164,6 +173,12 @@ class Retasking:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
+        if self._saving:
+            await asyncio.wait(list(self._saving), timeout=5.0)
+        # What changed since it was last saved (a survey still flying, or one whose end event was
+        # still queued) keeps its tracks so far across the restart.
+        for mission_id in [m for m, rec in self.records.items() if self._last_saved.get(m) != _mark(rec)]:
+            await self.save(mission_id)
 
     @property
     def ctx(self) -> ServiceContext:
@@ -183,12 +198,60 @@ class Retasking:
             while len(self._plain) > MAX_RECORDS:
                 self._plain.popitem(last=False)
             return None
-        found = self.records[mission_id] = SurveyRecord(
+        found = self.records[mission_id] = self._stored(mission_id) or SurveyRecord(
             mission_id, mission.task.survey, {a: list(p) for a, p in mission.plans.items()}
         )
         while len(self.records) > MAX_RECORDS:
             self.records.popitem(last=False)
         return found
+
+    async def find(self, mission_id: str) -> SurveyRecord | None:
+        """A snapshot of the mission's record: the one in memory, else the store's (a survey this
+        daemon flew before a restart, or one forgotten in memory); None if there is neither."""
+        found = self.record(mission_id)
+        if found is not None:
+            return found.snapshot()
+        blob = self.ctx.store.survey_record(mission_id)
+        if blob is None:
+            return None
+        try:
+            return await asyncio.to_thread(decode_record, blob)
+        except RecordDecodeError as exc:
+            log.warning("survey record of %s not read: %s", mission_id, exc)
+            return None
+
+    def _stored(self, mission_id: str) -> SurveyRecord | None:
+        """The store's copy of a survey resumed after a restart (read once, on the loop)."""
+        blob = self.ctx.store.survey_record(mission_id)
+        if blob is None:
+            return None
+        try:
+            return decode_record(blob)
+        except RecordDecodeError as exc:
+            log.warning("survey record of %s not read: %s", mission_id, exc)
+            return None
+
+    async def save(self, mission_id: str) -> None:
+        """Write the mission's record to the store (encoded in a worker thread)."""
+        rec = self.records.get(mission_id)
+        if rec is None or self._ctx is None:
+            return
+        snapshot = rec.snapshot()
+        blob = await asyncio.to_thread(encode_record, snapshot)
+        self._ctx.store.save_survey_record(mission_id, blob, MAX_RECORDS)
+        self._last_saved[mission_id] = _mark(snapshot)
+        while len(self._last_saved) > MAX_RECORDS:
+            del self._last_saved[next(iter(self._last_saved))]
+
+    def _save_soon(self, mission_id: str) -> None:
+        task = asyncio.create_task(self.save(mission_id), name=f"retask-save-{mission_id}")
+        self._saving.add(task)
+        task.add_done_callback(self._saved)
+
+    def _saved(self, task: asyncio.Task[None]) -> None:
+        self._saving.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            log.error("survey record not saved", exc_info=task.exception())
 
     # --- hooks ----------------------------------------------------------------------------------
 
@@ -220,6 +283,9 @@ class Retasking:
         assert self._events is not None
         while True:
             event = await self._events.get()
+            if event.kind in ENDED and event.mission_id is not None and event.mission_id in self.records:
+                self._save_soon(event.mission_id)
+                continue
             if event.kind != "agent_excluded" or event.agent is None or event.mission_id is None:
                 continue
             try:
@@ -354,6 +420,8 @@ class Retasking:
     def _publish(
         self, rec: SurveyRecord, decision: Decision, kind: str, message: str, severity: Severity | None = None
     ) -> None:
+        """Publish a decision's event and keep the record as it stands now."""
+        self._save_soon(rec.mission_id)
         level: Severity = severity or ("warning" if decision.proposal.verdict == "not_feasible" else "info")
         self.ctx.events.publish(
             kind,
@@ -368,6 +436,11 @@ class Retasking:
         """The mission's re-task decisions (pending ones included), newest last."""
         rec = self.records.get(mission_id)
         return [d.summary(gap=True) for d in rec.decisions] if rec else []
+
+
+def _mark(rec: SurveyRecord) -> tuple[int, tuple[str, ...]]:
+    """What a save depends on, cheaply: the track points and the decisions' states."""
+    return sum(len(t) for t in rec.tracks.values()), tuple(d.state for d in rec.decisions)
 
 
 def _speed(plan: list[Action]) -> float | None:

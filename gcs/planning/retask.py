@@ -16,12 +16,17 @@ real numpy/shapely data and the daemon (gcs/missions/retask.py) only gathers its
    power. Equal pieces first; if one drone's margin is short, pieces in proportion to the
    margins; if the whole fleet is short, "not feasible" with the numbers. Fewer drones are
    tried too; the fitting division with the least makespan plus total added time wins.
+4. Scattered gaps: when the gap is several disjoint zones, they are also planned as RSA pieces
+   (:mod:`gcs.planning.scattered`: a covering rectangle and channels per zone) and divided by
+   region: the pieces in the share's flying order are cut into contiguous groups (in proportion
+   to the same weights), each group to the nearest free drone, which chains its pieces from its
+   start (nearest entry next). Whichever of the two plans scores better is proposed.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
@@ -31,6 +36,8 @@ from scipy.spatial import cKDTree
 from shapely.geometry import LineString
 from shapely.ops import substring
 
+from gcs.planning._rsa_channels import polyline_length
+from gcs.planning.scattered import Piece, chain, gap_pieces
 from gcs.planning.seen import SeenGrid, sweep
 
 LatLon = tuple[float, float]
@@ -79,6 +86,7 @@ class RetaskProposal:
     share_m2: float
     legs: list[NewLeg] = field(default_factory=list)
     gap: dict[str, Any] = field(default_factory=lambda: {"type": "MultiPolygon", "coordinates": []})
+    pieces: int = 1  # the gap's zones flown as separate RSA pieces (1: one route along the share)
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -118,15 +126,29 @@ def gap_route(grid: SeenGrid, share: Sequence[LatLon], gap: np.ndarray, swath_m:
     return substring(line, start, end)
 
 
-def _cost(c: Candidate, piece: LineString, grid: SeenGrid) -> tuple[float, float]:
-    """(extra metres, survey metres) for ``c`` to fly ``piece`` before going home."""
+def _leg(c: Candidate, path: np.ndarray, survey_m: float, grid: SeenGrid) -> NewLeg:
+    """``c`` flies ``path`` (local metres, ``survey_m`` of it surveying) before going home: the
+    extra way it flies (to the path, along it, home from its end, minus the way home it had)."""
     sx, sy = grid.frame.local_point(*c.start)
     hx, hy = grid.frame.local_point(*c.home)
-    (ax, ay), (bx, by) = piece.coords[0], piece.coords[-1]
-    there = math.hypot(ax - sx, ay - sy)
-    back = math.hypot(hx - bx, hy - by)
-    had = math.hypot(hx - sx, hy - sy)
-    return max(0.0, there + piece.length + back - had), piece.length
+    (ax, ay), (bx, by) = path[0], path[-1]
+    there, back, had = (
+        math.hypot(ax - sx, ay - sy),
+        math.hypot(hx - bx, hy - by),
+        math.hypot(hx - sx, hy - sy),
+    )
+    extra = max(0.0, there + polyline_length(path) + back - had)
+    time_s = extra / c.speed_mps
+    lat, lon = grid.frame.to_geodetic(*np.asarray(path).T)
+    return NewLeg(
+        ident=c.ident,
+        points=[(round(float(p), 7), round(float(q), 7)) for p, q in zip(lat, lon, strict=True)],
+        survey_m=round(survey_m, 1),
+        extra_m=round(extra, 1),
+        time_s=round(time_s, 1),
+        energy_wh=round(c.power_w * time_s / 3600.0, 2),
+        margin_wh=round(c.margin_wh, 2),
+    )
 
 
 def _assign(
@@ -144,31 +166,49 @@ def _assign(
         a = piece.coords[0]
         best = min(free, key=lambda c: math.dist(grid.frame.local_point(*c.start), a))
         free.remove(best)
-        extra, survey = _cost(best, piece, grid)
-        time_s = extra / best.speed_mps
-        lat, lon = grid.frame.to_geodetic(*np.asarray(piece.coords).T)
-        legs.append(
-            NewLeg(
-                ident=best.ident,
-                points=[(round(float(p), 7), round(float(q), 7)) for p, q in zip(lat, lon, strict=True)],
-                survey_m=round(survey, 1),
-                extra_m=round(extra, 1),
-                time_s=round(time_s, 1),
-                energy_wh=round(best.power_w * time_s / 3600.0, 2),
-                margin_wh=round(best.margin_wh, 2),
-            )
-        )
+        legs.append(_leg(best, np.asarray(piece.coords), piece.length, grid))
     return legs
 
 
-def _division(route: LineString, drones: list[Candidate], grid: SeenGrid) -> list[NewLeg] | None:
+def _assign_pieces(
+    pieces: Sequence[Piece], drones: Sequence[Candidate], weights: Sequence[float], grid: SeenGrid
+) -> list[NewLeg]:
+    """Region division of scattered pieces: contiguous groups (in the share's flying order) of about
+    ``weights``' share of the surveyed length each, each group to the nearest free drone."""
+    quotas = np.cumsum(weights) / sum(weights) * sum(p.length for p in pieces)
+    groups: list[list[Piece]] = [[] for _ in weights]
+    done, k = 0.0, 0
+    for piece in pieces:
+        if groups[k] and done + piece.length / 2.0 > quotas[k] and k + 1 < len(groups):
+            k += 1
+        groups[k].append(piece)
+        done += piece.length
+    free = list(drones)
+    legs = []
+    for group in (g for g in groups if g):
+        best = min(
+            free,
+            key=lambda c: min(
+                math.dist(grid.frame.local_point(*c.start), o[0]) for p in group for o in p.options
+            ),
+        )
+        free.remove(best)
+        path, survey = chain(grid.frame.local_point(*best.start), group)
+        legs.append(_leg(best, path, survey, grid))
+    return legs
+
+
+Assign = Callable[[Sequence[Candidate], Sequence[float]], list[NewLeg]]
+
+
+def _division(assign: Assign, drones: list[Candidate]) -> list[NewLeg] | None:
     """The feasible division with the best :func:`_score` over 1..n drones (best margins first)."""
     best: list[NewLeg] | None = None
     ranked = sorted(drones, key=lambda c: -c.margin_wh)
     for k in range(1, len(ranked) + 1):
         chosen = ranked[:k]
         for weights in ([1.0] * k, [c.margin_wh for c in chosen]):
-            legs = _assign(route, chosen, weights, grid)
+            legs = assign(chosen, weights)
             if not legs or any(leg.energy_wh > leg.margin_wh for leg in legs):
                 continue
             if best is None or _score(legs) < _score(best):
@@ -200,8 +240,10 @@ def propose_retask(
     share_m2, gap_m2 = float(share_mask.sum()) * cell2, float(gap.sum()) * cell2
     unseen = SeenGrid(grid.frame, grid.x0, grid.y0, grid.cell_m, gap, np.zeros_like(gap)).unseen_geojson()
 
-    def verdict(v: Verdict, reason: str, legs: list[NewLeg] | None = None) -> RetaskProposal:
-        return RetaskProposal(v, reason, dropped, round(gap_m2, 1), round(share_m2, 1), legs or [], unseen)
+    def verdict(v: Verdict, reason: str, legs: list[NewLeg] | None = None, pieces: int = 1) -> RetaskProposal:
+        return RetaskProposal(
+            v, reason, dropped, round(gap_m2, 1), round(share_m2, 1), legs or [], unseen, pieces
+        )
 
     if share_m2 == 0 or gap_m2 <= share_m2 * min_gap_pct / 100.0:
         return verdict(
@@ -214,7 +256,22 @@ def propose_retask(
         return verdict(
             "not_feasible", f"no drone left in the mission has energy to spare for {gap_m2:.0f} m2"
         )
-    legs = _division(route, drones, grid)
+    legs = _division(lambda chosen, weights: _assign(route, chosen, weights, grid), drones)
+    pieces = (
+        gap_pieces(grid, gap, LineString(grid.frame.points_to_local(list(share))), swath_m)
+        if len(share) > 1
+        else []
+    )
+    if len(pieces) > 1:  # scattered: the RSA pieces by region division, if they score better
+        scattered = _division(lambda chosen, weights: _assign_pieces(pieces, chosen, weights, grid), drones)
+        if scattered is not None and (legs is None or _score(scattered) < _score(legs)):
+            who = ", ".join(f"{g.ident} {g.survey_m:.0f} m" for g in scattered)
+            return verdict(
+                "proposed",
+                f"{gap_m2:.0f} m2 of {dropped}'s share unseen in {len(pieces)} pieces: {who}",
+                scattered,
+                len(pieces),
+            )
     if legs is None:
         need = min((sum(g.energy_wh for g in _assign(route, [c], [1.0], grid)), c.ident) for c in drones)
         spare = sum(c.margin_wh for c in drones)

@@ -28,7 +28,7 @@ from gcs.missions.release_journal import JournalError, ReleaseJournal, SkipLog
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 MAX_CID = 65_535  # the wire's cid range (docs/protocol.md, type 1)
 
 
@@ -108,6 +108,13 @@ _MIGRATIONS: dict[int, str] = {
         PRIMARY KEY (agent, owner)
     );
     ALTER TABLE missions ADD COLUMN paused INTEGER NOT NULL DEFAULT 0;
+    """,
+    4: """
+    CREATE TABLE survey_records (
+        mission_id TEXT PRIMARY KEY,
+        updated REAL NOT NULL,
+        record BLOB NOT NULL
+    );
     """,
 }
 
@@ -594,6 +601,29 @@ class Store:
         return {
             int(r[0]) for r in self._db.execute("SELECT step FROM releases WHERE mission_id=?", (mission_id,))
         }
+
+    # --- survey records (issue 27) ----------------------------------------------------------------
+
+    def save_survey_record(self, mission_id: str, record: bytes, keep: int) -> None:
+        """A survey's coverage record (gcs/missions/record_codec.py), replacing its older copy; only
+        the ``keep`` newest records stay."""
+        with self.atomic():
+            self._db.execute(
+                "INSERT INTO survey_records(mission_id, updated, record) VALUES (?,?,?) "
+                "ON CONFLICT(mission_id) DO UPDATE SET updated=excluded.updated, record=excluded.record",
+                (mission_id, time.time(), record),
+            )
+            self._db.execute(
+                "DELETE FROM survey_records WHERE mission_id NOT IN "
+                "(SELECT mission_id FROM survey_records ORDER BY updated DESC LIMIT ?)",
+                (max(1, keep),),
+            )
+
+    def survey_record(self, mission_id: str) -> bytes | None:
+        row = self._db.execute(
+            "SELECT record FROM survey_records WHERE mission_id=?", (mission_id,)
+        ).fetchone()
+        return None if row is None else bytes(row[0])
 
     # --- events ---------------------------------------------------------------------------------
 

@@ -10,12 +10,17 @@ eq. 5 footprint (seen_grid):
 * policy ask, the operator rejects over the HTTP API: the gap stays unseen, and the coverage
   report (GET /missions/{id}/report) names it;
 * a lost link instead of the failsafe (drone-2's link to the daemon cut, its agent returns home
-  on its own, ``lost_agent_policy: continue``): the same automatic re-task closes the gap.
+  on its own, ``lost_agent_policy: continue``): the same automatic re-task closes the gap;
+* a pilot takeover instead (a pilot's ground station on drone-2's second MAVLink link selects
+  LOITER, tests/support/pilot.py, then lands it where it is): the daemon excludes it and re-tasks
+  its share the same way.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import pytest
@@ -32,6 +37,7 @@ from protocol.taskfile import TaskFile, load_task_text
 from tests.cli.common import gcs
 from tests.cooperation.rig import HOME, Rig, rig, wait_for
 from tests.faults.proxy import FaultProxy
+from tests.support.pilot import PilotStation
 
 pytestmark = pytest.mark.slow
 
@@ -62,14 +68,18 @@ def _share_progress(r: Rig, task: TaskFile) -> float:
     return float(share.project(Point(frame.local_point(s.lat, s.lon))) / share.length)
 
 
-async def _fly_until_drop(r: Rig, task: TaskFile, cut: FaultProxy | None = None) -> str:
+async def _fly_until_drop(
+    r: Rig, task: TaskFile, cut: FaultProxy | None = None, drop: Callable[[], Awaitable[None]] | None = None
+) -> str:
     """Fly ``task`` until drone-2 is 40 % into its share, then its battery failsafe (or its link
-    to the daemon cut through ``cut``); returns once the daemon excluded it."""
+    to the daemon cut through ``cut``, or ``drop``); returns once the daemon excluded it."""
     mission_id = await r.daemon.missions.submit(task)
     survey_step = max(a.step for p in task.plans for a in p.actions if a.kind == "waypoints")
     await wait_for(lambda: r.agents[DROPPED].queue.current_step == survey_step, 60, "drone-2 on its share")
     await wait_for(lambda: _share_progress(r, task) >= 0.4, 60, "drone-2 40 % into its share")
-    if cut is None:
+    if drop is not None:
+        await drop()
+    elif cut is None:
         r.fleet.vehicles[1].set_battery(20.0)  # below the agent's battery_low_pct: its own RTL
     else:
         cut.partition(600.0, "blackhole")
@@ -176,4 +186,33 @@ async def test_a_lost_link_is_re_tasked_the_same_way(tmp_path: Path) -> None:
     finally:
         for proxy in proxies.values():
             await proxy.stop()
+    assert covered >= 99.0, covered
+
+
+async def test_a_pilot_takeover_is_re_tasked_the_same_way(tmp_path: Path) -> None:
+    task = _plan(tmp_path, "automatic")
+    async with rig(tmp_path, 4, fleet_options={"pilot_links": True}) as r:
+        station = await asyncio.to_thread(PilotStation, r.fleet.pilot_endpoints[1])
+        try:
+            await asyncio.to_thread(station.wait_heartbeat)
+
+            async def take() -> None:  # the pilot's mode switch: LOITER holds where it is
+                assert await asyncio.to_thread(station.set_mode, "LOITER") == 0
+
+            mission_id = await _fly_until_drop(r, task, drop=take)
+            assert r.daemon.authority.pilot(DROPPED) == "LOITER"
+            assert "pilot" in r.events("agent_excluded", DROPPED)[0].message
+            # The pilot lands it where it is: hovering at survey height on its share it would stand
+            # in the way of whoever flies the rest (collision holds until their batteries run low).
+            assert await asyncio.to_thread(station.set_mode, "LAND") == 0
+            await wait_for(lambda: r.events("retask_applied"), 30, "the re-task applied")
+            await wait_for(lambda: mission_id not in r.daemon.missions.active, 150, "survey end")
+            await _all_landed(r)
+            progress = r.daemon.missions.progress(mission_id)
+            assert progress is not None and progress.state == "completed", progress
+            applied = r.events("retask_applied")[0].data
+            covered = _coverage(r, task)
+        finally:
+            station.close()
+    assert applied["dropped"] == DROPPED and DROPPED not in {g["ident"] for g in applied["legs"]}
     assert covered >= 99.0, covered

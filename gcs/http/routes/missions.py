@@ -229,11 +229,11 @@ async def report(mission_id: str, control: Missions, retask: Retask) -> Coverage
     """Coverage report of a survey mission: coverage %, the missed area (GeoJSON), per-drone
     planned vs flown metres, the re-task decisions and the gaps they left, named."""
     progress = progress_of(control, mission_id)
-    rec = retask.record(mission_id)
+    rec = await retask.find(mission_id)  # in memory, or kept in the store across a restart
     if rec is None:
         raise ApiProblem(404, "no coverage record", f"mission {mission_id!r} is no survey this daemon flew")
     left = {a.agent: (a.why or "excluded") if a.excluded else None for a in progress.agents}
-    return await asyncio.to_thread(build_report, rec.snapshot(), progress.state, left)
+    return await asyncio.to_thread(build_report, rec, progress.state, left)
 
 
 @router.post("/api/v1/missions/{mission_id}/abort", dependencies=TOKEN)
