@@ -24,6 +24,8 @@ import pytest
 from gcs.cluster.natsrun import missing_reason
 from tests.support.processes import BIN
 
+pytestmark = pytest.mark.slow
+
 
 def _alive(pid: int) -> bool:
     """Running (a zombie, dead but not yet reaped, is not)."""

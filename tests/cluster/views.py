@@ -1,11 +1,9 @@
-"""An agent that moves between daemons is shown once, at the daemon holding its link, by every view.
+"""Every view a clustered daemon gives of its fleet, checked at once (tests/cluster/test_holders.py).
 
-Two daemons on a real nats-server, their real HTTP APIs: x stays on gcs-b, y starts on gcs-a and
-its link moves to gcs-b (gcs-a stops taking agents and ends y's session, y reconnects to the next
-daemon in its list). Before and after the move, on both daemons, every view of the fleet (``GET
-/api/v1/agents`` and ``/api/v1/agents/{id}``, the WebSocket stream's hello and its status
-messages, ``GET /api/v1/cluster/fleet``, ``gcs agents``) lists each agent exactly once, connected,
-with a fresh status, naming the daemon the registry says holds its link; and stays so.
+``GET /api/v1/agents`` and ``/api/v1/agents/{id}``, the WebSocket stream's hello and the status
+messages after it, ``GET /api/v1/cluster/fleet`` and ``gcs agents``: each agent listed once,
+connected, with a fresh status, naming the daemon the registry says holds its link. Every wait is
+bounded.
 """
 
 from __future__ import annotations
@@ -22,13 +20,8 @@ from typing import Any
 import httpx
 import websockets
 
-from gcs.cluster.natsrun import NatsServer
 from gcs.commands.agents import run_list
 from gcs.core.daemon import Daemon
-from protocol.packets import CloseReason
-from tests.backbone.helpers import new_key, start_agent, stop_agents
-from tests.cluster.simrig import two_daemons
-from tests.support.polling import wait_for
 
 FRESH_S = 2.0  # a status older than this is frozen (agents report every 0.1 s)
 
@@ -122,9 +115,9 @@ async def _view_problems(daemon: Daemon, where: dict[str, str]) -> list[str]:
     return problems
 
 
-async def _every_view_shows(daemons: tuple[Daemon, Daemon], where: dict[str, str], what: str) -> None:
-    """Until every view of both daemons shows ``where`` (bounded), then twice more over a second
-    and a half: it stays so (an old daemon's liveness or a late message must not flip it back)."""
+async def every_view_shows(daemons: tuple[Daemon, ...], where: dict[str, str], what: str) -> None:
+    """Until every view of every daemon shows ``where`` (bounded), then once more a second later:
+    it stays so (an old daemon's liveness or a late message must not flip it back)."""
     problems: list[str] = []
     deadline = time.monotonic() + 20
     while time.monotonic() < deadline:
@@ -133,32 +126,6 @@ async def _every_view_shows(daemons: tuple[Daemon, Daemon], where: dict[str, str
             break
         await asyncio.sleep(0.2)
     assert not problems, f"{what}: {problems}"
-    for _ in range(2):
-        await asyncio.sleep(0.75)
-        problems = [p for d in daemons for p in await _view_problems(d, where)]
-        assert not problems, f"{what}, a moment later: {problems}"
-
-
-async def test_a_moved_agent_is_shown_once_at_its_new_daemon_by_every_view(
-    tmp_path: Path, nats_server: NatsServer
-) -> None:
-    key = new_key()
-    async with two_daemons(tmp_path, nats_server.url, key) as (a, b):
-        assert a.cluster is not None and b.cluster is not None
-        y = start_agent("y", a.listen_port, key, 0, daemons=[f"127.0.0.1:{b.listen_port}"])
-        x = start_agent("x", b.listen_port, key, 1)
-        try:
-            await _every_view_shows((a, b), {"x": "gcs-b", "y": "gcs-a"}, "before the move")
-
-            assert a._server is not None
-            a._server.close()  # a stops taking agents: y's link moves to b, the next in its list
-            await a.agents.sessions["y"].close(CloseReason.SHUTDOWN, "test: link moves")
-            await wait_for(lambda: (s := b.agents.sessions.get("y")) is not None and s.open, 15, "y on b")
-
-            await _every_view_shows((a, b), {"x": "gcs-b", "y": "gcs-b"}, "after the move")
-            # The one source of truth agrees: the registry names b, both daemons' holder says so.
-            record = a.cluster.state.agent_record("y")
-            assert record is not None and record["daemon"] == "gcs-b"
-            assert a.agents.holder("y") == b.agents.holder("y") == "gcs-b"
-        finally:
-            await stop_agents([y, x])
+    await asyncio.sleep(1.0)
+    problems = [p for d in daemons for p in await _view_problems(d, where)]
+    assert not problems, f"{what}, a second later: {problems}"
