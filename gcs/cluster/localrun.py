@@ -57,7 +57,9 @@ def _port(base: int, index: int) -> int:
 
 @dataclass
 class LocalCluster:
-    """``nats_nodes`` NATS servers (clustered when more than one) and ``daemons`` daemons."""
+    """``nats_nodes`` NATS servers (clustered when more than one) and ``daemons`` daemons. The fleet
+    key and the API token are made once per base directory (``fleet.key``, ``api.token``) and
+    copied into every daemon's data directory."""
 
     base_dir: Path
     daemons: int = 2
@@ -93,8 +95,12 @@ class LocalCluster:
         if reason is not None:
             raise LocalClusterError(reason)
         self.base_dir.mkdir(parents=True, exist_ok=True)
-        self.key_file.write_text(secrets.token_hex(32) + "\n")
-        self.key_file.chmod(0o600)
+        token_file = self.base_dir / "api.token"
+        for path, new in ((self.key_file, secrets.token_hex(32)), (token_file, self.token)):
+            if not path.exists():  # a kept --dir keeps its key and token: configured agents still join
+                path.touch(mode=0o600)
+                path.write_text(new + "\n")
+        self.token = token_file.read_text().strip()
         self._start_nats()
         for index in range(self.daemons):
             self.serves.append(self._spawn(index))
