@@ -160,7 +160,7 @@ class LocalCluster:
         raise LocalClusterError(f"{serve.name} not ready within {READY_TIMEOUT_S:.0f} s; see {serve.log}")
 
     def exited(self) -> list[str]:
-        """Children that ended by themselves, one line each (a running cluster should have none)."""
+        """Children that ended by themselves (or were killed to try a failure), one line each."""
         gone = [
             f"{d.name} exited with {d.process.returncode}; see {d.log}"
             for d in self.serves

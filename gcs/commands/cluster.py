@@ -1,7 +1,8 @@
 """`gcs cluster up`: a local cluster to try cluster mode: a 3-node NATS JetStream and N daemons.
 
 Everything listens on loopback; the state lives in a temporary directory (removed on exit) or in
-``--dir`` (kept). Ctrl-C (or SIGTERM) stops every process it started (gcs/cluster/localrun.py).
+``--dir`` (kept). Ctrl-C (or SIGTERM, SIGHUP) stops every process it started
+(gcs/cluster/localrun.py).
 """
 
 from __future__ import annotations
@@ -21,8 +22,12 @@ from gcs.commands._api import CommandError
 WATCH_PERIOD_S = 0.2
 
 
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+"""Stop it like Ctrl-C (the children, in sessions of their own, would outlive a closed terminal)."""
+
+
 def _interrupt(signum: int, frame: FrameType | None) -> None:
-    raise KeyboardInterrupt  # SIGTERM stops it like Ctrl-C: everything started is stopped
+    raise KeyboardInterrupt  # SIGTERM or SIGHUP stops it like Ctrl-C: everything started is stopped
 
 
 def run(args: argparse.Namespace) -> int:
@@ -34,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
     cluster = LocalCluster(
         base, daemons=args.daemons, nats_nodes=args.nats, agent_port=args.agent_port, http_port=args.http_port
     )
-    previous = signal.signal(signal.SIGTERM, _interrupt)
+    previous = {sig: signal.signal(sig, _interrupt) for sig in STOP_SIGNALS}
     code = 0
     try:
         print(f"starting {args.nats} nats-server and {args.daemons} daemons in {base} ...", flush=True)
@@ -42,9 +47,14 @@ def run(args: argparse.Namespace) -> int:
         print(cluster.banner(), flush=True)
         if args.ready_file is not None:
             args.ready_file.write_text(json.dumps(cluster.describe()) + "\n")
-        while not (gone := cluster.exited()):  # until Ctrl-C, or a child ends by itself
+        told: set[str] = set()
+        while any(d.process.poll() is None for d in cluster.serves):  # until Ctrl-C or no daemon left
+            for line in cluster.exited():  # a daemon or nats-server killed to try a failure: said once
+                if line not in told:
+                    told.add(line)
+                    print(f"gcs cluster: {line}", file=sys.stderr, flush=True)
             time.sleep(WATCH_PERIOD_S)
-        print("gcs cluster: " + "; ".join(gone), file=sys.stderr)
+        print("gcs cluster: every daemon exited", file=sys.stderr)
         code = 1
     except LocalClusterError as exc:
         print(f"gcs cluster: cannot start: {exc}", file=sys.stderr)
@@ -52,13 +62,14 @@ def run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print("stopping ...", flush=True)
     finally:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut the stop short
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        for sig in (signal.SIGINT, *STOP_SIGNALS):  # a second Ctrl-C must not cut the stop short
+            signal.signal(sig, signal.SIG_IGN)
         try:
             cluster.stop()
         finally:
             signal.signal(signal.SIGINT, signal.default_int_handler)
-            signal.signal(signal.SIGTERM, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
         if args.dir is None and code == 0:
             shutil.rmtree(base, ignore_errors=True)
         elif code:
