@@ -26,6 +26,12 @@ if TYPE_CHECKING:
 LEASE_LOOKUP_S = 1.0
 
 
+def public_url(url: str) -> str:
+    """A NATS URL without its credentials (``nats://user:secret@host:4222`` -> ``nats://host:4222``)."""
+    scheme, sep, rest = url.partition("://")
+    return f"{scheme}{sep}{rest.rpartition('@')[2]}" if sep else url
+
+
 def _url(parsed: Any) -> str | None:
     """nats://host:port of nats-py's parsed server address."""
     return None if parsed is None else f"nats://{parsed.hostname}:{parsed.port}"
@@ -90,7 +96,7 @@ def cluster_router(daemon: DaemonParts, token: Sequence[Any]) -> APIRouter:
         airspace = await holder(AIRSPACE_LEASE)
         return ClusterInfo(
             daemon_id=node.daemon_id,
-            servers=node.state.servers,
+            servers=[public_url(url) for url in node.state.servers],  # never a password
             connected=bool(nc is not None and nc.is_connected),
             connected_url=_url(nc.connected_url) if nc is not None and nc.is_connected else None,
             leading=leading,

@@ -43,6 +43,26 @@ ROUND_S = 1.0  # lease rounds at least this often: a lease's age when NATS stops
 RIDE_THROUGH_TTL_S = 8.0  # a lease this long outlives a stream leader election (5-6.5 s, nats-server 2.9)
 
 
+def settings_warnings(servers: int, replicas: int, lease_ttl_s: float) -> list[str]:
+    """What a daemon says at start about cluster settings that work but do not survive what a
+    cluster is for (docs/cluster.md, "In production"): several NATS servers with unreplicated
+    buckets, a lease shorter than a JetStream leader election on replicated ones."""
+    warnings = []
+    if servers > 1 and replicas == 1:
+        warnings.append(
+            f"{servers} NATS servers listed but cluster_replicas is 1: each shared bucket lives on one "
+            "server and is lost with it; set cluster_replicas = 3 on a three-node NATS cluster "
+            "(docs/cluster.md, 'In production')"
+        )
+    if replicas > 1 and lease_ttl_s < RIDE_THROUGH_TTL_S:
+        warnings.append(
+            f"cluster_lease_ttl_s {lease_ttl_s:g} s is shorter than a JetStream leader election can take: "
+            "losing a NATS node may leave missions without a deciding leader for seconds "
+            f"({RIDE_THROUGH_TTL_S:g} s rides through; docs/cluster.md, 'Losing a NATS node')"
+        )
+    return warnings
+
+
 class Leadership:
     """One daemon's lease rounds (``ClusterNode.leadership``)."""
 
@@ -58,15 +78,11 @@ class Leadership:
         self.step_downs = 0  # missions given up: their lease ran out or another daemon holds it
         self.last_term: dict[str, int] = {}  # mission -> token we last led it under
         self.decisions = DecisionLog(node.config.data_dir / FILE_NAME, node.daemon_id)
-        ttl = node.config.cluster_lease_ttl_s
-        if node.config.cluster_replicas > 1 and ttl < RIDE_THROUGH_TTL_S:
-            log.warning(
-                "cluster_lease_ttl_s %g s is shorter than a JetStream leader election can take: losing "
-                "a NATS node may leave missions without a deciding leader for seconds (%g s rides "
-                "through; docs/cluster.md, 'Losing a NATS node')",
-                ttl,
-                RIDE_THROUGH_TTL_S,
-            )
+        config = node.config
+        for warning in settings_warnings(
+            len(config.cluster), config.cluster_replicas, config.cluster_lease_ttl_s
+        ):
+            log.warning("%s", warning)
 
     async def loop(self) -> None:
         period = min(ROUND_S, self.node.config.cluster_lease_ttl_s / 3)

@@ -67,6 +67,7 @@ class NatsServer:
     cluster_port: int | None = None
     routes: list[int] = field(default_factory=list)
     process: subprocess.Popen[bytes] | None = None
+    own_session: bool = False  # a session of its own: a terminal's Ctrl-C reaches only its starter
 
     @property
     def url(self) -> str:
@@ -83,7 +84,9 @@ class NatsServer:
             command += ["--cluster_name", "fleet", "--cluster", f"nats://127.0.0.1:{self.cluster_port}"]
             command += ["--routes", ",".join(f"nats://127.0.0.1:{p}" for p in self.routes)]
         log = open(self.store_dir / "server.log", "ab")  # noqa: SIM115 - owned by the process
-        self.process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+        self.process = subprocess.Popen(
+            command, stdout=log, stderr=subprocess.STDOUT, start_new_session=self.own_session
+        )
         log.close()
         _wait_port(self.port, self.process, READY_TIMEOUT_S)
 
@@ -111,6 +114,7 @@ class NatsCluster:
     base_dir: Path
     size: int = 3
     servers: list[NatsServer] = field(default_factory=list)
+    own_session: bool = False  # each server in a session of its own (:attr:`NatsServer.own_session`)
 
     def start(self) -> None:
         cluster_ports = [free_port() for _ in range(self.size)]
@@ -121,6 +125,7 @@ class NatsCluster:
                 name=f"n{index + 1}",
                 cluster_port=cluster_ports[index],
                 routes=others,
+                own_session=self.own_session,
             )
             self.servers.append(server)
         try:

@@ -170,6 +170,7 @@ class ClusterNode:
         self._daemon = daemon
         await self.state.connect()
         agents = daemon.agents
+        agents.registry.holder_of = self.holder  # every view names the holder from the registry's epoch
         self.state.on_change.append(self._registry_change)
         for identity, revision in list(self.state.revisions.items()):
             record = self.state.agent_record(identity)
@@ -582,20 +583,24 @@ class ClusterNode:
         return {s.identity for s in agents.connected()} | {i for i, s in agents.remote.items() if s.open}
 
     def fleet(self) -> list[dict[str, Any]]:
-        """Every agent the cluster knows: where its link is, and its last status."""
+        """Every agent the cluster knows: where its link is, and its last status. The session shown
+        and the daemon named are the ones every other view uses (``AgentManager.link`` and
+        :meth:`holder`), so an agent that moved is shown once, at its new daemon, everywhere."""
         agents = self.daemon.agents
+        records = self.state.json_values("agents")
+        shown = {s.identity: s for s in agents.fleet()}
         rows = []
         now = time.monotonic()
-        for identity, record in sorted(self.state.json_values("agents").items()):
-            local = agents.sessions.get(identity)
-            session = local if local is not None and local.open else agents.remote.get(identity)
+        for identity in sorted(records.keys() | shown.keys()):
+            session = shown.get(identity)
             live = session is not None and session.open and now - session.last_rx < self.config.lost_after_s
+            record = records.get(identity)
             rows.append(
                 {
                     "identity": identity,
-                    "cid": record["cid"],
+                    "cid": record["cid"] if record is not None else session.cid if session else 0,
                     "daemon": self.holder(identity),
-                    "local": session is local and local is not None,
+                    "local": session is not None and session is agents.sessions.get(identity),
                     "connected": live,
                     "status": session.status.model_dump(mode="json") if session and session.status else None,
                 }

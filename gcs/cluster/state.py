@@ -72,6 +72,23 @@ class ClusterUnavailable(ConnectionError):
     """NATS could not be reached or JetStream is not enabled there."""
 
 
+async def _stop_followers(
+    followers: list[tuple[Any, asyncio.Task[None]]], tasks: list[asyncio.Task[None]]
+) -> None:
+    """Stop the KV watchers, then cancel their tasks and ``tasks``. Unsubscribing a watcher ends
+    nats-py's heartbeat and flow-control tasks of its consumer, which closing the connection does
+    not: they would keep a stopping daemon's event loop alive for 5 s more."""
+    for watcher, _ in followers:
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(watcher.stop(), 1.0)
+    tasks = tasks + [task for _, task in followers]
+    for task in tasks:
+        task.cancel()
+    for task in tasks:
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await task
+
+
 class ClusterState:
     """One daemon's connection to the shared fleet state."""
 
@@ -342,14 +359,10 @@ class ClusterState:
         if self.nc is not None and self.nc.is_connected:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self.flush_writes(), 5.0)
-        tasks = self._tasks + [task for _, task in self._followers.values()]
+        followers, tasks = list(self._followers.values()), list(self._tasks)
         self._followers.clear()
-        for task in tasks:
-            task.cancel()
-        for task in tasks:
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
         self._tasks.clear()
+        await _stop_followers(followers, tasks)
         if self.nc is not None:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self.nc.close(), 5.0)

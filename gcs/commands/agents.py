@@ -8,7 +8,7 @@ from gcs.commands._api import CommandError, api_arguments, call
 from gcs.http.models import AgentView
 
 
-def _row(agent: AgentView) -> str:
+def _row(agent: AgentView, clustered: bool = False) -> str:
     status = agent.status
     link = "up" if agent.connected else ("lost" if agent.lost else "down")
     battery = status.battery.pct if status is not None else None
@@ -25,19 +25,21 @@ def _row(agent: AgentView) -> str:
         control = f"held: {agent.held}"
     elif status is not None and status.paused:
         control = "held"
+    daemon = f"{agent.daemon or '-':12} " if clustered else ""  # where its link is (cluster mode)
     return (
         f"{agent.cid:>4} {agent.identity:16} {link:5} {status.mode if status else '-':9} "
         f"{status.armed if status else False!s:5} {battery if battery is not None else '-':>5} "
-        f"{alt} {step:>4} {control}"
+        f"{alt} {step:>4} {daemon}{control}"
     )
 
 
 def run_list(args: argparse.Namespace) -> int:
     agents = call(args, lambda client: client.agents(), token=False)
+    clustered = any(agent.daemon for agent in agents)  # a cluster daemon names each link's holder
     head = f"{'cid':>4} {'identity':16} {'link':5} {'mode':9} {'armed':5} {'batt%':>5} {'alt':>6} {'step':>4}"
-    print(f"{head} control")
+    print(f"{head} {'daemon':12} control" if clustered else f"{head} control")
     for agent in agents:
-        print(_row(agent))
+        print(_row(agent, clustered))
     return 0
 
 

@@ -30,6 +30,11 @@ class AgentView(BaseModel):
     held: str | None = Field(
         default=None, description="why it is held: each holding source and its reason (None: not held)"
     )
+    daemon: str | None = Field(
+        default=None,
+        description="cluster mode: the daemon holding its link now (the registry's newest epoch); "
+        "None on a single daemon",
+    )
 
 
 class MissionCreated(BaseModel):

@@ -150,6 +150,18 @@ class AgentManager:
     def connected(self) -> list[AgentSession]:
         return self.registry.connected()
 
+    def link(self, identity: str) -> AgentSession | None:
+        """The session every view shows for ``identity`` (:meth:`SessionRegistry.link`)."""
+        return self.registry.link(identity)
+
+    def holder(self, identity: str) -> str | None:
+        """The daemon holding ``identity``'s link, None on one daemon (:meth:`SessionRegistry.holder`)."""
+        return self.registry.holder(identity)
+
+    def fleet(self) -> list[AgentSession]:
+        """Every agent once, where its link is (:meth:`SessionRegistry.fleet`)."""
+        return self.registry.fleet()
+
     def retire(self, identity: str, mission: str | None = None) -> AgentSession:
         """Take a disconnected agent off the fleet list (:meth:`SessionRegistry.retire`)."""
         return self.registry.retire(identity, mission)

@@ -7,6 +7,8 @@ daemons; none of these jobs needs the others to read the fleet list.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from gcs.link.outbox import Outbox
 from gcs.link.session import AgentSession
 from gcs.observe.events import EventBus
@@ -29,6 +31,9 @@ class SessionRegistry:
         self.lost: set[str] = set()
         # Cluster mode (gcs/cluster): agents linked to other daemons (their sessions forward).
         self.remote: dict[str, AgentSession] = {}
+        # Cluster mode: which daemon holds an agent's link (``ClusterNode.holder``: the newest
+        # epoch of its registry record); None on a single daemon.
+        self.holder_of: Callable[[str], str | None] | None = None
 
     def session(self, identity: str) -> AgentSession | None:
         session = self.sessions.get(identity)
@@ -38,6 +43,29 @@ class SessionRegistry:
 
     def connected(self) -> list[AgentSession]:
         return [s for s in self.sessions.values() if s.open]
+
+    # --- where each agent's link is: the one answer every view gives (API, stream, cluster, CLI) ---
+
+    def link(self, identity: str) -> AgentSession | None:
+        """The session that stands for ``identity`` in every view: our open session, else (cluster
+        mode) the mirror of the daemon holding its link now, else our last, closed session. An
+        agent that moved to another daemon is shown there, never also as our disconnected one."""
+        own = self.sessions.get(identity)
+        if own is not None and own.open:
+            return own
+        remote = self.remote.get(identity)
+        return remote if remote is not None and remote.open else own
+
+    def holder(self, identity: str) -> str | None:
+        """The daemon holding ``identity``'s link (cluster mode), from the cluster's one source of
+        truth, the registry record's epoch; None on a single daemon."""
+        return None if self.holder_of is None else self.holder_of(identity)
+
+    def fleet(self) -> list[AgentSession]:
+        """Every agent on the fleet list once, as :meth:`link` shows it: this daemon's sessions and,
+        in cluster mode, the agents linked to other daemons."""
+        names = dict.fromkeys([*self.sessions, *(i for i, s in self.remote.items() if s.open)])
+        return [s for s in (self.link(i) for i in names) if s is not None]
 
     def retire(self, identity: str, mission: str | None = None) -> AgentSession:
         """Take a disconnected agent off the fleet list (a ghost, a drone gone for good).

@@ -39,7 +39,7 @@ ENTRY_POINTS = ("gcs.__main__", "gcs.cli", "gcs.commands", "gcs.commands.demo_mi
 MANAGER_USERS = ("gcs.core.daemon", "gcs.core.context")
 """The only modules that may name ``AgentManager`` (its send side goes to the command port only)."""
 
-CLUSTER_USERS = ("gcs.core.daemon", "gcs.http.app", "gcs.core.context")
+CLUSTER_USERS = ("gcs.core.daemon", "gcs.http.app", "gcs.core.context", "gcs.commands.cluster")
 """Outside ``gcs.cluster``: who may import it (lazily, cluster mode only; the context for types)."""
 
 SENDERS = (

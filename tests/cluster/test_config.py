@@ -8,6 +8,8 @@ from pathlib import Path
 import pytest
 
 from gcs.cli import build_parser
+from gcs.cluster.api import public_url
+from gcs.cluster.leadership import settings_warnings
 from gcs.commands.serve import resolve_config
 from gcs.core.config_file import ConfigFileError, load_daemon_config
 from tests.support.processes import BIN
@@ -91,3 +93,17 @@ def test_cluster_lost_timeout_outlasts_the_agents_switch(tmp_path: Path) -> None
         load_daemon_config(path, environ={})
     config, _ = load_daemon_config(path, environ={"FLEETGCS_AGENT_DAEMON_SILENCE_S": "1.0"})
     assert config.remote_lost_after_s == 3.0
+
+
+def test_start_up_warns_of_settings_that_do_not_survive_a_node_loss() -> None:
+    assert settings_warnings(1, 1, 3.0) == []  # one NATS server: nothing to replicate onto
+    assert settings_warnings(3, 3, 8.0) == []  # the production settings (docs/cluster.md)
+    (unreplicated,) = settings_warnings(3, 1, 8.0)
+    assert "cluster_replicas is 1" in unreplicated and "set cluster_replicas = 3" in unreplicated
+    (short,) = settings_warnings(3, 3, 3.0)
+    assert "cluster_lease_ttl_s 3 s" in short and "8 s rides through" in short
+
+
+def test_the_cluster_api_never_shows_nats_credentials() -> None:
+    assert public_url("nats://fleet:s3cr@t@base1:4222") == "nats://base1:4222"
+    assert public_url("tls://base2:4222") == "tls://base2:4222"

@@ -1,7 +1,9 @@
 """Who holds a drone's link, and what the holder says back (docs/cluster.md, "Commands").
 
-Three daemons on one NATS: a drone's link moves from a to b and a's late messages (sent under the
-older epoch of its registry record) change nothing at c. Two daemons: b's operator holds b's drone;
+Three daemons on one NATS: a drone's link moves from a to b; before and after, every view of every
+daemon (GET agents, the stream, the cluster fleet, ``gcs agents``) shows it once, connected, at
+the daemon holding its link (tests/cluster/views.py), and a's late messages (sent under the older
+epoch of its registry record) change nothing at c. Two daemons: b's operator holds b's drone;
 a's mission submit is refused naming the drone and b's order, a command a forwards is refused by
 b's vehicle authority and a hears why, and the cluster API answers per drone.
 """
@@ -22,6 +24,7 @@ from protocol.taskfile import AgentPlan, TaskFile
 from protocol.wire import encode
 from tests.backbone.helpers import new_key, start_agent, stop_agents
 from tests.cluster.simrig import cluster_daemons, two_daemons
+from tests.cluster.views import every_view_shows
 from tests.support.polling import wait_for
 
 
@@ -46,6 +49,7 @@ async def test_the_registry_epoch_decides_the_holder_across_three_daemons(
             )
             old_status = c.agents.session("y").status  # type: ignore[union-attr]
             assert isinstance(old_status, StatusReport)
+            await every_view_shows((a, b, c), {"y": "gcs-a"}, "before the move")
 
             assert a._server is not None
             a._server.close()  # a stops taking agents: y's link moves to b
@@ -57,6 +61,8 @@ async def test_the_registry_epoch_decides_the_holder_across_three_daemons(
                 )  # type: ignore[misc]
             moved = c.cluster.link_epoch("y")
             assert moved is not None and moved[0] > first[0]
+            # Shown once, at b, by every view of every daemon: a's closed session is not shown.
+            await every_view_shows((a, b, c), {"y": "gcs-b"}, "after the move")
 
             # a's late news about y (a status and a "lost", under the old epoch) changes nothing at c.
             nc = a.cluster.state.nc

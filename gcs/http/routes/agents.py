@@ -36,25 +36,19 @@ def agent_view(agents: AgentDirectory, s: AgentSession, authority: ControlView |
         link_age_s=round(time.monotonic() - s.last_rx, 3),
         connected_at=s.connected_at,
         held=held(authority, s.identity),
+        daemon=agents.holder(s.identity),
     )
 
 
 def link_session(agents: AgentDirectory, identity: str) -> AgentSession | None:
-    """Where ``identity``'s link is, the one answer every view gives: our open session, else (in
-    cluster mode) the mirror of the daemon holding it now, else our last, closed session. An
-    agent that moved to another daemon is shown there, not as our disconnected one."""
-    own = agents.sessions.get(identity)
-    if own is not None and own.open:
-        return own
-    remote = agents.remote.get(identity)
-    return remote if remote is not None and remote.open else own
+    """Where ``identity``'s link is, the one answer every view gives (:meth:`SessionRegistry.link`)."""
+    return agents.link(identity)
 
 
 def fleet_sessions(agents: AgentDirectory) -> list[AgentSession]:
     """This daemon's sessions, and in cluster mode the other daemons' agents (docs/cluster.md),
-    each agent once, where its link is (:func:`link_session`)."""
-    names = [*agents.sessions, *(i for i, s in agents.remote.items() if i not in agents.sessions and s.open)]
-    return [s for s in (link_session(agents, i) for i in names) if s is not None]
+    each agent once, where its link is (:meth:`SessionRegistry.fleet`)."""
+    return agents.fleet()
 
 
 @router.get("/api/v1/agents")
