@@ -50,9 +50,9 @@ def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
         pytest.skip(SKIP_REASON)
     if backend == "mavsdk":
         pytest.importorskip("mavsdk", reason="the MAVSDK backend needs the mavsdk package (extra [mavsdk])")
-    first = first_instance()
+    first = first_instance(backend)
     if first is None:
-        pytest.skip("PX4 instance ids 0-9 hold three blocks of three (xdist workers gw0-gw2); this worker has none")
+        pytest.skip("PX4 instance ids 0-9 hold three blocks of three; FLEETGCS_PX4_BLOCK names none of them")
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     _log_boot(f"PX4 boot: backend {backend}, worker {worker}, instances {first}-{first + 2}, {SPEED:g}x")
     fleet = PX4Rig(px4, backend, tmp_path_factory.mktemp(f"px4-{backend}"), first).start()

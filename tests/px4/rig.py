@@ -40,13 +40,15 @@ HOME = (47.397742, 8.545594, 489.4)  # PX4 SIH's default home (Zurich)
 SPACING_M = 10.0
 VEHICLES = 3
 BACKENDS = ("mavlink", "mavsdk")
-BLOCK = VEHICLES  # instance ids per xdist worker: gw0 0-2, gw1 3-5, gw2 6-8 (a third for a developer's run)
+BLOCK = VEHICLES  # instance ids per block: 0-2, 3-5, 6-8
 
 
-def first_instance() -> int | None:
-    """This worker's first PX4 instance id (``PYTEST_XDIST_WORKER`` gwN -> 3N), None past id 9."""
-    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
-    index = int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else 0
+def first_instance(backend: str) -> int | None:
+    """The first PX4 instance id of ``backend``'s fleet: each backend has its own block (mavlink 0-2,
+    mavsdk 3-5), so the two groups fly side by side on any number of xdist workers; a developer's run
+    beside the suite picks another block with ``FLEETGCS_PX4_BLOCK`` (2: ids 6-8). None past id 9."""
+    chosen = os.environ.get("FLEETGCS_PX4_BLOCK")
+    index = int(chosen) if chosen is not None and chosen.isdigit() else BACKENDS.index(backend)
     first = BLOCK * index
     return first if first + VEHICLES - 1 <= 9 else None
 
