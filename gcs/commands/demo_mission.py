@@ -18,14 +18,12 @@ import textwrap
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
+from typing import IO, TYPE_CHECKING
 
 from gcs.cooperation.config import EnergyConfig
 from gcs.cooperation.energy import EnergyPrediction, predict_plan_energy
 from gcs.core.config import DaemonConfig
-from gcs.core.daemon import Daemon
 from gcs.link.beacon import loopback_beacon_address
-from gcs.missions.runner import MissionProgress
 from gcs.observe.flight_recorder import FlightRecorder
 from gcs.planning.areas import area_from_latlon
 from gcs.planning.camera import spacing_from_swath
@@ -35,6 +33,10 @@ from protocol.actions import Waypoints
 from protocol.geo import offset_latlon
 from protocol.packets import StatusReport
 from protocol.taskfile import TaskFile
+
+if TYPE_CHECKING:  # the daemon is imported when the demo runs, not by every `gcs` command's start
+    from gcs.core.daemon import Daemon
+    from gcs.missions.model import MissionProgress
 
 HOME_SPACING_M = 6.0  # between simulated vehicles' homes: more than the collision margin
 
@@ -266,6 +268,8 @@ def _released(daemon: Daemon, mission_id: str) -> str:
 
 
 async def run_demo(options: DemoOptions) -> DemoResult:
+    from gcs.core.daemon import Daemon
+
     names = [f"drone-{i + 1}" for i in range(options.drones)]
     task, paths = plan_demo_mission(options, names)  # plan first: a bad option fails before anything starts
     temp = None if options.data_dir else tempfile.TemporaryDirectory(prefix="fleetgcs-demo-")

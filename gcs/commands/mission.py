@@ -15,7 +15,7 @@ from typing import Any, Literal
 from gcs.commands._api import CommandError, api_arguments, call
 from gcs.commands.run import render_progress
 from gcs.http.client import FleetClient
-from gcs.missions.runner import MissionProgress
+from gcs.missions.model import MissionProgress
 
 
 async def _running(client: FleetClient) -> list[str]:

@@ -323,7 +323,7 @@ class Daemon:
     async def _start_http(self) -> None:
         import uvicorn
 
-        from gcs.http import create_app
+        from gcs.http.app import create_app
 
         _QuietServer = _quiet_server_class()
 

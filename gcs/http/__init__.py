@@ -1,7 +1,7 @@
 """The HTTP API: ``app.py`` composes one router per resource (``routes/``) over narrow ports
 (``ports.py``, handed to routes by ``deps.py``), behind the guard (``guard.py``); ``models.py`` are
-the pydantic models shared with the client. See docs/api.md."""
+the pydantic models shared with the client. See docs/api.md.
 
-from gcs.http.app import create_app
-
-__all__ = ["create_app"]
+The package itself imports nothing: the command-line client (``client.py``, every ``gcs`` command)
+needs only ``models.py``, and importing the app (FastAPI, the routes) would add about a second to
+each command's start."""

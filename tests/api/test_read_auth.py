@@ -22,8 +22,7 @@ from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from websockets.typing import Subprotocol
 
-from gcs.http import create_app
-from gcs.http.app import flat_routes
+from gcs.http.app import create_app, flat_routes
 from gcs.http.client import FleetClient
 from gcs.http.guard import is_loopback_bind
 from tests.api.fleet import Fleet, running_fleet

@@ -11,8 +11,7 @@ from fastapi.routing import APIRoute, APIWebSocketRoute
 
 import gcs.http.routes
 from gcs.core.daemon import Daemon
-from gcs.http import create_app
-from gcs.http.app import flat_routes
+from gcs.http.app import create_app, flat_routes
 from gcs.link.sessions import RetireRefused
 from gcs.observe.live import LiveHub
 from tests.backbone.helpers import daemon_config, new_key, running_daemon, start_agent, stop_agents

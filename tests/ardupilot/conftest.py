@@ -2,21 +2,19 @@
 
 Real ArduCopter SITL on a loaded 2-core machine can latch an internal error (its scheduler overran) and
 then refuses every arm until reboot. A test that failed on such a rig fails as
-:class:`LatchedInternalError` and is run once more; before any test the rig reboots a fleet that
-latched one, so the rerun flies a fresh ArduCopter. Nothing else is rerun."""
+:class:`LatchedInternalError` (its rerun, as for every real-autopilot test, is in tests/conftest.py); before
+any test the rig reboots a fleet that latched one, so the rerun flies a fresh ArduCopter."""
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
 from tests.ardupilot.binary import SKIP_REASON, ardupilot_binary
 from tests.ardupilot.rig import LatchedInternalError, Rig
 
-HERE = Path(__file__).parent
 log = logging.getLogger("tests.ardupilot")
 
 
@@ -31,12 +29,6 @@ def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
         yield fleet
     finally:
         fleet.stop()
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    for item in items:
-        if "[arducopter]" in item.nodeid and item.path.parent == HERE:
-            item.add_marker(pytest.mark.flaky(reruns=1, only_rerun=["LatchedInternalError"]))
 
 
 @pytest.hookimpl(wrapper=True)

@@ -22,9 +22,6 @@ def test_demo_simulator_command_for_ardupilot() -> None:
 @pytest.mark.ardupilot
 @pytest.mark.slow
 @pytest.mark.skipif(ardupilot_binary() is None, reason=SKIP_REASON)
-# Real ArduCopter SITL on a loaded 2-core machine once latched "Internal errors 0x100000 flow_of_ctrl"
-# (its own scheduler overrun) and refused every arm until reboot: one rerun boots it again.
-@pytest.mark.flaky(reruns=1)
 def test_gcs_demo_on_real_ardupilot(tmp_path: Path) -> None:
     binary = ardupilot_binary()
     assert binary is not None

@@ -5,8 +5,6 @@ from __future__ import annotations
 import json
 import time
 
-import pytest
-
 from gcs.cluster.housekeeping import prune_round
 from gcs.cluster.natsrun import NatsServer
 from gcs.cluster.state import ClusterState
@@ -30,8 +28,6 @@ async def _messages(state: ClusterState, bucket: str) -> int:
     return int(info.state.messages)
 
 
-# the purge's mirror to the other daemon missed its 10 s once under a fully loaded 2-core suite run
-@pytest.mark.flaky(reruns=1)
 async def test_finished_mission_keys_are_pruned_in_bounded_rounds(nats_server: NatsServer) -> None:
     a, b = await _state(nats_server, "a"), await _state(nats_server, "b")
     try:
