@@ -30,7 +30,9 @@ Measured:
   ``FrameDecoder`` (CRC, a decoded report per frame), (c) the daemon (frames written into its
   status table, its ingest counter). Ratio = daemon / bare.
 * **agent footprint**: one ``agent run`` process at 10 Hz status with one vehicle (memory backend;
-  MAVLink backend against ``sitl run`` too): RSS and CPU share.
+  MAVLink backend against ``sitl run`` too): RSS and CPU share. By default this venv's ``agent``;
+  ``--agent-bin DIR`` another install's, e.g. the agent-only venv ``bench/agent_venv.sh`` builds
+  from the wheel (as a companion computer has it: byte-compiled, no ground station).
 """
 
 from __future__ import annotations
@@ -1674,6 +1676,8 @@ def agent_footprint(backend: str, seconds: float, agent_bin: Path = BIN) -> dict
                 ],
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.DEVNULL,
+                # another venv's agent runs its own install (a PYTHONPATH to a tree would replace it)
+                env=None if agent_bin == BIN else {k: v for k, v in os.environ.items() if k != "PYTHONPATH"},
             )
             time.sleep(4.0)  # connect, handshake, settle
             if agent.poll() is not None:
