@@ -13,7 +13,7 @@ or the error) goes back to the loop's thread, which writes a remainder through t
 cuts the peer off as a single send would. Small bursts run on the caller's thread alone: waking
 the helper costs more than it saves below :data:`POOL_MIN` sockets.
 
-With ``take`` (:meth:`SendPool.send_all`), a job is taken by the thread that sends it: the frame
+With :meth:`SendPool.take_and_send`, a job is taken by the thread that sends it: the frame
 stamped with its peer's sequence number and the socket found (``Outbox.take_direct``) right before
 its ``send``, so that Python runs while the other thread is in a system call instead of before
 the first send (issue 29: at 1,000 agents that preparation was 2.5 ms of a 10 ms burst, all on
