@@ -30,7 +30,9 @@ Measured:
   ``FrameDecoder`` (CRC, a decoded report per frame), (c) the daemon (frames written into its
   status table, its ingest counter). Ratio = daemon / bare.
 * **agent footprint**: one ``agent run`` process at 10 Hz status with one vehicle (memory backend;
-  MAVLink backend against ``sitl run`` too): RSS and CPU share.
+  MAVLink backend against ``sitl run`` too): RSS and CPU share. By default this venv's ``agent``;
+  ``--agent-bin DIR`` another install's, e.g. the agent-only venv ``bench/agent_venv.sh`` builds
+  from the wheel (as a companion computer has it: byte-compiled, no ground station).
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ import multiprocessing as mp
 import os
 import platform
 import random
+import resource
 import secrets
 import socket
 import struct
@@ -63,6 +66,7 @@ if TYPE_CHECKING:
 
 RESULTS = Path(__file__).resolve().parent / "results"
 BIN = Path(sys.executable).parent
+RUSAGE_THREAD = getattr(resource, "RUSAGE_THREAD", resource.RUSAGE_SELF)  # Linux: this thread alone
 P99_LIMIT_MS = 50.0
 STATUS_HZ = 10.0
 DAEMON_OVERRIDES: dict[str, Any] = {}  # DaemonConfig fields from --daemon-config (JSON)
@@ -162,12 +166,19 @@ async def _server(
         except ImportError:
             tick_module = importlib.import_module("gcs.link.agents")
         tick_module.STATUS_TICK_S = float(os.environ["BENCH_STATUS_TICK_S"])
+    if os.environ.get("BENCH_POOL_MIN"):  # diagnosis: from how many sockets a burst takes two threads
+        import gcs.link.send_pool as send_pool
+
+        send_pool.POOL_MIN = int(os.environ["BENCH_POOL_MIN"])
     from protocol.taskfile import TaskFile
     from protocol.wire import HEADER, HEADER_SIZE, FrameDecoder
 
     probe: Any = None
     released: dict[int, float] = {}  # step -> when the daemon's release burst was written
     burst_started: dict[int, float] = {}  # step -> when the release burst began
+    burst_cpu: dict[int, tuple[float, int, int]] = {}  # step -> the loop thread in the burst: CPU
+    # time (thread_time), then its voluntary (it waited: the GIL, a lock) and involuntary
+    # (preempted) context switches
     completed: dict[int, float] = {}  # step -> when the mission runner found the barrier complete
     # step -> (sendto began, returned, sent, the thread's CPU seconds in it: the rest it was off the CPU)
     beacon_sent: dict[int, tuple[float, float, bool, float]] = {}
@@ -235,11 +246,18 @@ async def _server(
         bursts = {"new": daemon.agents.burst, "old": _legacy_burst(daemon.agents)}
 
         def burst_and_stamp(identities: list[str], body: Any) -> int:
-            started = time.time()
+            usage = resource.getrusage(RUSAGE_THREAD)
+            started, cpu = time.time(), time.thread_time()
             is_release = isinstance(body, SyncSignal) and body.kind == "release"
             sent = bursts[release_path[0] if is_release else "new"](identities, body)
             if isinstance(body, SyncSignal) and body.kind == "release":
                 released[body.step] = time.time()  # every member's socket written
+                after = resource.getrusage(RUSAGE_THREAD)
+                burst_cpu[body.step] = (  # wall time beyond the CPU time: off the CPU
+                    time.thread_time() - cpu,
+                    after.ru_nvcsw - usage.ru_nvcsw,
+                    after.ru_nivcsw - usage.ru_nivcsw,
+                )
                 burst_started[body.step] = started
             return sent
 
@@ -434,7 +452,15 @@ async def _server(
                 else 0.0
             )
             conn.send(
-                (begin, completed.get(step), burst_started.get(step), end, in_release, beacon_sent.get(step))
+                (
+                    begin,
+                    completed.get(step),
+                    burst_started.get(step),
+                    end,
+                    in_release,
+                    beacon_sent.get(step),
+                    burst_cpu.get(step),
+                )
             )
         elif command == "parts":  # BENCH_RELEASE_PARTS: step -> barrier complete -> first send, in parts
             parts = {}
@@ -1229,6 +1255,9 @@ class _BarrierStats:
         self.to_barrier: list[float] = []  # last arrival -> the mission runner found the barrier complete
         self.in_daemon: list[float] = []  # last arrival -> the burst written to every member's socket
         self.writing: list[float] = []  # the burst itself (every member's socket written)
+        self.writing_cpu: list[float] = []  # of which the loop's thread was on the CPU
+        self.waits: list[float] = []  # the loop's thread's voluntary context switches in the burst
+        self.preempted: list[float] = []  # and involuntary ones
         self.storing: list[float] = []  # barrier complete -> the first send (the release stored first)
         self.gc_in_release: list[float] = []  # gc between the last arrival and the burst's end
         self.per_step_read: list[float] = []  # as per_step, a beacon's arrival bounded by its read too
@@ -1246,7 +1275,7 @@ class _BarrierStats:
         Per member: its TCP release's kernel stamp, its first read of a release, its verified
         beacon's kernel stamp and when its process read that beacon.
         """
-        last_arrival, complete, started, written, gc_s, beacon = daemon
+        last_arrival, complete, started, written, gc_s, beacon, cpu = daemon
         self.gc_in_release.append(gc_s)
         if self.mode != "beacon" and beacon is not None:  # the runner must read its sender at each release
             return "a beacon went out on a TCP-only barrier (the bench's switch did not hold)"
@@ -1279,6 +1308,10 @@ class _BarrierStats:
         if written is not None:
             self.in_daemon.append(written - last_arrival)
             self.writing.append(written - started)
+            if cpu is not None:
+                self.writing_cpu.append(cpu[0])
+                self.waits.append(cpu[1])
+                self.preempted.append(cpu[2])
         first_send = beacon[0] if beacon is not None else started
         if complete is not None and first_send is not None:
             self.storing.append(first_send - complete)
@@ -1302,6 +1335,7 @@ class _BarrierStats:
                 ("to_barrier", self.to_barrier),
                 ("daemon_release", self.in_daemon),
                 ("burst_write", self.writing),
+                ("burst_cpu", self.writing_cpu),
                 ("store_release", self.storing),
                 ("beacon_sendto", self.sendto),
                 ("beacon_sendto_cpu", self.sendto_cpu),
@@ -1315,6 +1349,10 @@ class _BarrierStats:
             "steps": len(self.gc_in_release),
             **{f"{name}_p{p}_ms": v[i] for name, v in ms.items() for i, p in ((0, 50), (1, 99))},
             "last_release_max_ms": max(self.per_step, default=float("nan")) * 1000,
+            "burst_switches_p50": {
+                "voluntary": percentile(self.waits, 0.5),
+                "involuntary": percentile(self.preempted, 0.5),
+            },
             "gc_in_release_ms": {
                 "releases with a collection": sum(1 for g in self.gc_in_release if g > 0),
                 "max": max(self.gc_in_release, default=0.0) * 1000,
@@ -1455,7 +1493,9 @@ def _print_barrier(row: dict[str, Any]) -> None:
         f"stored -> first send p50 {row['store_release_p50_ms']:.2f} ms "
         f"p99 {row['store_release_p99_ms']:.2f} ms, -> burst written "
         f"p50 {row['daemon_release_p50_ms']:.2f} ms p99 {row['daemon_release_p99_ms']:.2f} ms, "
-        f"of which the burst p50 {row['burst_write_p50_ms']:.2f} ms p99 {row['burst_write_p99_ms']:.2f} ms; "
+        f"of which the burst p50 {row['burst_write_p50_ms']:.2f} ms p99 {row['burst_write_p99_ms']:.2f} ms "
+        f"(the loop's thread on the CPU p50 {row['burst_cpu_p50_ms']:.2f} ms "
+        f"p99 {row['burst_cpu_p99_ms']:.2f} ms; its context switches p50 {row['burst_switches_p50']}); "
         f"read by the clients' processes p50 {row['last_read_p50_ms']:.2f} ms "
         f"p99 {row['last_read_p99_ms']:.2f} ms; {row['released_steps']} barriers; "
         f"gc in releases {row['gc_in_release_ms']}{beacon})"
@@ -1592,8 +1632,12 @@ def floor_trial(agents: int, rounds: int) -> dict[str, Any]:
     return {"agents": agents, **floor(agents, rounds, "tcp")}
 
 
-def agent_footprint(backend: str, seconds: float) -> dict[str, Any]:
-    """RSS and CPU share of one `agent run` at 10 Hz status beside one vehicle."""
+def agent_footprint(backend: str, seconds: float, agent_bin: Path = BIN) -> dict[str, Any]:
+    """RSS and CPU share of one `agent run` at 10 Hz status beside one vehicle.
+
+    ``agent_bin``: the ``bin`` folder whose ``agent`` runs (``--agent-bin``: an agent-only venv
+    installed from the wheel, as a companion computer has it; by default this venv's).
+    """
     harness = Harness("daemon", 0, workers=0)
     sitl: subprocess.Popen[str] | None = None
     agent: subprocess.Popen[bytes] | None = None
@@ -1617,7 +1661,7 @@ def agent_footprint(backend: str, seconds: float) -> dict[str, Any]:
                 connection = line.split()[2]
             agent = subprocess.Popen(
                 [
-                    BIN / "agent",
+                    agent_bin / "agent",
                     "run",
                     "--gcs",
                     f"127.0.0.1:{harness.port}",
@@ -1632,6 +1676,8 @@ def agent_footprint(backend: str, seconds: float) -> dict[str, Any]:
                 ],
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.DEVNULL,
+                # another venv's agent runs its own install (a PYTHONPATH to a tree would replace it)
+                env=None if agent_bin == BIN else {k: v for k, v in os.environ.items() if k != "PYTHONPATH"},
             )
             time.sleep(4.0)  # connect, handshake, settle
             if agent.poll() is not None:
@@ -1699,6 +1745,17 @@ def _arguments() -> argparse.Namespace:
     parser.add_argument("--only-barrier", type=int, help="just the barrier trial with this many agents")
     parser.add_argument("--only-rtl", type=int, help="just the fleet RTL fan-out with this many agents")
     parser.add_argument(
+        "--only-agent",
+        choices=["memory", "mavlink"],
+        help="just the agent footprint (RSS, CPU share) with this backend",
+    )
+    parser.add_argument(
+        "--agent-bin",
+        type=Path,
+        default=BIN,
+        help="the bin folder of the agent measured (an agent-only venv, e.g. from bench/agent_venv.sh)",
+    )
+    parser.add_argument(
         "--barrier-steps", type=int, default=40, help="barriers per barrier trial and mode (p99 over them)"
     )
     parser.add_argument("--rtl-repeats", type=int, default=20, help="fleet RTLs per fan-out trial")
@@ -1757,12 +1814,14 @@ def _barriers_and_floor(args: argparse.Namespace) -> tuple[list[dict[str, Any]],
     return barriers, floors
 
 
-def _footprints(quick: bool) -> list[dict[str, Any]]:
-    print("\nagent footprint (one `agent run`, one vehicle, status at 10 Hz):", flush=True)
+def _footprints(
+    quick: bool, backends: Sequence[str] = ("memory", "mavlink"), agent_bin: Path = BIN
+) -> list[dict[str, Any]]:
+    print(f"\nagent footprint (one `agent run`, one vehicle, status at 10 Hz; {_load()}):", flush=True)
     footprint = []
-    for backend in ("memory", "mavlink"):
+    for backend in backends:
         try:
-            row = agent_footprint(backend, 2.0 if quick else 10.0)
+            row = agent_footprint(backend, 2.0 if quick else 10.0, agent_bin)
         except (RuntimeError, OSError) as exc:
             print(f"  {backend}: not measured ({exc})")
             continue
@@ -1843,6 +1902,9 @@ def main() -> int:
     if args.only_rtl:
         _print_fleet_rtl(fleet_rtl_trial(args.only_rtl, args.rtl_repeats, args.rtl_status_hz))
         return 0
+    if args.only_agent:
+        _footprints(args.quick, [args.only_agent], args.agent_bin)
+        return 0
     began = time.monotonic()
     seconds = 2.0 if args.quick else args.seconds
     info = machine()
@@ -1871,7 +1933,7 @@ def main() -> int:
         )
     ratio = throughput["daemon"]["frames_per_s"] / throughput["bare"]["frames_per_s"]
     print(f"  daemon / bare asyncio = {ratio:.3f}")
-    footprint = _footprints(args.quick)
+    footprint = _footprints(args.quick, agent_bin=args.agent_bin)
 
     best_row = next((t for t in trials if t["agents"] == best), None)
     out = {

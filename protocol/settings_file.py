@@ -13,11 +13,9 @@ from __future__ import annotations
 
 import json
 import logging
-import logging.handlers
 import os
 import sys
 import time
-import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -52,6 +50,8 @@ def package_version() -> str:
 
 
 def read_toml(path: Path) -> dict[str, Any]:
+    import tomllib  # only when a file is read: an agent configured by flags never loads it (issue 29)
+
     try:
         with open(path, "rb") as handle:
             return tomllib.load(handle)
@@ -140,8 +140,10 @@ def configure_logging(config: LoggingConfig, verbose: bool = False) -> None:
     """Replace the root logger's handlers: stderr or a rotating file, plain text or JSON."""
     handler: logging.Handler
     if config.file is not None:
+        from logging.handlers import RotatingFileHandler  # only for a file (pickle, queue...: issue 29)
+
         config.file.parent.mkdir(parents=True, exist_ok=True)
-        handler = logging.handlers.RotatingFileHandler(
+        handler = RotatingFileHandler(
             config.file, maxBytes=config.max_bytes, backupCount=config.backups, encoding="utf-8"
         )
     else:

@@ -1,4 +1,4 @@
-"""pymavlink's ``mavutil`` without two imports a link never uses (issue 29: the agent's memory).
+"""pymavlink's ``mavutil`` without the imports a link never uses (issue 29: the agent's memory).
 
 ``mavutil`` imports at module level the v1 ``all`` dialect (only so that pyinstaller bundles it;
 the agent speaks MAVLink 2 with ``ardupilotmega``) and ``mavexpression``, the log-expression
@@ -7,6 +7,13 @@ the agent's RSS (61 -> 45 MiB measured at import). :func:`kept_out` keeps both o
 ``mavutil`` loads: the dialect import fails as ``mavutil`` allows it to, and ``mavexpression``
 is a placeholder that imports the real module the first time anything uses it (only log
 filtering does), so nothing of pymavlink stops working.
+
+Two more, ~1.2 MiB together: ``curses`` (``mavutil`` takes ``curses.ascii.isprint`` for
+``is_printable`` if it can, which loads ncurses; without it, its own fallback answers the
+same for ASCII) and the XML parser ``generator.mavparse`` with expat, which ``set_dialect``
+imports only for two protocol-name constants (the generator is needed only when a dialect
+module is missing). While ``mavutil`` loads, ``curses`` is "not importable" and ``mavparse``
+a placeholder holding those two constants; afterwards both import as usual.
 """
 
 from __future__ import annotations
@@ -17,8 +24,10 @@ import sys
 import types
 from collections.abc import Iterator
 
-SKIPPED = "pymavlink.dialects.v10.all"
+SKIPPED = ("pymavlink.dialects.v10.all", "curses")
 ON_FIRST_USE = "pymavlink.mavexpression"
+PARSER = "pymavlink.generator.mavparse"
+PARSER_CONSTANTS = {"PROTOCOL_1_0": "1.0", "PROTOCOL_2_0": "2.0"}  # as pymavlink's mavparse has them
 
 
 class _OnFirstUse(types.ModuleType):
@@ -32,11 +41,14 @@ class _OnFirstUse(types.ModuleType):
 
 @contextlib.contextmanager
 def kept_out() -> Iterator[None]:
-    """Import ``pymavlink.mavutil`` inside this block: without the v1 ``all`` dialect and NumPy."""
+    """Import ``pymavlink.mavutil`` in this block: without the v1 ``all`` dialect, NumPy, curses, expat."""
     placed: dict[str, types.ModuleType | None] = {}
+    parser = _OnFirstUse(PARSER)
+    parser.__dict__.update(PARSER_CONSTANTS)
     stand_ins: list[tuple[str, types.ModuleType | None]] = [
-        (SKIPPED, None),
+        *((name, None) for name in SKIPPED),
         (ON_FIRST_USE, _OnFirstUse(ON_FIRST_USE)),
+        (PARSER, parser),
     ]
     for name, stand_in in stand_ins:
         if name not in sys.modules:

@@ -244,9 +244,10 @@ class MavlinkLink:
         kwargs: dict[str, Any] = {
             "source_system": src,
             "source_component": self.source_component,
-            "dialect": "ardupilotmega",
             "autoreconnect": True,
         }
+        if mavutil.mavlink is not mavlink:  # set_dialect imports the XML parser (issue 29): only if needed
+            kwargs["dialect"] = "ardupilotmega"
         if baud is not None:
             kwargs["baud"] = baud
         if device.startswith("tcp:"):

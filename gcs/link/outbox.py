@@ -97,12 +97,15 @@ class Outbox:
     _drain_due: bool = False  # write_now wrote past the queue: the writer drains it
     _seq: int = 0
     _sock: socket.socket | None = None  # the plain TCP socket under the transport (None with TLS)
+    _plain: asyncio.WriteTransport | None = None  # that socket's transport (a burst reads it per agent)
 
     def __post_init__(self) -> None:
         self._seq = self.first_seq
-        sock = getattr(self.writer.transport, "_sock", None)  # asyncio's selector TCP transport only
+        transport = self.writer.transport
+        sock = getattr(transport, "_sock", None)  # asyncio's selector TCP transport only
         if isinstance(sock, socket.socket) and sock.type == socket.SOCK_STREAM:
             self._sock = sock
+            self._plain = transport
 
     def _wake(self) -> None:
         """Start the writer task unless it runs already (it ends by itself once idle)."""
@@ -164,9 +167,9 @@ class Outbox:
         sock = self._sock
         if sock is None or not self.open or self._queue:
             return None
-        transport = self.writer.transport
+        transport = self._plain  # (not self.writer.transport: one object fewer per agent of a burst)
         try:
-            if transport.get_write_buffer_size() or transport.is_closing():
+            if transport is None or transport.get_write_buffer_size() or transport.is_closing():
                 return None
         except (RuntimeError, AttributeError):
             return None

@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 
 from gcs.link.outbox import Outbox
-from gcs.link.send_pool import SendJob, SendPool
+from gcs.link.send_pool import SendPool
 from gcs.link.sessions import SessionRegistry
 from protocol.packets import Body, packet_type_of
 from protocol.wire import encode
@@ -53,28 +53,34 @@ class LinkSender:
         ptype = packet_type_of(body)
         sent = 0
         now = time.monotonic()
-        remote = self._registry.remote
-        direct: list[tuple[Outbox, SendJob]] = []  # plain sockets with nothing waiting: sent below
+        registry = self._registry
+        remote = registry.remote
+        local = registry.sessions
+        targets: list[tuple[Outbox, bytes]] = []
         for identity in identities:
-            session = self._registry.session(identity)
-            if session is None:
-                continue
+            session = local.get(identity)
+            if session is None or not session.open:
+                session = remote.get(identity)  # (registry.session's lookup, inline: one per agent)
+                if session is None:
+                    continue
             if identity in remote:  # linked to another daemon of the cluster: forwarded there
                 sent += session.post(body)
                 continue
             frame = frames.get(session.version)
             if frame is None:
                 frame = frames[session.version] = encode(body, 0, session.version)
-            outbox = session.outbox
-            job = outbox.take_direct(frame)
-            if job is not None:
-                direct.append((outbox, job))
-            elif outbox.write_now(frame, ptype, now):
-                sent += 1
-        if direct:  # one send each, a large burst on two threads (gcs/link/send_pool.py)
-            results = self._send_pool.send_all([job for _, job in direct])
-            for (outbox, (_, out)), result in zip(direct, results, strict=True):
-                sent += outbox.finish_direct(out, result, now)
+            targets.append((session.outbox, frame))
+        if not targets:
+            return sent
+        # Plain sockets with nothing waiting are stamped and sent by the thread that sends them, a
+        # large burst on two threads (gcs/link/send_pool.py); the others go through write_now.
+        taken, results = self._send_pool.take_and_send(targets, Outbox.take_direct)
+        for (outbox, frame), job, result in zip(targets, taken, results, strict=True):
+            if job is None:
+                sent += outbox.write_now(frame, ptype, now)
+            else:
+                assert result is not None  # a job taken was sent: bytes taken or the error
+                sent += outbox.finish_direct(job[1], result, now)
         return sent
 
     def close(self) -> None:

@@ -92,3 +92,37 @@ def test_a_small_burst_runs_on_the_callers_thread() -> None:
     finally:
         for sock in [*near, *far]:
             sock.close()
+
+
+def test_a_burst_whose_jobs_are_taken_by_the_sending_thread() -> None:
+    """``take_and_send``: each job is taken once, right before its send, by whichever thread sends
+    it; a job ``take`` refuses (None) is not sent and comes back as None for the caller to send."""
+    near, far = _pairs(POOL_MIN + 44)
+    pool = SendPool()
+    taken_by: dict[int, int] = {}
+
+    def take(index: int, sock: socket.socket) -> tuple[socket.socket, bytearray] | None:
+        assert index not in taken_by  # once
+        taken_by[index] = 1
+        return None if index % 5 == 0 else (sock, bytearray(f"frame-{index:05d}".encode()))
+
+    try:
+        jobs = list(enumerate(near))
+        taken, results = pool.take_and_send(jobs, take)
+        assert sorted(taken_by) == list(range(len(near)))
+        for i, (job, result) in enumerate(zip(taken, results, strict=True)):
+            if i % 5 == 0:
+                assert job is None and result is None
+            else:
+                assert job is not None and job[0] is near[i] and result == 11
+        for i, sock in enumerate(far):
+            sock.setblocking(False)
+            if i % 5 == 0:
+                with pytest.raises(BlockingIOError):  # refused by take: nothing was sent
+                    sock.recv(1)
+            else:
+                assert _read(sock, 11) == f"frame-{i:05d}".encode()
+    finally:
+        pool.close()
+        for sock in [*near, *far]:
+            sock.close()
