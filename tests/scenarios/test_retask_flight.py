@@ -22,6 +22,7 @@ import asyncio
 import json
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from shapely.geometry import LineString, Point
@@ -115,17 +116,22 @@ def _coverage(r: Rig, task: TaskFile) -> float:
     return seen_grid(task.survey.area, tracks, SWATH, ALT).covered_pct
 
 
+async def _retasked_to_the_end(r: Rig, mission_id: str, task: TaskFile) -> tuple[dict[str, Any], float]:
+    """Wait for the re-task, the survey's completion and every landing: the applied re-task's data and
+    the coverage by the test's own raster."""
+    await wait_for(lambda: r.events("retask_applied"), 30, "the re-task applied")
+    await wait_for(lambda: mission_id not in r.daemon.missions.active, 150, "survey end")
+    await _all_landed(r)
+    progress = r.daemon.missions.progress(mission_id)
+    assert progress is not None and progress.state == "completed", progress
+    return r.events("retask_applied")[0].data, _coverage(r, task)
+
+
 async def test_automatic_retask_closes_the_gap_of_a_battery_failsafe(tmp_path: Path) -> None:
     task = _plan(tmp_path, "automatic")
     async with rig(tmp_path, 4) as r:
         mission_id = await _fly_until_drop(r, task)
-        await wait_for(lambda: r.events("retask_applied"), 30, "the re-task applied")
-        await wait_for(lambda: mission_id not in r.daemon.missions.active, 150, "survey end")
-        await _all_landed(r)
-        progress = r.daemon.missions.progress(mission_id)
-        assert progress is not None and progress.state == "completed", progress
-        applied = r.events("retask_applied")[0].data
-        covered = _coverage(r, task)
+        applied, covered = await _retasked_to_the_end(r, mission_id, task)
     assert applied["dropped"] == DROPPED and applied["legs"], applied
     assert all(g["energy_wh"] <= g["margin_wh"] for g in applied["legs"])
     assert DROPPED not in {g["ident"] for g in applied["legs"]}
@@ -177,12 +183,7 @@ async def test_a_lost_link_is_re_tasked_the_same_way(tmp_path: Path) -> None:
         async with rig(tmp_path, 4, settings=settings, interpose=interpose, keepalive_s=0.2) as r:
             mission_id = await _fly_until_drop(r, task, cut=proxies[DROPPED])
             assert "lost" in r.events("agent_excluded", DROPPED)[0].message
-            await wait_for(lambda: r.events("retask_applied"), 30, "the re-task applied")
-            await wait_for(lambda: mission_id not in r.daemon.missions.active, 150, "survey end")
-            await _all_landed(r)
-            progress = r.daemon.missions.progress(mission_id)
-            assert progress is not None and progress.state == "completed", progress
-            covered = _coverage(r, task)
+            _, covered = await _retasked_to_the_end(r, mission_id, task)
     finally:
         for proxy in proxies.values():
             await proxy.stop()
@@ -205,13 +206,7 @@ async def test_a_pilot_takeover_is_re_tasked_the_same_way(tmp_path: Path) -> Non
             # The pilot lands it where it is: hovering at survey height on its share it would stand
             # in the way of whoever flies the rest (collision holds until their batteries run low).
             assert await asyncio.to_thread(station.set_mode, "LAND") == 0
-            await wait_for(lambda: r.events("retask_applied"), 30, "the re-task applied")
-            await wait_for(lambda: mission_id not in r.daemon.missions.active, 150, "survey end")
-            await _all_landed(r)
-            progress = r.daemon.missions.progress(mission_id)
-            assert progress is not None and progress.state == "completed", progress
-            applied = r.events("retask_applied")[0].data
-            covered = _coverage(r, task)
+            applied, covered = await _retasked_to_the_end(r, mission_id, task)
         finally:
             station.close()
     assert applied["dropped"] == DROPPED and DROPPED not in {g["ident"] for g in applied["legs"]}
