@@ -175,12 +175,15 @@ def zigzag(
     *,
     extent: str = "strip",
     start: ArrayLike | None = None,
+    check: bool = True,
 ) -> Sweep:
     """Zigzag over the convex hull of ``vertices`` (seed 000 Alg. 2, corrected).
 
     ``angle`` defaults to the exact minimum-height rotation (fewest legs, fewest turns).
     ``extent="chord"`` reproduces the paper's leg ends (for comparison only: it leaves corners
     uncovered). ``start`` picks, among the four corners of the pattern, the one nearest to it.
+    Leg ends are cut back where the turns see the area (:mod:`gcs.planning.turn_trim`);
+    ``check=False`` skips that module's coverage check (a length estimate for comparing angles).
     """
     hull = convex_hull(vertices)
     if angle is None:
@@ -197,25 +200,44 @@ def zigzag(
         segs.append((float(y), ext[0], ext[1]))
     if not segs:
         raise ValueError("polygon too small or degenerate for a zigzag")
-    lines = _choose_start(segs, angle, c, start)
+    trim_to = q if extent == "strip" else None
+    lines = _choose_start(segs, angle, c, start, trim_to, spacing / 2, step / 2, check)
     pts = dedupe(lines.reshape(-1, 2))
     return Sweep("zigzag", pts, lines, step, spacing, angle, {"extent": extent})
 
 
 def _choose_start(
-    segs: list[tuple[float, float, float]], angle: float, c: tuple[float, float], start: ArrayLike | None
+    segs: list[tuple[float, float, float]],
+    angle: float,
+    c: tuple[float, float],
+    start: ArrayLike | None,
+    trim_to: Polygon | None = None,
+    half: float = 0.0,
+    reach: float = 0.0,
+    check: bool = True,
 ) -> FloatArray:
-    """Lines in world coordinates, beginning at the pattern corner nearest ``start``."""
+    """Lines in world coordinates, beginning at the pattern corner nearest ``start``; with ``trim_to``
+    (the rotated polygon) leg ends next to a turn are cut back where the turn sees the area
+    (:func:`gcs.planning.turn_trim.trim_at_turns`; the first and last leg's outer ends stay put)."""
+    from gcs.planning.turn_trim import trim_at_turns
+
     options = []
     for bottom_up in (True, False):
         ordered = segs if bottom_up else segs[::-1]
         for rev in (False, True):
-            options.append(_boustrophedon(ordered, rev))
-    worlds = [rotate(o.reshape(-1, 2), -angle, c).reshape(-1, 2, 2) for o in options]
-    if start is None:
-        return worlds[0]
-    s = np.asarray(start, dtype=float).reshape(2)
-    return min(worlds, key=lambda w: float(np.hypot(*(w[0, 0] - s))))
+            options.append((ordered, rev))
+    k = 0
+    if start is not None:
+        s = rotate(np.asarray(start, dtype=float).reshape(1, 2), angle, c)[0]
+        firsts = [_boustrophedon(o, rev)[0, 0] for o, rev in options]
+        k = min(range(len(options)), key=lambda i: float(np.hypot(*(firsts[i] - s))))
+    ordered, rev = options[k]
+    if trim_to is None:
+        lines = _boustrophedon(ordered, rev)
+    else:
+        legs = [[leg] for leg in ordered]
+        lines = trim_at_turns(trim_to, legs, [y for y, _, _ in ordered], half, not rev, reach, check=check)
+    return rotate(lines.reshape(-1, 2), -angle, c).reshape(-1, 2, 2)
 
 
 def _inward_bisector_excursions(

@@ -1,0 +1,155 @@
+"""Leg ends cut back where the turn between two legs already sees the area (issue 27).
+
+The strip rule (:func:`gcs.planning.patterns.strip_extent`) runs every leg to the area's extent over
+its whole strip ``y +- spacing/2``, because a leg alone must see its strip. But a boustrophedon
+turns at every leg end but the first and the last, and the turn (the straight jog from one leg's end
+to the next leg's start) is flown at survey height with the sensor on: it sees the ground within half
+a spacing of it, which is the half strip of each of the two legs that faces the other. So each leg
+end next to a turn only has to reach the area's extent over its *own* half strip, the one facing away
+from the turn; the jog, now slanted along the boundary, sees the other half. On a straight edge at an
+angle ``a`` to the legs this saves ``spacing/2 * cot(a)`` per turn, half of the strip rule's overshoot;
+an edge square to the legs saves nothing (the jog already runs along it).
+
+The argument holds for evenly spaced legs of a convex piece; cells clipped at their ends and legs flown
+in several pieces are not covered by it, so :func:`trim_at_turns` checks the trimmed path against the
+area with the swept footprint and keeps the strip rule's legs when any point would be left unseen.
+Pure functions in the sweep frame (legs horizontal).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from shapely.geometry import Polygon, box
+from shapely.geometry.base import BaseGeometry
+
+from gcs.planning.geodesy import FloatArray
+
+Leg = tuple[float, float, float]  # (y, x0, x1), x0 <= x1
+Extent = tuple[float, float] | None
+UNSEEN_TOL = 1e-7  # unseen area allowed by the check, as a fraction of the area (rounding only)
+MAX_RESTORE_ROUNDS = 4  # checks of a trimmed path before falling back to the strip rule
+
+
+def half_strip_extents(poly: Polygon, y: float, strip_y: float, half: float) -> tuple[Extent, Extent]:
+    """x-ranges of the polygon in the strip below and above the leg at ``y`` (strip ``strip_y +- half``)."""
+    minx, _, maxx, _ = poly.bounds
+    eps = min(1e-6, half * 1e-3)
+    out: list[Extent] = []
+    for y0, y1 in ((strip_y - half + eps, y), (y, strip_y + half - eps)):
+        if y1 <= y0:
+            out.append(None)
+            continue
+        piece = poly.intersection(box(minx - 1.0, y0, maxx + 1.0, y1))
+        if piece.is_empty or piece.area <= 0.0:
+            out.append(None)
+        else:
+            x0, _, x1, _ = piece.bounds
+            out.append((float(x0), float(x1)))
+    return out[0], out[1]
+
+
+def trimmed_ends(
+    legs: list[list[Leg]], halves: list[tuple[Extent, Extent]], left_to_right_first: bool
+) -> list[list[Leg]]:
+    """``legs`` (each one straight piece, or several for a leg flown around a notch) in flight order,
+    leg 0 flown left to right when ``left_to_right_first``: each one-piece leg's end next to a turn cut
+    to the extent of its half strip facing away from that turn (never past its other end, never longer
+    than before). ``halves[i]`` is leg i's (below, above) half-strip extent."""
+    out = [[list(p) for p in leg] for leg in legs]
+    for i in range(len(legs) - 1):
+        right = (i % 2 == 0) == left_to_right_first  # leg i ends on the right and turns into leg i+1
+        up = legs[i + 1][0][0] > legs[i][0][0]
+        # leg i's own half faces away from leg i+1, leg i+1's faces away from leg i
+        own_i = halves[i][0] if up else halves[i][1]
+        own_next = halves[i + 1][1] if up else halves[i + 1][0]
+        for j, own in ((i, own_i), (i + 1, own_next)):
+            if own is None or len(out[j]) != 1:
+                continue
+            piece = out[j][0]
+            if right:
+                piece[2] = max(piece[1], min(piece[2], own[1]))
+            else:
+                piece[1] = min(piece[2], max(piece[1], own[0]))
+    return [[(a, b, c) for a, b, c in leg] for leg in out]
+
+
+def flown(legs: list[list[Leg]], left_to_right_first: bool) -> FloatArray:
+    """(M, 2, 2) straight parts of the legs, flown alternately left to right and right to left."""
+    out: list[list[list[float]]] = []
+    for k, leg in enumerate(legs):
+        if (k % 2 == 0) != left_to_right_first:
+            out.extend([[x1, yy], [x0, yy]] for yy, x0, x1 in reversed(leg))
+        else:
+            out.extend([[x0, yy], [x1, yy]] for yy, x0, x1 in leg)
+    return np.asarray(out, dtype=float).reshape(-1, 2, 2)
+
+
+def unseen(poly: Polygon, lines: FloatArray, half: float) -> BaseGeometry:
+    """The part of ``poly`` farther than ``half`` from the path through ``lines`` (legs and jogs)."""
+    from gcs.planning.patterns import swept_footprint
+
+    return poly.difference(swept_footprint(lines.reshape(-1, 2), half * (1 + 1e-9)))
+
+
+def shortened(legs: list[list[Leg]], by: float) -> list[list[Leg]]:
+    """Both ends of every one-piece leg moved ``by`` inwards (a leg shorter than ``2 by`` becomes its
+    midpoint): with a footprint wider than the strip, ``by`` of the strip's corner is seen from the end."""
+    if by <= 0.0:
+        return legs
+    out: list[list[Leg]] = []
+    for leg in legs:
+        if len(leg) != 1:
+            out.append(leg)
+            continue
+        y, x0, x1 = leg[0]
+        d = min(by, (x1 - x0) / 2)
+        out.append([(y, x0 + d, x1 - d)])
+    return out
+
+
+def trim_at_turns(
+    poly: Polygon,
+    legs: list[list[Leg]],
+    strip_ys: list[float],
+    half: float,
+    left_to_right_first: bool,
+    reach: float | None = None,
+    *,
+    check: bool = True,
+) -> FloatArray:
+    """The legs (flight order) flown with ends cut back where that still sees all of ``poly`` within
+    ``reach`` (the footprint's half width, default ``half``, half the line spacing): at the turns (see
+    the module), and by ``sqrt(reach^2 - half^2)`` at every end when the footprint is wider than the
+    strip. A leg whose strip holds an unseen point gets its strip-rule ends back (it then sees its
+    strip alone), at most ``MAX_RESTORE_ROUNDS`` times, then every leg does. ``check=False`` skips
+    the check (an optimistic length for comparing sweep angles, never a path to fly)."""
+    reach = half if reach is None else max(reach, half)
+    plain = flown(legs, left_to_right_first)
+    if len(legs) > 1:
+        halves = [
+            half_strip_extents(poly, leg[0][0], sy, half) for leg, sy in zip(legs, strip_ys, strict=True)
+        ]
+        cut = trimmed_ends(legs, halves, left_to_right_first)
+    else:
+        cut = legs
+    cut = shortened(cut, math.sqrt(reach * reach - half * half))
+    tol = UNSEEN_TOL * max(poly.area, 1.0)
+    sy = np.asarray(strip_ys)
+    for _ in range(MAX_RESTORE_ROUNDS):
+        if cut == legs:
+            return plain
+        lines = flown(cut, left_to_right_first)
+        if not check:
+            return lines
+        missed = unseen(poly, lines, reach)
+        if missed.area <= tol:
+            return lines
+        for g in getattr(missed, "geoms", [missed]):
+            if g.area <= tol * 1e-3:
+                continue
+            _, gy0, _, gy1 = g.bounds
+            for j in np.nonzero((sy - half <= gy1) & (sy + half >= gy0))[0]:
+                cut[j] = legs[j]
+    return plain
