@@ -21,7 +21,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from shapely.geometry import Polygon, box
+import shapely
+from shapely.geometry import Polygon
 from shapely.geometry.base import BaseGeometry
 
 from gcs.planning.geodesy import FloatArray
@@ -32,22 +33,24 @@ UNSEEN_TOL = 1e-7  # unseen area allowed by the check, as a fraction of the area
 MAX_RESTORE_ROUNDS = 4  # checks of a trimmed path before falling back to the strip rule
 
 
-def half_strip_extents(poly: Polygon, y: float, strip_y: float, half: float) -> tuple[Extent, Extent]:
-    """x-ranges of the polygon in the strip below and above the leg at ``y`` (strip ``strip_y +- half``)."""
+def half_strip_extents(
+    poly: Polygon, ys: list[float], strip_ys: list[float], half: float
+) -> list[tuple[Extent, Extent]]:
+    """Per leg, the x-ranges of the polygon in its strip (``strip_y +- half``) below and above the leg's
+    ordinate ``y`` (None where that half holds no area); one vectorised intersection for all legs."""
     minx, _, maxx, _ = poly.bounds
     eps = min(1e-6, half * 1e-3)
-    out: list[Extent] = []
-    for y0, y1 in ((strip_y - half + eps, y), (y, strip_y + half - eps)):
-        if y1 <= y0:
-            out.append(None)
-            continue
-        piece = poly.intersection(box(minx - 1.0, y0, maxx + 1.0, y1))
-        if piece.is_empty or piece.area <= 0.0:
-            out.append(None)
-        else:
-            x0, _, x1, _ = piece.bounds
-            out.append((float(x0), float(x1)))
-    return out[0], out[1]
+    y = np.asarray(ys, dtype=float)
+    sy = np.asarray(strip_ys, dtype=float)
+    lo = np.concatenate([sy - half + eps, y])
+    hi = np.concatenate([y, sy + half - eps])
+    ok = hi > lo
+    pieces = shapely.intersection(poly, shapely.box(minx - 1.0, lo, maxx + 1.0, np.where(ok, hi, lo + 1e-9)))
+    ok &= shapely.area(pieces) > 0.0
+    b = shapely.bounds(pieces)
+    ext: list[Extent] = [(float(b[i, 0]), float(b[i, 2])) if ok[i] else None for i in range(len(lo))]
+    n = len(y)
+    return [(ext[i], ext[n + i]) for i in range(n)]
 
 
 def trimmed_ends(
@@ -128,9 +131,7 @@ def trim_at_turns(
     reach = half if reach is None else max(reach, half)
     plain = flown(legs, left_to_right_first)
     if len(legs) > 1:
-        halves = [
-            half_strip_extents(poly, leg[0][0], sy, half) for leg, sy in zip(legs, strip_ys, strict=True)
-        ]
+        halves = half_strip_extents(poly, [leg[0][0] for leg in legs], strip_ys, half)
         cut = trimmed_ends(legs, halves, left_to_right_first)
     else:
         cut = legs
