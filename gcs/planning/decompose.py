@@ -46,6 +46,7 @@ from gcs.planning.turn_trim import trim_at_turns
 MAX_ANGLE_CANDIDATES = 8  # rotations tried by sweep_angle (the minimum-height one included)
 ANGLE_VERTEX_BUDGET = 400  # candidates x vertices: 8 up to 50 vertices, 1 (minimum height) from 400
 ANGLE_BIN_DEG = 1.0  # edge directions closer than this count as one candidate
+ANGLE_RECHECK = 2  # best estimated candidates planned with the coverage check before choosing
 
 
 def boustrophedon_cells(q: Polygon) -> list[Polygon]:
@@ -168,15 +169,22 @@ def sweep_angle(vertices: ArrayLike, step: float, *, concave: bool | None = None
         return cands[0]
     if concave is None:
         concave = classify(p) == PolygonType.CONCAVE
-    best, best_len = cands[0], math.inf
-    for a in cands:
+
+    def flown_length(a: float, check: bool) -> float:
         if concave:
-            lines, _, _ = _cell_lines(p, step, a, None, check=False)
-            length = path_length(dedupe(lines.reshape(-1, 2)))
-        else:
-            length = zigzag(p, step, a, check=False).length
+            lines, _, _ = _cell_lines(p, step, a, None, check=check)
+            return path_length(dedupe(lines.reshape(-1, 2)))
+        return zigzag(p, step, a, check=check).length
+
+    # compare by the trimmed length unchecked (cheap), then check the best few: a cut the check
+    # gives back can make the estimated best longer than the runner-up
+    est = [flown_length(a, False) for a in cands]
+    order = sorted(range(len(cands)), key=lambda i: (est[i], i))[:ANGLE_RECHECK]
+    best, best_len = cands[order[0]], math.inf
+    for i in sorted(order):  # candidate order: ties keep the minimum-height angle
+        length = flown_length(cands[i], True)
         if length < best_len * (1.0 - 1e-9):
-            best, best_len = a, length
+            best, best_len = cands[i], length
     return best
 
 

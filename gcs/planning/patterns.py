@@ -216,9 +216,9 @@ def _choose_start(
     reach: float = 0.0,
     check: bool = True,
 ) -> FloatArray:
-    """Lines in world coordinates, beginning at the pattern corner nearest ``start``; with ``trim_to``
-    (the rotated polygon) leg ends next to a turn are cut back where the turn sees the area
-    (:func:`gcs.planning.turn_trim.trim_at_turns`; the first and last leg's outer ends stay put)."""
+    """Lines in world coordinates from the corner whose path plus trip from ``start`` is shortest; with
+    ``trim_to`` (the rotated polygon) leg ends next to a turn are cut back where the turn sees the
+    area (:func:`gcs.planning.turn_trim.trim_at_turns`), which depends on the corner."""
     from gcs.planning.turn_trim import trim_at_turns
 
     options = []
@@ -226,17 +226,25 @@ def _choose_start(
         ordered = segs if bottom_up else segs[::-1]
         for rev in (False, True):
             options.append((ordered, rev))
-    k = 0
-    if start is not None:
-        s = rotate(np.asarray(start, dtype=float).reshape(1, 2), angle, c)[0]
-        firsts = [_boustrophedon(o, rev)[0, 0] for o, rev in options]
-        k = min(range(len(options)), key=lambda i: float(np.hypot(*(firsts[i] - s))))
-    ordered, rev = options[k]
-    if trim_to is None:
-        lines = _boustrophedon(ordered, rev)
-    else:
+
+    def flown(i: int, checked: bool) -> FloatArray:
+        ordered, rev = options[i]
+        if trim_to is None:
+            return _boustrophedon(ordered, rev)
         legs = [[leg] for leg in ordered]
-        lines = trim_at_turns(trim_to, legs, [y for y, _, _ in ordered], half, not rev, reach, check=check)
+        ys = [y for y, _, _ in ordered]
+        return trim_at_turns(trim_to, legs, ys, half, not rev, reach, check=checked)
+
+    # trimming depends on which ends turn: the corners give two path lengths (each flown both ways);
+    # keep the shortest path plus the trip from ``start`` to its first point (first corner on ties)
+    s = None if start is None else rotate(np.asarray(start, dtype=float).reshape(1, 2), angle, c)[0]
+    costs = []
+    for i in range(len(options)):
+        lines = flown(i, False)
+        trip = 0.0 if s is None else float(np.hypot(*(lines[0, 0] - s)))
+        costs.append(trip + path_length(dedupe(lines.reshape(-1, 2))))
+    k = next(i for i, v in enumerate(costs) if v <= min(costs) * (1.0 + 1e-9))
+    lines = flown(k, check)
     return rotate(lines.reshape(-1, 2), -angle, c).reshape(-1, 2, 2)
 
 
