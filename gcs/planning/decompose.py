@@ -176,12 +176,15 @@ def sweep_angle(vertices: ArrayLike, step: float, *, concave: bool | None = None
             return path_length(dedupe(lines.reshape(-1, 2)))
         return zigzag(p, step, a, check=check).length
 
-    # compare by the trimmed length unchecked (cheap), then check the best few: a cut the check
-    # gives back can make the estimated best longer than the runner-up
+    # compare by the trimmed length unchecked (cheap, never longer than checked), then check in that
+    # order until no unchecked estimate is below the best checked length (a cut the check gives
+    # back can make the estimated best longer than the runner-up); ties keep the earlier candidate
     est = [flown_length(a, False) for a in cands]
-    order = sorted(range(len(cands)), key=lambda i: (est[i], i))[:ANGLE_RECHECK]
+    order = sorted(range(len(cands)), key=lambda i: (est[i], i))
     best, best_len = cands[order[0]], math.inf
-    for i in sorted(order):  # candidate order: ties keep the minimum-height angle
+    for i in order[:ANGLE_RECHECK]:
+        if est[i] >= best_len * (1.0 - 1e-9):
+            break
         length = flown_length(cands[i], True)
         if length < best_len * (1.0 - 1e-9):
             best, best_len = cands[i], length

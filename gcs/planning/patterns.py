@@ -219,27 +219,30 @@ def _choose_start(
     """Lines in world coordinates from the corner whose path plus trip from ``start`` is shortest; with
     ``trim_to`` (the rotated polygon) leg ends next to a turn are cut back where the turn sees the
     area (:func:`gcs.planning.turn_trim.trim_at_turns`), which depends on the corner."""
-    from gcs.planning.turn_trim import trim_at_turns
+    from gcs.planning.turn_trim import half_strip_extents, trim_at_turns
 
     options = []
     for bottom_up in (True, False):
         ordered = segs if bottom_up else segs[::-1]
         for rev in (False, True):
             options.append((ordered, rev))
+    ys = [y for y, _, _ in segs]
+    halves = None if trim_to is None else half_strip_extents(trim_to, ys, ys, half)
 
     def flown(i: int, checked: bool) -> FloatArray:
         ordered, rev = options[i]
-        if trim_to is None:
+        if trim_to is None or halves is None:
             return _boustrophedon(ordered, rev)
+        hv = halves if i < 2 else halves[::-1]
         legs = [[leg] for leg in ordered]
-        ys = [y for y, _, _ in ordered]
-        return trim_at_turns(trim_to, legs, ys, half, not rev, reach, check=checked)
+        oys = ys if i < 2 else ys[::-1]
+        return trim_at_turns(trim_to, legs, oys, half, not rev, reach, check=checked, halves=hv)
 
     # trimming depends on which ends turn: the corners give two path lengths (each flown both ways);
     # keep the shortest path plus the trip from ``start`` to its first point (first corner on ties)
     s = None if start is None else rotate(np.asarray(start, dtype=float).reshape(1, 2), angle, c)[0]
     costs = []
-    for i in range(len(options)):
+    for i in range(len(options) if s is not None else 2):  # without a start, reversing changes nothing
         lines = flown(i, False)
         trip = 0.0 if s is None else float(np.hypot(*(lines[0, 0] - s)))
         costs.append(trip + path_length(dedupe(lines.reshape(-1, 2))))

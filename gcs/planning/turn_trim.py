@@ -121,17 +121,20 @@ def trim_at_turns(
     reach: float | None = None,
     *,
     check: bool = True,
+    halves: list[tuple[Extent, Extent]] | None = None,
 ) -> FloatArray:
     """The legs (flight order) flown with ends cut back where that still sees all of ``poly`` within
     ``reach`` (the footprint's half width, default ``half``, half the line spacing): at the turns (see
     the module), and by ``sqrt(reach^2 - half^2)`` at every end when the footprint is wider than the
     strip. A leg whose strip holds an unseen point gets its strip-rule ends back (it then sees its
     strip alone), at most ``MAX_RESTORE_ROUNDS`` times, then every leg does. ``check=False`` skips
-    the check (an optimistic length for comparing sweep angles, never a path to fly)."""
+    the check (an optimistic length for comparing sweep angles, never a path to fly); ``halves``
+    passes :func:`half_strip_extents` of these legs when the caller already has them."""
     reach = half if reach is None else max(reach, half)
     plain = flown(legs, left_to_right_first)
     if len(legs) > 1:
-        halves = half_strip_extents(poly, [leg[0][0] for leg in legs], strip_ys, half)
+        if halves is None:
+            halves = half_strip_extents(poly, [leg[0][0] for leg in legs], strip_ys, half)
         cut = trimmed_ends(legs, halves, left_to_right_first)
     else:
         cut = legs
