@@ -46,7 +46,6 @@ from gcs.planning.turn_trim import trim_at_turns
 MAX_ANGLE_CANDIDATES = 8  # rotations tried by sweep_angle (the minimum-height one included)
 ANGLE_VERTEX_BUDGET = 400  # candidates x vertices: 8 up to 50 vertices, 1 (minimum height) from 400
 ANGLE_BIN_DEG = 1.0  # edge directions closer than this count as one candidate
-ANGLE_RECHECK = 2  # best estimated candidates planned with the coverage check before choosing
 
 
 def boustrophedon_cells(q: Polygon) -> list[Polygon]:
@@ -176,13 +175,13 @@ def sweep_angle(vertices: ArrayLike, step: float, *, concave: bool | None = None
             return path_length(dedupe(lines.reshape(-1, 2)))
         return zigzag(p, step, a, check=check).length
 
-    # compare by the trimmed length unchecked (cheap, never longer than checked), then check in that
-    # order until no unchecked estimate is below the best checked length (a cut the check gives
-    # back can make the estimated best longer than the runner-up); ties keep the earlier candidate
+    # compare by the trimmed length unchecked (cheap; a cut the check gives back only lengthens the
+    # path, by the triangle inequality), then check in that order until no estimate is below the
+    # best checked length, so the checked shortest is found (usually after one check)
     est = [flown_length(a, False) for a in cands]
     order = sorted(range(len(cands)), key=lambda i: (est[i], i))
     best, best_len = cands[order[0]], math.inf
-    for i in order[:ANGLE_RECHECK]:
+    for i in order:
         if est[i] >= best_len * (1.0 - 1e-9):
             break
         length = flown_length(cands[i], True)

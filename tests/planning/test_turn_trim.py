@@ -74,3 +74,39 @@ def test_a_cut_that_leaves_ground_unseen_gives_the_leg_its_strip_ends_back() -> 
     lines = trim_at_turns(toothed, legs, ys, 10.0, True)
     assert lines[0, 1, 0] == pytest.approx(130.0)
     assert toothed.difference(swept_footprint(lines.reshape(-1, 2), 10.0 + 1e-6)).area <= 1e-6
+
+
+def _random_fields(seed: int, n: int) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        k = int(rng.integers(5, 10))
+        ang = (np.arange(k) + rng.uniform(0.0, 0.7, k)) * 2 * math.pi / k
+        r = rng.uniform(100.0, 250.0) * rng.uniform(0.4, 1.0, k)
+        out.append(np.column_stack([r * np.cos(ang), r * np.sin(ang)]))
+    return out
+
+
+@pytest.mark.parametrize("field", _random_fields(45, 4), ids=lambda f: f"{len(f)}-gon")
+def test_sweep_angle_is_the_shortest_checked_candidate(field: np.ndarray) -> None:
+    # candidates are compared by the unchecked trimmed length; a cut the check gives back must
+    # not leave a longer plan than another candidate's checked one
+    from gcs.planning.decompose import candidate_angles, cover_area, sweep_angle
+    from gcs.planning.polygon import PolygonType, classify
+
+    plan = cover_area if classify(field) == PolygonType.CONCAVE else zigzag
+    chosen = plan(field, 20.0, sweep_angle(field, 20.0)).length
+    assert chosen <= min(plan(field, 20.0, a).length for a in candidate_angles(field)) * (1 + 1e-9)
+    seen = plan(field, 20.0, sweep_angle(field, 20.0)).points
+    assert _unseen(field, seen, 10.0) <= 1e-6 * Polygon(field).area
+
+
+def test_no_plan_beats_the_physical_floor() -> None:
+    # the bench's floor: a path of length L with a footprint w wide sees at most w L + pi w^2 / 4
+    from bench.bench_planning import L_FIELD, _fly, floor_m_per_ha
+
+    assert floor_m_per_ha(1e4, 20.0) == pytest.approx((1e4 - math.pi * 100.0) / 20.0)
+    for field in (L_FIELD, *_random_fields(46, 2)):
+        r = _fly(field, 20.0)
+        assert r["covered_pct"] >= 99.999
+        assert r["floor_m_per_ha"] < r["m_per_ha"] < 1.3 * r["floor_m_per_ha"]
