@@ -249,11 +249,12 @@ def _cell_lines(
     grid, spacing = line_grid(ymin, ymax, step)
     cells = boustrophedon_cells(q)
     cell_legs: list[list[list[Piece]]] = []
-    cell_info: list[tuple[Polygon, list[float]]] = []  # each cell and its legs' strip ordinates
+    cell_info: list[tuple[Polygon, list[float], list[float]]] = []  # cell, strip and leg ordinates
     for cell in cells:
         cy0, cy1 = cell.bounds[1], cell.bounds[3]
         legs: list[list[Piece]] = []
         strip_ys: list[float] = []
+        leg_ys: list[float] = []
         for y in grid:
             if y + spacing / 2 <= cy0 or y - spacing / 2 >= cy1:
                 continue
@@ -262,9 +263,10 @@ def _cell_lines(
                 continue
             legs.append(leg_pieces(cell, float(np.clip(y, cy0, cy1)), float(y), spacing / 2, ext))
             strip_ys.append(float(y))
+            leg_ys.append(float(np.clip(y, cy0, cy1)))
         if legs:
             cell_legs.append(legs)
-            cell_info.append((cell, strip_ys))
+            cell_info.append((cell, strip_ys, leg_ys))
     cur = None if start is None else rotate(np.asarray(start, dtype=float).reshape(1, 2), angle, c)[0]
     # greedy: enter next the cell whose entry corner is nearest (vectorised over cells x 4 corners)
     k_n = len(cell_legs)
@@ -287,9 +289,17 @@ def _cell_lines(
             d[~todo] = np.inf
             k, opt = divmod(int(np.argmin(d)), 4)
         seq = cell_legs[k] if opt < 2 else cell_legs[k][::-1]
-        cell, sys_ = cell_info[k]  # leg ends cut back where the turns see the area
+        cell, sys_, lys = cell_info[k]  # leg ends cut back where the turns see the area
+        fwd = opt < 2
         lines = trim_at_turns(
-            cell, seq, sys_ if opt < 2 else sys_[::-1], spacing / 2, opt % 2 == 0, reach=step / 2, check=check
+            cell,
+            seq,
+            sys_ if fwd else sys_[::-1],
+            spacing / 2,
+            opt % 2 == 0,
+            reach=step / 2,
+            check=check,
+            leg_ys=lys if fwd else lys[::-1],
         )
         ordered.append(lines)
         cur = lines[-1, 1]

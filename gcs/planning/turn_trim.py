@@ -53,24 +53,34 @@ def half_strip_extents(
     return [(ext[i], ext[n + i]) for i in range(n)]
 
 
+def _ys(legs: list[list[Leg]], leg_ys: list[float] | None) -> list[float]:
+    return [leg[0][0] for leg in legs] if leg_ys is None else leg_ys
+
+
 def trimmed_ends(
-    legs: list[list[Leg]], halves: list[tuple[Extent, Extent]], left_to_right_first: bool
+    legs: list[list[Leg]],
+    halves: list[tuple[Extent, Extent]],
+    left_to_right_first: bool,
+    leg_ys: list[float] | None = None,
 ) -> list[list[Leg]]:
-    """``legs`` (each one straight piece, or several for a leg flown around a notch) in flight order,
-    leg 0 flown left to right when ``left_to_right_first``: each one-piece leg's end next to a turn cut
-    to the extent of its half strip facing away from that turn (never past its other end, never longer
-    than before). ``halves[i]`` is leg i's (below, above) half-strip extent."""
+    """``legs`` (each one straight piece at the leg's ordinate, or several for a leg whose end is
+    flown as a separate piece, see :func:`gcs.planning.decompose.leg_pieces`) in flight order, leg 0
+    flown left to right when ``left_to_right_first``: each end next to a turn whose piece lies on the
+    leg's ordinate (``leg_ys``, default the first piece's) is cut to the extent of the leg's half
+    strip facing away from that turn (never past the piece's other end, never longer than before).
+    ``halves[i]`` is leg i's (below, above) half-strip extent."""
+    ys = _ys(legs, leg_ys)
     out = [[list(p) for p in leg] for leg in legs]
     for i in range(len(legs) - 1):
         right = (i % 2 == 0) == left_to_right_first  # leg i ends on the right and turns into leg i+1
-        up = legs[i + 1][0][0] > legs[i][0][0]
+        up = ys[i + 1] > ys[i]
         # leg i's own half faces away from leg i+1, leg i+1's faces away from leg i
         own_i = halves[i][0] if up else halves[i][1]
         own_next = halves[i + 1][1] if up else halves[i + 1][0]
         for j, own in ((i, own_i), (i + 1, own_next)):
-            if own is None or len(out[j]) != 1:
+            piece = out[j][-1] if right else out[j][0]
+            if own is None or abs(piece[0] - ys[j]) > 1e-9:
                 continue
-            piece = out[j][0]
             if right:
                 piece[2] = max(piece[1], min(piece[2], own[1]))
             else:
@@ -96,19 +106,23 @@ def unseen(poly: Polygon, lines: FloatArray, half: float) -> BaseGeometry:
     return poly.difference(swept_footprint(lines.reshape(-1, 2), half * (1 + 1e-9)))
 
 
-def shortened(legs: list[list[Leg]], by: float) -> list[list[Leg]]:
-    """Both ends of every one-piece leg moved ``by`` inwards (a leg shorter than ``2 by`` becomes its
-    midpoint): with a footprint wider than the strip, ``by`` of the strip's corner is seen from the end."""
+def shortened(legs: list[list[Leg]], by: float, leg_ys: list[float] | None = None) -> list[list[Leg]]:
+    """Both outer ends of every leg moved ``by`` inwards where their piece lies on the leg's ordinate
+    (a piece shorter than ``2 by`` becomes its midpoint): with a footprint wider than the strip,
+    ``by`` of the strip's corner is seen from the end."""
     if by <= 0.0:
         return legs
     out: list[list[Leg]] = []
-    for leg in legs:
-        if len(leg) != 1:
-            out.append(leg)
-            continue
-        y, x0, x1 = leg[0]
-        d = min(by, (x1 - x0) / 2)
-        out.append([(y, x0 + d, x1 - d)])
+    for leg, y in zip(legs, _ys(legs, leg_ys), strict=True):
+        pieces = [list(p) for p in leg]
+        first, last = pieces[0], pieces[-1]
+        d0 = min(by, (first[2] - first[1]) / (2 if len(pieces) == 1 else 1))
+        d1 = min(by, (last[2] - last[1]) / (2 if len(pieces) == 1 else 1))
+        if abs(first[0] - y) <= 1e-9:
+            first[1] += d0
+        if abs(last[0] - y) <= 1e-9:
+            last[2] -= d1
+        out.append([(a, b, c) for a, b, c in pieces])
     return out
 
 
@@ -122,6 +136,7 @@ def trim_at_turns(
     *,
     check: bool = True,
     halves: list[tuple[Extent, Extent]] | None = None,
+    leg_ys: list[float] | None = None,
 ) -> FloatArray:
     """The legs (flight order) flown with ends cut back where that still sees all of ``poly`` within
     ``reach`` (the footprint's half width, default ``half``, half the line spacing): at the turns (see
@@ -129,16 +144,17 @@ def trim_at_turns(
     strip. A leg whose strip holds an unseen point gets its strip-rule ends back (it then sees its
     strip alone), at most ``MAX_RESTORE_ROUNDS`` times, then every leg does. ``check=False`` skips
     the check (an optimistic length for comparing sweep angles, never a path to fly); ``halves``
-    passes :func:`half_strip_extents` of these legs when the caller already has them."""
+    passes :func:`half_strip_extents` of these legs when the caller already has them; ``leg_ys`` are
+    the legs' ordinates when a leg's first piece is not on it (see :func:`trimmed_ends`)."""
     reach = half if reach is None else max(reach, half)
     plain = flown(legs, left_to_right_first)
     if len(legs) > 1:
         if halves is None:
-            halves = half_strip_extents(poly, [leg[0][0] for leg in legs], strip_ys, half)
-        cut = trimmed_ends(legs, halves, left_to_right_first)
+            halves = half_strip_extents(poly, _ys(legs, leg_ys), strip_ys, half)
+        cut = trimmed_ends(legs, halves, left_to_right_first, leg_ys)
     else:
         cut = legs
-    cut = shortened(cut, math.sqrt(reach * reach - half * half))
+    cut = shortened(cut, math.sqrt(reach * reach - half * half), leg_ys)
     tol = UNSEEN_TOL * max(poly.area, 1.0)
     sy = np.asarray(strip_ys)
     for _ in range(MAX_RESTORE_ROUNDS):
