@@ -29,7 +29,7 @@ from gcs.planning.patterns import (
     dedupe,
     line_grid,
     path_length,
-    strip_extent,
+    strip_extents,
     zigzag,
 )
 from gcs.planning.polygon import (
@@ -255,10 +255,8 @@ def _cell_lines(
         legs: list[list[Piece]] = []
         strip_ys: list[float] = []
         leg_ys: list[float] = []
-        for y in grid:
-            if y + spacing / 2 <= cy0 or y - spacing / 2 >= cy1:
-                continue
-            ext = strip_extent(cell, float(y), spacing / 2)
+        ys = grid[(grid + spacing / 2 > cy0) & (grid - spacing / 2 < cy1)]
+        for y, ext in zip(ys, strip_extents(cell, ys, spacing / 2), strict=True):
             if ext is None:
                 continue
             legs.append(leg_pieces(cell, float(np.clip(y, cy0, cy1)), float(y), spacing / 2, ext))
