@@ -154,7 +154,10 @@ def trim_at_turns(
         cut = trimmed_ends(legs, halves, left_to_right_first, leg_ys)
     else:
         cut = legs
-    cut = shortened(cut, math.sqrt(reach * reach - half * half), leg_ys)
+    # the corner at the cut lies exactly at ``reach``: keep it inside the 32-gon that swept_footprint
+    # draws for the disc (inscribed radius reach cos(pi/32)), so the plan's own check sees it
+    disc = reach * math.cos(math.pi / 32)
+    cut = shortened(cut, math.sqrt(max(disc * disc - half * half, 0.0)), leg_ys)
     tol = UNSEEN_TOL * max(poly.area, 1.0)
     sy = np.asarray(strip_ys)
     for _ in range(MAX_RESTORE_ROUNDS):

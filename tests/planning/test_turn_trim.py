@@ -40,12 +40,14 @@ def test_edges_square_to_the_legs_leave_nothing_to_cut() -> None:
 
 def test_footprint_wider_than_the_spacing_cuts_every_end() -> None:
     # 50 m high at step 20: three legs 16.67 m apart; a footprint of half width 10 sees the strip's
-    # corner from sqrt(10^2 - 8.33^2) = 5.53 m inside it, so every leg end moves in by that much
+    # corner from sqrt(10^2 - 8.33^2) = 5.53 m inside it; every leg end moves in by that much, for
+    # the 32-gon disc of swept_footprint by sqrt((10 cos(pi/32))^2 - 8.33^2) = 5.44 m
     rect = np.array([(0, 0), (100, 0), (100, 50), (0, 50)], dtype=float)
     sw = zigzag(rect, 20.0, 0.0)
-    cut = math.sqrt(10.0**2 - (50.0 / 6.0) ** 2)
+    cut = math.sqrt((10.0 * math.cos(math.pi / 32)) ** 2 - (50.0 / 6.0) ** 2)
+    assert cut == pytest.approx(5.44, abs=0.01)
     assert sw.length == pytest.approx(3 * (100.0 - 2 * cut) + 2 * 50.0 / 3.0, abs=1e-6)
-    assert _unseen(rect, sw.points, 10.0) <= 1e-6 * Polygon(rect).area
+    assert _unseen(rect, sw.points, 10.0) <= 1e-9 * Polygon(rect).area
 
 
 def test_trimmed_ends_cut_only_the_ends_next_to_a_turn() -> None:
