@@ -192,7 +192,8 @@ def zigzag(
 
     ``angle`` defaults to the exact minimum-height rotation (fewest legs, fewest turns).
     ``extent="chord"`` reproduces the paper's leg ends (for comparison only: it leaves corners
-    uncovered). ``start`` picks, among the four corners of the pattern, the one nearest to it.
+    uncovered). ``start`` picks, among the four corners of the pattern, the one whose path plus
+    trip from ``start`` is shortest (the nearest one when the corners' paths are equally long).
     Leg ends are cut back where the turns see the area (:mod:`gcs.planning.turn_trim`);
     ``check=False`` skips that module's coverage check (a length estimate for comparing angles).
     """
