@@ -237,8 +237,16 @@ def _fly(poly: np.ndarray, swath: float) -> dict:
         "length_m": length,
         "covered_pct": plan.coverage.covered_pct,
         "m_per_ha": length / covered * 1e4,
+        "floor_m_per_ha": floor_m_per_ha(covered, swath),
         "seconds": secs,
     }
+
+
+def floor_m_per_ha(covered_m2: float, swath: float) -> float:
+    """The least path per covered hectare of *any* path seeing ``covered_m2`` with a footprint ``swath``
+    wide: a path of length L sees at most swath x L plus the disc at its ends (pi swath^2 / 4), so
+    L >= (covered - pi swath^2 / 4) / swath. A reference below it cannot be a flown path's."""
+    return max(covered_m2 - math.pi * swath * swath / 4.0, 0.0) / swath / covered_m2 * 1e4
 
 
 def bench_path_per_area(fields: int = 20, seed: int = 27, swath: float = 20.0) -> dict:
@@ -252,18 +260,26 @@ def bench_path_per_area(fields: int = 20, seed: int = 27, swath: float = 20.0) -
         old = (
             np.array(OLD_6D3B7E8_M_PER_HA[kind][:fields]) if (fields, seed, swath) == (20, 27, 20.0) else None
         )
+        floor = np.array([r["floor_m_per_ha"] for r in rows])
         out[kind] = {
             "fields": fields,
             "median_m_per_ha": round(float(np.median(ours)), 2),
             "min_covered_pct": round(min(r["covered_pct"] for r in rows), 3),
             "median_plan_s": round(float(np.median([r["seconds"] for r in rows])), 4),
+            "vs_floor_median": round(float(np.median(ours / np.maximum(floor, 1e-9))), 4),
         }
         if old is not None:
             f2c = old / F2C_OLD_RATIO[kind]  # the estimated F2C reference per field
+            r = ours / f2c
             out[kind] |= {
                 "vs_6d3b7e8_median": round(float(np.median(ours / old)), 4),
                 "f2c_est_median_m_per_ha": round(float(np.median(f2c)), 2),
-                "vs_f2c_est_median": round(float(np.median(ours / f2c)), 4),
+                "vs_f2c_est_median": round(float(np.median(r)), 4),
+                "vs_f2c_est_p90": round(float(np.percentile(r, 90)), 4),
+                "vs_f2c_est_worst": round(float(np.max(r)), 4),
+                # fields whose estimated F2C reference no path with this footprint can reach
+                "f2c_est_below_floor": int(np.sum(f2c < floor)),
+                "floor_vs_f2c_est_median": round(float(np.median(floor / f2c)), 4),
             }
     lf = _fly(L_FIELD, swath)
     ratio = lf["length_m"] / F2C_REFERENCE_M["L-field"]
@@ -282,17 +298,22 @@ def print_path_per_area(res: dict) -> None:
     print("\n## path per covered area, swath 20 m: ours vs Fields2Cover 2.1 (stored references, issue 27)")
     print(f"ideal (legs one swath apart, no turns): {res['ideal_m_per_ha']} m/ha")
     print(
-        "set | fields | ours median m/ha | F2C est. median m/ha | ours/F2C est. (median) | ours/6d3b7e8 ",
-        end="",
+        "set | fields | ours median m/ha | F2C est. median m/ha | ours/F2C est. median | p90 | worst "
+        "| ours/6d3b7e8 | min covered % | plan s | ours/floor | F2C est. below floor | floor/F2C est."
     )
-    print("| min covered % | plan s")
     for kind in ("convex", "concave"):
         r = res[kind]
         print(
             f"{kind} | {r['fields']} | {r['median_m_per_ha']} | {r.get('f2c_est_median_m_per_ha', '-')} | "
-            f"{r.get('vs_f2c_est_median', '-')} | {r.get('vs_6d3b7e8_median', '-')} | "
-            f"{r['min_covered_pct']} | {r['median_plan_s']}"
+            f"{r.get('vs_f2c_est_median', '-')} | {r.get('vs_f2c_est_p90', '-')} | "
+            f"{r.get('vs_f2c_est_worst', '-')} | {r.get('vs_6d3b7e8_median', '-')} | "
+            f"{r['min_covered_pct']} | {r['median_plan_s']} | {r['vs_floor_median']} | "
+            f"{r.get('f2c_est_below_floor', '-')} of {r['fields']} | {r.get('floor_vs_f2c_est_median', '-')}"
         )
+    print(
+        "(floor: the least path per covered ha of any path with this footprint, swath x length plus the "
+        "end discs; a reference below it is not a flown path's)"
+    )
     lf = res["L-field"]
     print(
         f"L-field | ours {lf['length_m']:.0f} m ({lf['covered_pct']} % covered) | F2C {lf['f2c_m']:.0f} m | "

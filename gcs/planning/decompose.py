@@ -29,7 +29,7 @@ from gcs.planning.patterns import (
     dedupe,
     line_grid,
     path_length,
-    strip_extent,
+    strip_extents,
     zigzag,
 )
 from gcs.planning.polygon import (
@@ -41,6 +41,7 @@ from gcs.planning.polygon import (
     require_simple,
     rotate,
 )
+from gcs.planning.turn_trim import trim_at_turns
 
 MAX_ANGLE_CANDIDATES = 8  # rotations tried by sweep_angle (the minimum-height one included)
 ANGLE_VERTEX_BUDGET = 400  # candidates x vertices: 8 up to 50 vertices, 1 (minimum height) from 400
@@ -167,15 +168,25 @@ def sweep_angle(vertices: ArrayLike, step: float, *, concave: bool | None = None
         return cands[0]
     if concave is None:
         concave = classify(p) == PolygonType.CONCAVE
-    best, best_len = cands[0], math.inf
-    for a in cands:
+
+    def flown_length(a: float, check: bool) -> float:
         if concave:
-            lines, _, _ = _cell_lines(p, step, a, None)
-            length = path_length(dedupe(lines.reshape(-1, 2)))
-        else:
-            length = zigzag(p, step, a).length
+            lines, _, _ = _cell_lines(p, step, a, None, check=check)
+            return path_length(dedupe(lines.reshape(-1, 2)))
+        return zigzag(p, step, a, check=check).length
+
+    # compare by the trimmed length unchecked (cheap; a cut the check gives back only lengthens the
+    # path, by the triangle inequality), then check in that order until no estimate is below the
+    # best checked length, so the checked shortest is found (usually after one check)
+    est = [flown_length(a, False) for a in cands]
+    order = sorted(range(len(cands)), key=lambda i: (est[i], i))
+    best, best_len = cands[order[0]], math.inf
+    for i in order:
+        if est[i] >= best_len * (1.0 - 1e-9):
+            break
+        length = flown_length(cands[i], True)
         if length < best_len * (1.0 - 1e-9):
-            best, best_len = a, length
+            best, best_len = cands[i], length
     return best
 
 
@@ -225,21 +236,11 @@ def _excess(
     return (yy, min(end, rx0), end) if end > span[0] else (yy, end, max(end, rx1))
 
 
-def _boustrophedon_pieces(legs: list[list[Piece]], reverse_first: bool = False) -> FloatArray:
-    """Legs of pieces to an (M, 2, 2) array of straight parts, flown alternately left-right / right-left."""
-    out: list[list[list[float]]] = []
-    for k, leg in enumerate(legs):
-        if (k % 2 == 1) != reverse_first:
-            out.extend([[x1, yy], [x0, yy]] for yy, x0, x1 in reversed(leg))
-        else:
-            out.extend([[x0, yy], [x1, yy]] for yy, x0, x1 in leg)
-    return np.asarray(out, dtype=float).reshape(-1, 2, 2)
-
-
 def _cell_lines(
-    p: FloatArray, step: float, angle: float, start: ArrayLike | None
+    p: FloatArray, step: float, angle: float, start: ArrayLike | None, *, check: bool = True
 ) -> tuple[FloatArray, float, int]:
-    """World-frame legs (L, 2, 2) of every cell in visiting order, the line spacing, the cell count."""
+    """World-frame legs (L, 2, 2) of every cell in visiting order, the line spacing, the cell count
+    (``check=False``: leg ends trimmed unchecked, to compare angles; see :func:`trim_at_turns`)."""
     c = centroid(p)
     q = Polygon(rotate(p, angle, c))
     if not q.is_valid:
@@ -248,18 +249,22 @@ def _cell_lines(
     grid, spacing = line_grid(ymin, ymax, step)
     cells = boustrophedon_cells(q)
     cell_legs: list[list[list[Piece]]] = []
+    cell_info: list[tuple[Polygon, list[float], list[float]]] = []  # cell, strip and leg ordinates
     for cell in cells:
         cy0, cy1 = cell.bounds[1], cell.bounds[3]
         legs: list[list[Piece]] = []
-        for y in grid:
-            if y + spacing / 2 <= cy0 or y - spacing / 2 >= cy1:
-                continue
-            ext = strip_extent(cell, float(y), spacing / 2)
+        strip_ys: list[float] = []
+        leg_ys: list[float] = []
+        ys = grid[(grid + spacing / 2 > cy0) & (grid - spacing / 2 < cy1)]
+        for y, ext in zip(ys, strip_extents(cell, ys, spacing / 2), strict=True):
             if ext is None:
                 continue
             legs.append(leg_pieces(cell, float(np.clip(y, cy0, cy1)), float(y), spacing / 2, ext))
+            strip_ys.append(float(y))
+            leg_ys.append(float(np.clip(y, cy0, cy1)))
         if legs:
             cell_legs.append(legs)
+            cell_info.append((cell, strip_ys, leg_ys))
     cur = None if start is None else rotate(np.asarray(start, dtype=float).reshape(1, 2), angle, c)[0]
     # greedy: enter next the cell whose entry corner is nearest (vectorised over cells x 4 corners)
     k_n = len(cell_legs)
@@ -282,7 +287,18 @@ def _cell_lines(
             d[~todo] = np.inf
             k, opt = divmod(int(np.argmin(d)), 4)
         seq = cell_legs[k] if opt < 2 else cell_legs[k][::-1]
-        lines = _boustrophedon_pieces(seq, opt % 2 == 1)
+        cell, sys_, lys = cell_info[k]  # leg ends cut back where the turns see the area
+        fwd = opt < 2
+        lines = trim_at_turns(
+            cell,
+            seq,
+            sys_ if fwd else sys_[::-1],
+            spacing / 2,
+            opt % 2 == 0,
+            reach=step / 2,
+            check=check,
+            leg_ys=lys if fwd else lys[::-1],
+        )
         ordered.append(lines)
         cur = lines[-1, 1]
         todo[k] = False

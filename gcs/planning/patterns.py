@@ -148,6 +148,17 @@ def strip_extent(poly: Polygon, y: float, half: float) -> tuple[float, float] | 
     return float(x0), float(x1)
 
 
+def strip_extents(poly: Polygon, ys: ArrayLike, half: float) -> list[tuple[float, float] | None]:
+    """:func:`strip_extent` for every ordinate in ``ys``, in one vectorised intersection."""
+    y = np.asarray(ys, dtype=float).reshape(-1)
+    minx, _, maxx, _ = poly.bounds
+    eps = min(STRIP_TOL_M, half * 1e-3)
+    pieces = shapely.intersection(poly, shapely.box(minx - 1.0, y - half + eps, maxx + 1.0, y + half - eps))
+    ok = ~shapely.is_empty(pieces) & (shapely.area(pieces) > 1e-12 * max(poly.area, 1.0))
+    b = shapely.bounds(pieces)
+    return [(float(b[i, 0]), float(b[i, 2])) if ok[i] else None for i in range(len(y))]
+
+
 def chord_extent(poly: Polygon, y: float) -> tuple[float, float] | None:
     """x-range of the line at ordinate ``y`` inside the polygon (the paper's PolygonLineIntersect)."""
     minx, _, maxx, _ = poly.bounds
@@ -175,12 +186,16 @@ def zigzag(
     *,
     extent: str = "strip",
     start: ArrayLike | None = None,
+    check: bool = True,
 ) -> Sweep:
     """Zigzag over the convex hull of ``vertices`` (seed 000 Alg. 2, corrected).
 
     ``angle`` defaults to the exact minimum-height rotation (fewest legs, fewest turns).
     ``extent="chord"`` reproduces the paper's leg ends (for comparison only: it leaves corners
-    uncovered). ``start`` picks, among the four corners of the pattern, the one nearest to it.
+    uncovered). ``start`` picks, among the four corners of the pattern, the one whose path plus
+    trip from ``start`` is shortest (the nearest one when the corners' paths are equally long).
+    Leg ends are cut back where the turns see the area (:mod:`gcs.planning.turn_trim`);
+    ``check=False`` skips that module's coverage check (a length estimate for comparing angles).
     """
     hull = convex_hull(vertices)
     if angle is None:
@@ -190,32 +205,62 @@ def zigzag(
     _, ymin, _, ymax = q.bounds
     ys, spacing = line_grid(ymin, ymax, step)
     segs: list[tuple[float, float, float]] = []
-    for y in ys:
-        ext = strip_extent(q, float(y), spacing / 2) if extent == "strip" else chord_extent(q, float(y))
+    exts = strip_extents(q, ys, spacing / 2) if extent == "strip" else [chord_extent(q, float(y)) for y in ys]
+    for y, ext in zip(ys, exts, strict=True):
         if ext is None:
             continue
         segs.append((float(y), ext[0], ext[1]))
     if not segs:
         raise ValueError("polygon too small or degenerate for a zigzag")
-    lines = _choose_start(segs, angle, c, start)
+    trim_to = q if extent == "strip" else None
+    lines = _choose_start(segs, angle, c, start, trim_to, spacing / 2, step / 2, check)
     pts = dedupe(lines.reshape(-1, 2))
     return Sweep("zigzag", pts, lines, step, spacing, angle, {"extent": extent})
 
 
 def _choose_start(
-    segs: list[tuple[float, float, float]], angle: float, c: tuple[float, float], start: ArrayLike | None
+    segs: list[tuple[float, float, float]],
+    angle: float,
+    c: tuple[float, float],
+    start: ArrayLike | None,
+    trim_to: Polygon | None = None,
+    half: float = 0.0,
+    reach: float = 0.0,
+    check: bool = True,
 ) -> FloatArray:
-    """Lines in world coordinates, beginning at the pattern corner nearest ``start``."""
+    """Lines in world coordinates from the corner whose path plus trip from ``start`` is shortest; with
+    ``trim_to`` (the rotated polygon) leg ends next to a turn are cut back where the turn sees the
+    area (:func:`gcs.planning.turn_trim.trim_at_turns`), which depends on the corner."""
+    from gcs.planning.turn_trim import half_strip_extents, trim_at_turns
+
     options = []
     for bottom_up in (True, False):
         ordered = segs if bottom_up else segs[::-1]
         for rev in (False, True):
-            options.append(_boustrophedon(ordered, rev))
-    worlds = [rotate(o.reshape(-1, 2), -angle, c).reshape(-1, 2, 2) for o in options]
-    if start is None:
-        return worlds[0]
-    s = np.asarray(start, dtype=float).reshape(2)
-    return min(worlds, key=lambda w: float(np.hypot(*(w[0, 0] - s))))
+            options.append((ordered, rev))
+    ys = [y for y, _, _ in segs]
+    halves = None if trim_to is None else half_strip_extents(trim_to, ys, ys, half)
+
+    def flown(i: int, checked: bool) -> FloatArray:
+        ordered, rev = options[i]
+        if trim_to is None or halves is None:
+            return _boustrophedon(ordered, rev)
+        hv = halves if i < 2 else halves[::-1]
+        legs = [[leg] for leg in ordered]
+        oys = ys if i < 2 else ys[::-1]
+        return trim_at_turns(trim_to, legs, oys, half, not rev, reach, check=checked, halves=hv)
+
+    # trimming depends on which ends turn: the corners give two path lengths (each flown both ways);
+    # keep the shortest path plus the trip from ``start`` to its first point (first corner on ties)
+    s = None if start is None else rotate(np.asarray(start, dtype=float).reshape(1, 2), angle, c)[0]
+    costs = []
+    for i in range(len(options) if s is not None else 2):  # without a start, reversing changes nothing
+        lines = flown(i, False)
+        trip = 0.0 if s is None else float(np.hypot(*(lines[0, 0] - s)))
+        costs.append(trip + path_length(dedupe(lines.reshape(-1, 2))))
+    k = next(i for i, v in enumerate(costs) if v <= min(costs) * (1.0 + 1e-9))
+    lines = flown(k, check)
+    return rotate(lines.reshape(-1, 2), -angle, c).reshape(-1, 2, 2)
 
 
 def _inward_bisector_excursions(

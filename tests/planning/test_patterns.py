@@ -50,7 +50,10 @@ def test_lines_even_and_half_a_spacing_inside():
     assert ys[0] == pytest.approx(spacing / 2) and ys[-1] == pytest.approx(150 - spacing / 2)
     sw = zigzag(RECT, 20.0)
     assert len(sw.lines) == 8 and sw.turns == 14
-    assert sw.length == pytest.approx(8 * 200 + 7 * 18.75)
+    # legs 18.75 m apart under a 20 m footprint: every leg end moves in by the corner's slack,
+    # sqrt((10 cos(pi/32))^2 - 9.375^2) = 3.34 m (gcs.planning.turn_trim), 8 x 200 m before
+    cut = math.sqrt((10.0 * math.cos(math.pi / 32)) ** 2 - 9.375**2)
+    assert sw.length == pytest.approx(8 * (200 - 2 * cut) + 7 * 18.75)
 
 
 def test_zigzag_runs_along_min_height():
