@@ -52,7 +52,7 @@ def rig(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
         pytest.importorskip("mavsdk", reason="the MAVSDK backend needs the mavsdk package (extra [mavsdk])")
     first = first_instance()
     if first is None:
-        pytest.skip("PX4 instance ids 0-9 hold three blocks of three (xdist workers gw0-gw2); this worker has none")
+        pytest.skip("PX4 ids 0-9 hold three blocks of three (xdist workers gw0-gw2): none for this worker")
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     _log_boot(f"PX4 boot: backend {backend}, worker {worker}, instances {first}-{first + 2}, {SPEED:g}x")
     fleet = PX4Rig(px4, backend, tmp_path_factory.mktemp(f"px4-{backend}"), first).start()
@@ -86,6 +86,9 @@ def leave_landed(request: pytest.FixtureRequest) -> Iterator[None]:
         )
         # PX4 says why it refused or changed something on its GCS link only (none on the API link).
         print(f"{name}: PX4's texts {[s for _, s in rig.observers[name].texts_since(vehicle)][-8:]}")
+        failsafes = [(round(at - vehicle, 1), flags) for at, flags in rig.failsafes[name] if at >= vehicle]
+        if failsafes:  # PX4's own failsafes in this test, each with the conditions that held (PX4 s)
+            print(f"{name}: PX4's failsafe conditions {failsafes}")
     active = rig.run(lambda: set(rig.d.missions.active))
     if active or not rig.all_landed():
         rig.call(rig.d.operator.bring_down("land", None, "test cleanup"))

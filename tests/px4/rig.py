@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from agent.autopilot.base import Autopilot
@@ -30,7 +31,7 @@ from agent.autopilot.factory import create_autopilot
 from agent.config import AgentSettings
 from gcs.cooperation.config import CollisionConfig, CooperationConfig
 from gcs.link.beacon import free_udp_port
-from protocol.geo import offset_latlon
+from protocol.geo import distance_m, offset_latlon
 from tests.px4.observer import Fix, Observer
 from tests.px4.sih import PX4Fleet
 from tests.support.places import at_vehicle
@@ -85,6 +86,8 @@ class PX4Rig(FleetRig):
         self.backend = backend
         self.fleet = PX4Fleet(px4, data_dir / "px4", first, VEHICLES, HOME, SPACING_M, PARAMS, SPEED, NICE)
         self.observers: dict[str, Observer] = {}
+        # (PX4 time, conditions) read from PX4 each time it says "Failsafe activated" (the reason)
+        self.failsafes: dict[str, list[tuple[float, list[str]]]] = {n: [] for n in self.names}
         self.origins: list[tuple[float, float]] = [at(0.0, 0.0, i) for i in range(VEHICLES)]
         # Off until collision_avoidance() turns it on: the daemon reads this object on every check.
         self.collision = collision or CollisionConfig(enabled=False, escape="none")
@@ -96,7 +99,7 @@ class PX4Rig(FleetRig):
             self.booted_at = time.monotonic()
             self.fleet.start()
             for name, instance in zip(self.names, self.fleet.instances, strict=True):
-                self.observers[name] = Observer(instance)
+                self.observers[name] = Observer(instance, self._failsafe_reader(name, instance))
             last = len(self.fleet.endpoints) - 1
             autopilots: list[Autopilot] = [
                 create_autopilot(self.backend, endpoint, telemetry_hz=10.0, **self._router(i == last))
@@ -108,6 +111,19 @@ class PX4Rig(FleetRig):
             self.stop()
             raise
         return self
+
+    def _failsafe_reader(self, name: str, instance: int) -> Callable[[float, str], None]:
+        """On PX4's "Failsafe activated", read which of its failsafe conditions hold (on a thread of its
+        own: the observer's reader must not wait for a process)."""
+
+        def read(at: float) -> None:
+            self.failsafes[name].append((at, self.fleet.failsafe_flags(instance)))
+
+        def on_text(at: float, text: str) -> None:
+            if "failsafe" in text.lower():
+                threading.Thread(target=read, args=(at,), name=f"px4-fs-{instance}", daemon=True).start()
+
+        return on_text
 
     def _router(self, last: bool) -> dict[str, object]:
         """The last drone's agent routes its MAVLink to a ground station on :attr:`router_port`
@@ -148,6 +164,16 @@ class PX4Rig(FleetRig):
     def param(self, name: str, param: str) -> float:
         """``param`` as PX4 holds it (read on the GCS link, integers decoded)."""
         return self.observers[name].param(param)
+
+    def estimate_off_gps(self, name: str) -> float:
+        """How far PX4's position estimate (GLOBAL_POSITION_INT) lies from its GPS (GPS_RAW_INT), in
+        metres; infinite without a 3-D fix. After a GNSS loss the estimate dead-reckons away, and PX4
+        resets it to the GPS only some seconds after the fix is back."""
+        observer = self.observers[name]
+        fix, gps = observer.latest(), observer.gps
+        if fix is None or gps is None or gps[2] < 3:
+            return float("inf")
+        return distance_m(fix.lat, fix.lon, gps[0], gps[1])
 
     def vehicle_now(self, name: str) -> float:
         fix = self.observers[name].latest()
