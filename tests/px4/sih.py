@@ -194,7 +194,7 @@ class PX4Fleet:
         flags = []
         for line in out.splitlines():
             key, _, value = line.strip().partition(": ")
-            skip = key in usual or key.startswith(("mode_req", "timestamp"))
+            skip = key in usual or key.startswith(("mode_req", "timestamp", "TOPIC"))
             if value not in ("False", "0", "") and not skip:
                 flags.append(f"{key}={value}" if value != "True" else key)
         return flags
