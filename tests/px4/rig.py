@@ -4,8 +4,9 @@ One PX4 boot (3 quadcopters, homes 10 m apart) serves a test module per backend.
 PX4's API links (``udpin:127.0.0.1:14540+i``) behind a :class:`tests.faults.proxy.FaultProxy` (to cut
 the daemon link); an :class:`Observer` per vehicle watches PX4's GCS link in PX4's own clock.
 
-Instance ids: each xdist worker has its own block (``gw0`` and a run without xdist 0-2, ``gw1`` 5-7;
-PX4 sends the API link of every instance from 10 on to one port, so a third worker skips), and a second
+Instance ids: each xdist worker has its own block (``gw0`` and a run without xdist 0-2, ``gw1`` 3-5,
+``gw2`` 6-8; PX4 sends the API link of every instance from 10 on to one port, so a fourth worker
+skips), and a second
 process asking for a block (another checkout) waits for it (file lock) instead of colliding.
 PX4 runs ``SPEED`` times faster than the wall clock
 (``PX4_SIM_SPEED_FACTOR``; override with ``$FLEETGCS_PX4_SPEED``). PX4 runs in lockstep: a starved
