@@ -1,4 +1,4 @@
-"""Issue 23's acceptance on real PX4, on both agent backends, in one flight (63-71 s wall with PX4 at
+"""Issue 23's acceptance on real PX4, on both agent backends, in one flight (60-71 s wall with PX4 at
 1.7-1.9x), ready for CI: a mission pause stops PX4 drones (below 0.5 m/s within 3 s, within 3 m for
 10 s), a collision hold stops one, and RTL-all brings the crossing pair home in distinct layers,
 never inside the margins.
