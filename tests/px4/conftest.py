@@ -86,6 +86,9 @@ def leave_landed(request: pytest.FixtureRequest) -> Iterator[None]:
         )
         # PX4 says why it refused or changed something on its GCS link only (none on the API link).
         print(f"{name}: PX4's texts {[s for _, s in rig.observers[name].texts_since(vehicle)][-8:]}")
+        failsafes = [(round(at - vehicle, 1), flags) for at, flags in rig.failsafes[name] if at >= vehicle]
+        if failsafes:  # PX4's own failsafes in this test, each with the conditions that held (PX4 s)
+            print(f"{name}: PX4's failsafe conditions {failsafes}")
     active = rig.run(lambda: set(rig.d.missions.active))
     if active or not rig.all_landed():
         rig.call(rig.d.operator.bring_down("land", None, "test cleanup"))

@@ -16,6 +16,7 @@ import os
 import struct
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -41,8 +42,9 @@ class Fix:
 class Observer:
     """Watches instance ``instance`` (system id ``instance + 1``)."""
 
-    def __init__(self, instance: int) -> None:
+    def __init__(self, instance: int, on_text: Callable[[float, str], None] | None = None) -> None:
         self.sysid = instance + 1
+        self.on_text = on_text  # called (vehicle time, text) for every STATUSTEXT, on the reader thread
         self.conn = mavutil.mavlink_connection(
             f"udpout:127.0.0.1:{GCS_PORT_BASE + instance}",
             source_system=OBSERVER_SYSID,
@@ -56,6 +58,7 @@ class Observer:
         self.modes: list[tuple[float, int, bool]] = []  # (vehicle time, custom_mode, armed) at each change
         self.texts: list[tuple[float, str]] = []  # (vehicle time, STATUSTEXT)
         self.acks: list[tuple[int, int, float]] = []  # (command, result, wall time)
+        self.gps: tuple[float, float, int] | None = None  # the newest GPS_RAW_INT: lat, lon, fix type
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"px4-observer-{instance}", daemon=True)
@@ -91,6 +94,10 @@ class Observer:
                         self.modes.append((self._now(), msg.custom_mode, armed))
                 elif kind == "STATUSTEXT":
                     self.texts.append((self._now(), msg.text))
+                    if self.on_text is not None:
+                        self.on_text(self._now(), msg.text)
+                elif kind == "GPS_RAW_INT":
+                    self.gps = (msg.lat / 1e7, msg.lon / 1e7, msg.fix_type)
                 elif kind == "COMMAND_ACK" and getattr(msg, "target_system", 0) in (0, OBSERVER_SYSID):
                     # PX4 sends the ACKs of every link's commands on every link: only ours (or untargeted)
                     self.acks.append((msg.command, msg.result, time.monotonic()))

@@ -172,6 +172,33 @@ class PX4Fleet:
             return "(no log)"
         return " | ".join(text[-lines:]) or "(empty log)"
 
+    def failsafe_flags(self, instance: int, timeout: float = 5.0) -> list[str]:
+        """The conditions of PX4's failsafe state machine that hold now (its ``failsafe_flags`` topic, read
+        with ``listener`` through the instance's socket), without the three that hold in every flight
+        here (no mission uploaded, no offboard stream, no RC: PX4 ignores the last since it armed
+        without one). PX4 says only "Failsafe activated" on MAVLink; its reason is an event that
+        pymavlink does not decode, so a test reads this instead (bounded; [] if it cannot be read)."""
+        listener = self.workdir / "bin" / "px4-listener"
+        try:
+            out = subprocess.run(
+                [str(listener), "--instance", str(instance), "failsafe_flags"],
+                capture_output=True,
+                text=True,
+                timeout=timeout,
+                cwd=self.workdir,
+                check=False,
+            ).stdout
+        except (OSError, subprocess.TimeoutExpired) as e:
+            return [f"(listener failed: {e})"]
+        usual = {"auto_mission_missing", "offboard_control_signal_lost", "manual_control_signal_lost"}
+        flags = []
+        for line in out.splitlines():
+            key, _, value = line.strip().partition(": ")
+            skip = key in usual or key.startswith(("mode_req", "timestamp", "TOPIC"))
+            if value not in ("False", "0", "") and not skip:
+                flags.append(f"{key}={value}" if value != "True" else key)
+        return flags
+
     def alive(self) -> bool:
         return bool(self.procs) and all(p.poll() is None for p in self.procs)
 
