@@ -4,10 +4,9 @@ One PX4 boot (3 quadcopters, homes 10 m apart) serves a test module per backend.
 PX4's API links (``udpin:127.0.0.1:14540+i``) behind a :class:`tests.faults.proxy.FaultProxy` (to cut
 the daemon link); an :class:`Observer` per vehicle watches PX4's GCS link in PX4's own clock.
 
-Instance ids: each xdist worker has its own block (``gw0`` and a run without xdist 0-2, ``gw1`` 3-5,
-``gw2`` 6-8; PX4 sends the API link of every instance from 10 on to one port, so a fourth worker
-skips), and a second
-process asking for a block (another checkout) waits for it (file lock) instead of colliding.
+Instance ids: each backend has its own block (mavlink 0-2, mavsdk 3-5; ``FLEETGCS_PX4_BLOCK=2`` gives
+6-8 to a run beside the suite; PX4 sends the API link of every instance from 10 on to one port), and a
+second process asking for a block (another checkout) waits for it (file lock) instead of colliding.
 PX4 runs ``SPEED`` times faster than the wall clock
 (``PX4_SIM_SPEED_FACTOR``; override with ``$FLEETGCS_PX4_SPEED``). PX4 runs in lockstep: a starved
 machine slows PX4's clock instead of dropping physics, so every check reads PX4's own clock and the
