@@ -22,7 +22,7 @@ from protocol.geo import distance_m
 from tests.px4.rig import PX4Rig
 from tests.support.rig import task
 
-pytestmark = [pytest.mark.px4, pytest.mark.px4_extended, pytest.mark.slow, pytest.mark.timeout(420)]
+pytestmark = [pytest.mark.px4, pytest.mark.slow, pytest.mark.timeout(420)]
 
 PX4 = Px4Flavour()
 AUTO, RTL_SUB = 4, 5
