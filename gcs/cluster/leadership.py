@@ -31,7 +31,6 @@ from gcs.cluster.decisions import FILE_NAME, DecisionLog
 from gcs.cluster.fencing import LEASE_ERRORS, LeaseUncertain
 from gcs.cluster.forwarding import AIRSPACE_LEASE
 from gcs.cooperation.airspace import Airspace
-from gcs.core.config import REPLICATED_LEASE_TTL_S
 from protocol.taskfile import TaskFile
 
 if TYPE_CHECKING:
@@ -41,7 +40,7 @@ log = logging.getLogger("gcs.cluster")
 
 STALL_S = 0.5  # the lease loop woke this much later than asked: we were stalled (paused, starved)
 ROUND_S = 1.0  # lease rounds at least this often: a lease's age when NATS stops answering is small
-RIDE_THROUGH_TTL_S = REPLICATED_LEASE_TTL_S  # outlives a stream leader election
+RIDE_THROUGH_TTL_S = 8.0  # a lease this long outlives a stream leader election (5-6.5 s, nats-server 2.9)
 
 
 def settings_warnings(servers: int, replicas: int, lease_ttl_s: float) -> list[str]:

@@ -14,9 +14,6 @@ from protocol.packets import AgentParameters
 from protocol.wire import DEFAULT_MAX_BODY
 
 CLUSTER_LOST_MARGIN_S = 2.0  # an agent's move to another daemon: reconnect, handshake, join, claim
-# A mission lease this long outlives a JetStream stream-leader election (5-7.5 s measured, nats-server
-# 2.9): the default on replicated buckets, where losing a NATS node must not leave missions leaderless.
-REPLICATED_LEASE_TTL_S = 8.0
 
 
 def default_data_dir() -> Path:
@@ -184,11 +181,7 @@ class DaemonConfig(BaseModel):
         default=1, ge=1, le=5, description="JetStream replicas of the shared buckets (3 on a 3-node NATS)"
     )
     cluster_lease_ttl_s: float = Field(
-        default=3.0,
-        ge=0.5,
-        le=60.0,
-        description="a mission leader's lease; a standby takes over after it (default 3 s, or "
-        f"{REPLICATED_LEASE_TTL_S:g} s with cluster_replicas > 1, to ride through a NATS node loss)",
+        default=3.0, ge=0.5, le=60.0, description="a mission leader's lease; a standby takes over after it"
     )
     cluster_prune_after_s: float = Field(
         default=3600.0,
@@ -238,15 +231,6 @@ class DaemonConfig(BaseModel):
         if value is not None:
             parse_beacon_address(value)  # its ValueError says what is wrong
         return value
-
-    @model_validator(mode="after")
-    def _lease_rides_through_replication(self) -> DaemonConfig:
-        """Unless set, the lease on replicated buckets outlasts a JetStream leader election: with 3 s,
-        losing one NATS node of three left missions leaderless for up to 8.5 s (issue 25). The cost is
-        a slower takeover after a daemon dies (about the lease), which docs/cluster.md weighs."""
-        if "cluster_lease_ttl_s" not in self.model_fields_set and self.cluster_replicas > 1:
-            self.cluster_lease_ttl_s = REPLICATED_LEASE_TTL_S
-        return self
 
     @model_validator(mode="after")
     def _liveness_agrees(self) -> DaemonConfig:

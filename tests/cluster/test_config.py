@@ -11,7 +11,6 @@ from gcs.cli import build_parser
 from gcs.cluster.api import public_url
 from gcs.cluster.leadership import settings_warnings
 from gcs.commands.serve import resolve_config
-from gcs.core.config import REPLICATED_LEASE_TTL_S, DaemonConfig
 from gcs.core.config_file import ConfigFileError, load_daemon_config
 from tests.support.processes import BIN
 
@@ -108,13 +107,3 @@ def test_start_up_warns_of_settings_that_do_not_survive_a_node_loss() -> None:
 def test_the_cluster_api_never_shows_nats_credentials() -> None:
     assert public_url("nats://fleet:s3cr@t@base1:4222") == "nats://base1:4222"
     assert public_url("tls://base2:4222") == "tls://base2:4222"
-
-
-def test_the_lease_defaults_to_riding_through_a_nats_election_on_replicated_buckets() -> None:
-    """Issue 25: with 3 s, losing one NATS node of three left missions leaderless up to 8.5 s."""
-    one = DaemonConfig(cluster=["nats://127.0.0.1:4222"])
-    three = DaemonConfig(cluster=["nats://a:4222", "nats://b:4222", "nats://c:4222"], cluster_replicas=3)
-    chosen = DaemonConfig(cluster=["nats://a:4222"], cluster_replicas=3, cluster_lease_ttl_s=3.0)
-    assert one.cluster_lease_ttl_s == 3.0
-    assert three.cluster_lease_ttl_s == REPLICATED_LEASE_TTL_S == 8.0
-    assert chosen.cluster_lease_ttl_s == 3.0  # set by the operator: kept (and warned about at start)
