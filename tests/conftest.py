@@ -10,6 +10,12 @@ The real PX4 runs (``tests/px4``) go to one group per agent backend (``px4-mavli
 each backend's modules share one worker and its own block of PX4 instance ids, and the two backends
 run side by side. PX4 itself runs at ``PX4_SIM_SPEED_FACTOR`` and niced, so it is not "heavy".
 
+The real ArduCopter modules (``tests/ardupilot``, parametrized over our simulator and ArduCopter) go to
+one group per module: its rigs boot once (not once per worker that draws one of its tests) and its tests
+run in file order, which the module relies on (the pilot's takeover is last: it ends by the operator's
+release). Spread one by one over three workers, a run failed the pilot's test twice in a row (its drone
+never got 30 m into its leg), with the module's order and boots no longer what it was written for.
+
 The groups are put into effect by our own scheduler (:func:`pytest_xdist_make_scheduler`), from the
 node ids: pytest-xdist 3.8 marks a grouped test by appending ``@group`` to ``item._nodeid``, which
 pytest 9 no longer reads (the node id is ``item._id``), so its ``--dist loadgroup`` silently spread
@@ -43,6 +49,8 @@ def xdist_group_of(nodeid: str) -> str | None:
     if top == "px4":
         backend = _BACKEND.search(nodeid)
         return f"px4-{backend.group(1)}" if backend else None
+    if top == "ardupilot" and "[" in nodeid:  # a flight on a module's rig
+        return f"ardupilot-{Path(path).stem}"
     return None
 
 
