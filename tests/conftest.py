@@ -1,7 +1,7 @@
 """Suite-wide collection rules.
 
-The suite runs on two pytest-xdist workers (``scripts/test``), each test sent to whichever worker
-is free. The flight scenarios, the real ArduCopter runs and the packaging test are not grouped:
+The suite runs on three pytest-xdist workers on two cores (``scripts/test``), each test sent to
+whichever worker is free. The flight scenarios and the packaging test are not grouped:
 kept on one worker (the ``heavy`` group, in force for the first time with the scheduler below)
 they ran one after the other for 10+ minutes while the other worker idled, and the suite took 19
 minutes instead of 12; side by side they wait on accelerated simulators more than they compute.

@@ -1,7 +1,7 @@
 """One PX4 boot per agent backend for the whole package (``rig`` is package-scoped and parametrized over
 the two backends): every flight of tests/px4 on one backend shares one fleet, and tests/conftest.py puts
-each backend's tests in one xdist group, so with ``-n 2 --dist loadgroup`` each backend boots PX4 once,
-on one worker, in that worker's block of instance ids. Each boot is logged (logger ``tests.px4``, and a
+each backend's tests in one xdist group, so with ``--dist loadgroup`` each backend boots PX4 once,
+on one worker, in that backend's block of instance ids. Each boot is logged (logger ``tests.px4``, and a
 line in ``$FLEETGCS_PX4_BOOT_LOG`` when set) so that this can be checked."""
 
 from __future__ import annotations
